@@ -1,0 +1,19 @@
+"""wrinkle-jax: plausible fine wrinkles for coarse garment animations, in JAX.
+
+Reimplements and extends *Deep Detail Enhancement for Any Garment* (Zhang et al., EG 2021):
+bake a coarse garment to a UV normal map, enhance overlapping patches with a material-conditioned
+U-Net, merge them, and lift the enhanced map back to a detailed mesh.
+"""
+
+__version__ = "0.1.0"
+
+# Materials, in the fixed index order used by every model and data set.
+MATERIALS = ("silk_charmeuse", "wool_melton", "knit_terry", "silk_chiffon", "denim_light")
+
+
+def material_index(name: str) -> int:
+    """Index of a material name in `MATERIALS`; raises ValueError naming the valid choices."""
+    try:
+        return MATERIALS.index(name)
+    except ValueError:
+        raise ValueError(f"unknown material {name!r}; expected one of {', '.join(MATERIALS)}") from None

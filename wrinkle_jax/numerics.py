@@ -1,0 +1,54 @@
+"""Guarded numerics: norms, divisions and normalizations that stay finite (and have finite
+gradients) at zero, plus the project's tolerances in one place.
+
+Every function here is jittable and differentiable. The trick used throughout: where the
+denominator could be zero, replace it by a safe value *before* dividing (the "double where"
+pattern), so neither the value nor the gradient produces NaN.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+# Smallest squared length treated as non-zero (meters^2 for geometry, unitless for normals).
+EPS_SQ = 1e-24
+# Smallest denominator treated as non-zero in divisions.
+EPS_DIV = 1e-12
+# Barycentric tolerance when deciding whether a texel center lies inside a UV triangle.
+BARY_EPS = 1e-7
+# Degenerate-triangle threshold on twice the signed UV area, in squared pixels.
+UV_AREA_EPS = 1e-12
+
+
+def safe_norm(x, axis=-1, keepdims=False, eps_sq=EPS_SQ):
+    """Euclidean norm with a zero (not NaN) gradient at x = 0.
+
+    Args:
+      x: array (..., D).
+      axis: reduction axis.
+    Returns:
+      (...) or (..., 1) norms; exactly 0 where |x|^2 <= eps_sq.
+    """
+    sq = jnp.sum(x * x, axis=axis, keepdims=keepdims)
+    ok = sq > eps_sq
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
+
+
+def normalize(x, axis=-1, eps_sq=EPS_SQ):
+    """Unit vectors along `axis`; zero vectors stay zero with finite gradients.
+
+    Args:
+      x: array (..., D).
+    Returns:
+      (..., D) array of unit (or zero) vectors.
+    """
+    sq = jnp.sum(x * x, axis=axis, keepdims=True)
+    ok = sq > eps_sq
+    inv = jnp.where(ok, 1.0 / jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
+    return x * inv
+
+
+def safe_div(num, den, eps=EPS_DIV, fill=0.0):
+    """num / den where |den| > eps, else `fill`; gradients stay finite everywhere."""
+    ok = jnp.abs(den) > eps
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), fill)

@@ -16,4 +16,5 @@ def material_index(name: str) -> int:
     try:
         return MATERIALS.index(name)
     except ValueError:
-        raise ValueError(f"unknown material {name!r}; expected one of {', '.join(MATERIALS)}") from None
+        choices = ", ".join(MATERIALS)
+        raise ValueError(f"unknown material {name!r}; expected one of {choices}") from None

@@ -1,0 +1,294 @@
+"""Tests for wrinkle_jax.mesh: validation, normals, topology, Laplacians, subdivision."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from wrinkle_jax import mesh, primitives
+from wrinkle_jax.mesh import GarmentError
+
+
+def _j(g):
+    return jnp.asarray(g.vertices), jnp.asarray(g.faces)
+
+
+# ---------------------------------------------------------------- validation
+
+
+def test_make_garment_rejects_bad_input(sheet):
+    v, f, uv, uf = sheet.vertices, sheet.faces, sheet.uvs, sheet.uv_faces
+    bad = v.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(GarmentError, match="non-finite vertex.*index 3"):
+        mesh.make_garment(bad, f, uv, uf, source="x.obj")
+    with pytest.raises(GarmentError, match="no UV"):
+        mesh.make_garment(v, f, np.zeros((0, 2)), uf, source="x.obj")
+    f2 = f.copy()
+    f2[0, 0] = len(v)
+    with pytest.raises(GarmentError, match="face indices out of range"):
+        mesh.make_garment(v, f2, uv, uf)
+    uf2 = uf.copy()
+    uf2[0, 0] = -1
+    with pytest.raises(GarmentError, match="UV face indices out of range"):
+        mesh.make_garment(v, f, uv, uf2)
+    with pytest.raises(GarmentError, match="uv_faces shape"):
+        mesh.make_garment(v, f, uv, uf[:-1])
+    with pytest.raises(GarmentError, match="panels"):
+        mesh.make_garment(v, f, uv, uf, panels=np.zeros(3))
+
+
+def test_garment_is_a_pytree(sheet):
+    leaves = jax.tree_util.tree_leaves(sheet)
+    assert len(leaves) == 4  # panels is None
+    doubled = jax.tree_util.tree_map(lambda x: x * 2, sheet)
+    np.testing.assert_allclose(doubled.vertices, sheet.vertices * 2)
+
+    @jax.jit
+    def centroid(g):
+        return jnp.mean(g.vertices, axis=0)
+
+    np.testing.assert_allclose(centroid(sheet), sheet.vertices.mean(0), atol=1e-6)
+
+
+# ---------------------------------------------------------------- normals
+
+
+def test_vertex_normals_analytic_sphere():
+    # Icosphere-like analytic check: on a sphere cap the area-weighted normal approaches p/|p|.
+    cap = primitives.sphere_cap(radius=0.3, max_polar=1.2, n_rings=24, n_segments=72)
+    n = np.asarray(mesh.vertex_normals(*_j(cap)))
+    exact = cap.vertices / np.linalg.norm(cap.vertices, axis=1, keepdims=True)
+    interior = ~mesh.boundary_vertices(cap.faces, cap.num_vertices)
+    err = np.degrees(np.arccos(np.clip((n * exact).sum(1), -1, 1)))
+    assert err[interior].max() < 0.5
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-6)
+
+
+def test_face_normals_orientation_and_area(sheet):
+    v, f = _j(sheet)
+    fn = np.asarray(mesh.face_normals(v, f))
+    np.testing.assert_allclose(fn, np.tile([0, 0, 1.0], (len(fn), 1)), atol=1e-6)
+    np.testing.assert_allclose(float(mesh.face_areas(v, f).sum()), 0.6 * 0.5, rtol=1e-5)
+
+
+def test_normals_finite_on_degenerate_faces():
+    v = jnp.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0], [5, 5, 5.0]])
+    f = jnp.array([[0, 1, 2], [0, 1, 3]])  # first face collinear; vertex 4 isolated
+    n = mesh.vertex_normals(v, f)
+    assert np.isfinite(np.asarray(n)).all()
+    np.testing.assert_allclose(n[4], 0.0)
+    np.testing.assert_allclose(n[2], 0.0)  # only touches the degenerate face
+    g = jax.grad(lambda x: jnp.sum(mesh.vertex_normals(x, f) ** 2)
+                 + jnp.sum(mesh.face_areas(x, f)))(v)
+    assert np.isfinite(np.asarray(g)).all()
+
+
+def test_vertex_normals_vmap_equals_loop(sheet):
+    key = jax.random.PRNGKey(0)
+    frames = jnp.asarray(sheet.vertices) + 0.01 * jax.random.normal(key, (4, sheet.num_vertices, 3))
+    f = jnp.asarray(sheet.faces)
+    batched = jax.jit(jax.vmap(mesh.vertex_normals, in_axes=(0, None)))(frames, f)
+    for t in range(4):
+        np.testing.assert_allclose(batched[t], mesh.vertex_normals(frames[t], f), atol=1e-6)
+
+
+# ---------------------------------------------------------------- topology
+
+
+def test_edges_and_rings_on_grid():
+    g = primitives.grid_sheet(3, 2)
+    e = mesh.unique_edges(g.faces)
+    # (nx+1)*ny + nx*(ny+1) axis edges plus one diagonal per cell.
+    assert len(e) == 4 * 2 + 3 * 3 + 6
+    assert (e[:, 0] < e[:, 1]).all()
+    offsets, nbrs = mesh.one_ring_csr(g.faces, g.num_vertices)
+    table, valid = mesh.one_ring_padded(g.faces, g.num_vertices)
+    assert offsets[-1] == 2 * len(e)
+    for i in range(g.num_vertices):
+        ring = set(nbrs[offsets[i]:offsets[i + 1]].tolist())
+        assert ring == set(table[i][valid[i]].tolist())
+        assert ring == {int(b) for a, b in e if a == i} | {int(a) for a, b in e if b == i}
+        assert (table[i][~valid[i]] == i).all()
+    with pytest.raises(GarmentError, match="max_degree"):
+        mesh.one_ring_padded(g.faces, g.num_vertices, max_degree=2)
+
+
+def test_boundary_vertices(cube, sheet):
+    assert not mesh.boundary_vertices(cube.faces, cube.num_vertices).any()  # closed
+    b = mesh.boundary_vertices(sheet.faces, sheet.num_vertices).reshape(11, 13)
+    assert b[0].all() and b[-1].all() and b[:, 0].all() and b[:, -1].all()
+    assert not b[1:-1, 1:-1].any()
+
+
+def test_uv_scale(skirt, cube):
+    np.testing.assert_allclose(mesh.uv_scale(cube), 1.0, rtol=1e-5)
+    np.testing.assert_allclose(mesh.uv_scale(skirt), 1.0, rtol=2e-3)
+    scaled = skirt.replace(uvs=skirt.uvs * 0.25)  # UVs in quarter-meters -> 4 m per unit
+    np.testing.assert_allclose(mesh.global_uv_scale(scaled), 4.0, rtol=2e-3)
+    # Panel 2's UV copies shrunk by half: only that panel's scale doubles.
+    in_panel2 = np.isin(np.arange(len(cube.uvs)), cube.uv_faces[cube.panels == 2])
+    per_panel = cube.replace(uvs=np.where(in_panel2[:, None], 0.5, 1.0) * cube.uvs)
+    np.testing.assert_allclose(mesh.uv_scale(per_panel), [1, 1, 2, 1, 1, 1], rtol=1e-5)
+
+
+# ---------------------------------------------------------------- Laplacians
+
+
+def test_uniform_laplacian_vanishes_on_linear_field_regular_grid():
+    g = primitives.grid_sheet(8, 8, alternate=True)
+    op = mesh.uniform_laplacian(g.faces, g.num_vertices)
+    field = jnp.asarray(g.vertices @ np.array([[0.3, -1.2, 0.7], [2.0, 0.1, -0.4],
+                                               [0.0, 0.0, 0.0]]) + 0.5)
+    lap = np.asarray(jax.jit(mesh.apply)(op, field))
+    interior = ~mesh.boundary_vertices(g.faces, g.num_vertices)
+    np.testing.assert_allclose(lap[interior], 0.0, atol=1e-5)
+    assert np.abs(lap[~interior]).max() > 1e-2  # boundary rows are not zero: the test has teeth
+    # Rows sum to zero: constants are in the kernel everywhere.
+    np.testing.assert_allclose(op.todense().sum(1), 0.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("normalized", [False, True])
+def test_cotangent_laplacian_vanishes_on_linear_field_irregular(normalized):
+    g = primitives.grid_sheet(10, 9, size=(0.5, 0.4), jitter=0.35, seed=3)
+    v = jnp.asarray(g.vertices)
+    op = jax.jit(mesh.cotangent_laplacian, static_argnames="normalized")(
+        v, jnp.asarray(g.faces), normalized=normalized)
+    field = v[:, :2] @ jnp.array([[1.5, -0.2], [0.3, 2.0]]) + 0.1
+    lap = np.asarray(mesh.apply(op, field))
+    interior = ~mesh.boundary_vertices(g.faces, g.num_vertices)
+    scale = 1.0 if not normalized else 1e-3  # normalized rows carry 1/area (~1/m^2)
+    np.testing.assert_allclose(lap[interior] * scale, 0.0, atol=1e-4)
+    # The uniform Laplacian does NOT vanish on this irregular mesh (so the check is meaningful).
+    uni = np.asarray(mesh.apply(mesh.uniform_laplacian(g.faces, g.num_vertices), field))
+    assert np.abs(uni[interior]).max() > 1e-3
+
+
+def test_cotangent_laplacian_matches_dense_reference():
+    g = primitives.grid_sheet(4, 3, jitter=0.3, seed=1, height_fn=lambda x, y: 0.1 * x * y)
+    v = np.asarray(g.vertices, np.float64)
+    dense = np.zeros((g.num_vertices, g.num_vertices))
+    for f in g.faces:
+        for k in range(3):
+            i, j, o = f[(k + 1) % 3], f[(k + 2) % 3], f[k]
+            a, b = v[i] - v[o], v[j] - v[o]
+            cot = a @ b / np.linalg.norm(np.cross(a, b))
+            dense[i, j] += cot / 2
+            dense[j, i] += cot / 2
+    dense -= np.diag(dense.sum(1))
+    op = mesh.cotangent_laplacian(jnp.asarray(g.vertices), jnp.asarray(g.faces))
+    np.testing.assert_allclose(op.todense(), dense, atol=1e-4)
+    # Symmetric, negative semi-definite.
+    np.testing.assert_allclose(op.todense(), op.todense().T, atol=1e-5)
+    assert np.linalg.eigvalsh(dense).max() < 1e-8
+
+
+def test_cotangent_laplacian_finite_on_degenerate_mesh():
+    v = jnp.array([[0, 0, 0], [1, 0, 0], [1, 0, 0], [0, 1, 0], [2, 2, 0.0]])  # 1 == 2
+    f = jnp.array([[0, 1, 2], [0, 2, 3], [1, 4, 3]])
+    op = mesh.cotangent_laplacian(v, f, normalized=True)
+    assert np.isfinite(np.asarray(op.values)).all()
+    assert np.abs(np.asarray(op.values)).max() <= 10 * mesh.COT_CLIP / 1e-3  # bounded
+
+    def energy(x):
+        return jnp.sum(mesh.apply(mesh.cotangent_laplacian(x, f), x) ** 2)
+
+    assert np.isfinite(np.asarray(jax.grad(energy)(v))).all()
+
+
+# ---------------------------------------------------------------- subdivision
+
+
+def _edge_lengths(g):
+    e = mesh.unique_edges(g.faces)
+    return np.linalg.norm(g.vertices[e[:, 1]] - g.vertices[e[:, 0]], axis=1)
+
+
+@pytest.mark.parametrize("scheme", ["midpoint", "loop"])
+def test_subdivision_keeps_plane_planar(scheme):
+    g = primitives.grid_sheet(6, 5, jitter=0.3, seed=2)
+    rot = np.linalg.qr(np.random.default_rng(0).normal(size=(3, 3)))[0]
+    g = g.replace(vertices=(g.vertices @ rot.T + 0.3).astype(np.float32))
+    sub = mesh.subdivision(g, levels=2, scheme=scheme)
+    fine = sub.garment(g)
+    assert fine.num_faces == 16 * g.num_faces
+    mesh.validate_garment(fine)
+    normal = rot[:, 2]
+    offset = (fine.vertices - 0.3) @ normal
+    np.testing.assert_allclose(offset, 0.0, atol=1e-5)
+
+
+def test_midpoint_subdivision_halves_edges_and_keeps_uv_seams(cube):
+    sub = mesh.subdivision(cube, levels=1)
+    fine = sub.garment(cube)
+    before, after = _edge_lengths(cube), _edge_lengths(fine)
+    np.testing.assert_allclose(after.max(), before.max() / 2, rtol=1e-5)
+    np.testing.assert_allclose(after.min(), before.min() / 2, rtol=1e-5)
+    np.testing.assert_allclose(after.mean(), before.mean() / 2, rtol=0.05)
+    # Still closed in 3D, still 6 UV panels, UVs stay exactly linear (uv scale unchanged).
+    assert not mesh.boundary_vertices(fine.faces, fine.num_vertices).any()
+    np.testing.assert_array_equal(np.unique(fine.panels), np.arange(6))
+    np.testing.assert_allclose(mesh.uv_scale(fine), 1.0, rtol=1e-5)
+    # Vertex count: V + E.
+    assert fine.num_vertices == cube.num_vertices + len(mesh.unique_edges(cube.faces))
+
+
+def _max_dihedral(g):
+    fn = np.asarray(mesh.face_normals(*_j(g)))
+    f = np.asarray(g.faces, np.int64)
+    he = np.sort(np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], 1).reshape(-1, 2), 1)
+    _, inv, cnt = np.unique(he, axis=0, return_inverse=True, return_counts=True)
+    face_of = np.repeat(np.arange(len(f)), 3)
+    order = np.argsort(inv, kind="stable")
+    keep = cnt[inv[order]] == 2  # interior edges: the two faces sharing each
+    pairs = face_of[order][keep].reshape(-1, 2)
+    cos = np.clip((fn[pairs[:, 0]] * fn[pairs[:, 1]]).sum(1), -1, 1)
+    return np.degrees(np.arccos(cos)).max()
+
+
+def test_loop_subdivision_is_smoother_than_midpoint():
+    cap = primitives.sphere_cap(radius=1.0, max_polar=1.0, n_rings=6, n_segments=12)
+    fine_mid = mesh.subdivision(cap, 2, "midpoint").garment(cap)
+    fine_loop = mesh.subdivision(cap, 2, "loop").garment(cap)
+    # Midpoint keeps the original creases; Loop's limit surface is smooth.
+    assert _max_dihedral(fine_loop) < 0.5 * _max_dihedral(fine_mid)
+
+
+def test_loop_weights_regular_vertex():
+    g = primitives.grid_sheet(6, 6, alternate=False)  # every interior vertex has valence 6
+    sub = mesh.subdivision(g, 1, "loop")
+    dense = sub.vertex_ops[0].todense()
+    i = 3 * 7 + 3  # an interior vertex
+    row = dense[i]
+    np.testing.assert_allclose(row[i], 10 / 16)
+    np.testing.assert_allclose(np.sort(row[row > 0])[:-1], np.full(6, 1 / 16))
+    # Interior edge vertices: 3/8 for the endpoints, 1/8 for the two opposite vertices.
+    odd = dense[g.num_vertices:]
+    interior_odd = np.isclose(odd.max(1), 3 / 8)
+    assert interior_odd.any()
+    np.testing.assert_allclose(np.sort(odd[interior_odd], 1)[:, -4:],
+                               np.tile([1 / 8, 1 / 8, 3 / 8, 3 / 8], (interior_odd.sum(), 1)))
+    # Boundary edge vertices are plain midpoints.
+    assert np.isclose(np.sort(odd[~interior_odd], 1)[:, -2:], 0.5).all()
+
+
+def test_subdivision_apply_is_jittable_vmappable_and_linear(skirt):
+    sub = mesh.subdivision(skirt, levels=1, scheme="loop")
+    frames = jnp.stack([jnp.asarray(skirt.vertices), 2 * jnp.asarray(skirt.vertices)])
+    out = jax.jit(jax.vmap(sub.apply))(frames)
+    np.testing.assert_allclose(out[1], 2 * out[0], rtol=1e-5, atol=1e-6)
+    # Partition of unity: every row of every operator sums to 1 (affine invariance).
+    for op in sub.vertex_ops + sub.uv_ops:
+        np.testing.assert_allclose(op.todense().sum(1), 1.0, atol=1e-6)
+
+
+def test_subdivide_to_edge_length(sheet):
+    mean = _edge_lengths(sheet).mean()
+    sub = mesh.subdivide_to_edge_length(sheet, mean / 3.5)
+    assert sub.levels == 2
+    assert _edge_lengths(sub.garment(sheet)).mean() <= mean / 3.5 * 1.05
+    assert mesh.subdivide_to_edge_length(sheet, mean * 2).levels == 0
+    with pytest.raises(ValueError):
+        mesh.subdivide_to_edge_length(sheet, 0.0)

@@ -1,0 +1,150 @@
+"""Tests for wrinkle_jax.meshio: OBJ and sequence round trips, clear errors, atomic writes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from wrinkle_jax import meshio, primitives
+from wrinkle_jax.mesh import GarmentError
+
+
+def test_obj_round_trip_keeps_seams_and_panels(cube, tmp_path):
+    p = tmp_path / "cube.obj"
+    meshio.save_obj(p, cube)
+    back = meshio.load_obj(p)
+    np.testing.assert_allclose(back.vertices, cube.vertices, atol=1e-6)
+    np.testing.assert_allclose(back.uvs, cube.uvs, atol=1e-6)
+    np.testing.assert_array_equal(back.faces, cube.faces)
+    np.testing.assert_array_equal(back.uv_faces, cube.uv_faces)
+    np.testing.assert_array_equal(back.panels, cube.panels)
+    # Seams survive: more UV vertices than 3D vertices, welded 3D stays closed.
+    assert len(back.uvs) > back.num_vertices
+
+
+def test_obj_round_trip_with_replacement_vertices(skirt, tmp_path):
+    p = tmp_path / "frame.obj"
+    moved = skirt.vertices + np.float32(0.25)
+    meshio.save_obj(p, skirt, moved)
+    np.testing.assert_allclose(meshio.load_obj(p).vertices, moved, atol=1e-6)
+    with pytest.raises(GarmentError, match="does not match"):
+        meshio.save_obj(p, skirt, moved[:-1])
+
+
+def test_obj_parser_polygons_negative_indices_and_normals(tmp_path):
+    p = tmp_path / "quad.obj"
+    p.write_text(
+        "# a quad with normals and relative indices\n"
+        "o sheet\n"
+        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n"
+        "vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n"
+        "vn 0 0 1\n"
+        "f -4/-4/1 -3/-3/1 -2/-2/1 -1/-1/1\n"
+    )
+    g = meshio.load_obj(p)
+    np.testing.assert_array_equal(g.faces, [[0, 1, 2], [0, 2, 3]])
+    np.testing.assert_array_equal(g.uv_faces, [[0, 1, 2], [0, 2, 3]])
+    np.testing.assert_array_equal(g.panels, [0, 0])
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "without UV"),
+        ("v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 3/1\nf 1 2 3\n", "line 6"),
+        ("v 0 0 0\nv 1 0 nan\nv 0 1 0\nvt 0 0\nf 1/1 2/1 3/1\n", "non-finite vertex"),
+        ("v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 9/1\n", "out of range"),
+        ("v 0 0\n", "obj:1: malformed .v. line"),
+        ("v 0 0 0\n", "no faces"),
+    ],
+)
+def test_obj_errors_name_file_and_problem(tmp_path, text, message):
+    p = tmp_path / "bad.obj"
+    p.write_text(text)
+    with pytest.raises(GarmentError, match=message) as info:
+        meshio.load_obj(p)
+    assert "bad.obj" in str(info.value)
+
+
+def test_missing_obj_file(tmp_path):
+    with pytest.raises(GarmentError, match="cannot read"):
+        meshio.load_obj(tmp_path / "nope.obj")
+
+
+def _sequence(garment, t=5, seed=0):
+    rng = np.random.default_rng(seed)
+    frames = garment.vertices[None] + 0.01 * rng.normal(size=(t, garment.num_vertices, 3))
+    return meshio.make_sequence(frames, garment, fps=24.0, metadata={"material": "denim_light"})
+
+
+def test_npz_sequence_round_trip(skirt, tmp_path):
+    seq = _sequence(skirt)
+    p = tmp_path / "seq.npz"
+    meshio.save_sequence(p, seq, balls=np.zeros((5, 2, 3), np.float32))
+    back = meshio.load_sequence(p)
+    np.testing.assert_array_equal(back.frames, seq.frames)
+    np.testing.assert_array_equal(back.garment.uv_faces, skirt.uv_faces)
+    np.testing.assert_array_equal(back.garment.panels, skirt.panels)
+    assert back.fps == 24.0 and back.metadata == {"material": "denim_light"}
+    assert len(back) == 5
+    with np.load(p) as z:
+        assert z["balls"].shape == (5, 2, 3)
+        json.loads(str(z["metadata"]))
+
+
+def test_obj_folder_sequence_round_trip_natural_order(sheet, tmp_path):
+    seq = _sequence(sheet, t=12)
+    paths = meshio.save_obj_sequence(tmp_path / "frames", seq, prefix="f")
+    # Rename to unpadded numbers: natural sort must still order f2 before f10.
+    for i, p in enumerate(paths):
+        p.rename(p.with_name(f"f{i}.obj"))
+    back = meshio.load_sequence(tmp_path / "frames", fps=12)
+    np.testing.assert_allclose(back.frames, seq.frames, atol=1e-6)
+    assert back.fps == 12
+
+
+def test_folder_sequence_rejects_mismatched_topology(sheet, tmp_path):
+    d = tmp_path / "frames"
+    d.mkdir()
+    meshio.save_obj(d / "a0.obj", sheet)
+    meshio.save_obj(d / "a1.obj", primitives.grid_sheet(4, 4))
+    with pytest.raises(GarmentError, match="a1.obj: topology differs"):
+        meshio.load_sequence(d)
+
+
+def test_sequence_errors(sheet, tmp_path):
+    with pytest.raises(GarmentError, match="vertices but the garment has"):
+        meshio.make_sequence(np.zeros((2, 3, 3)), sheet)
+    frames = np.repeat(sheet.vertices[None], 3, 0)
+    frames[2, 1, 0] = np.inf
+    with pytest.raises(GarmentError, match="frame 2 has non-finite"):
+        meshio.make_sequence(frames, sheet)
+    bad = tmp_path / "corrupt.npz"
+    bad.write_bytes(b"PK\x03\x04 definitely not a zip")
+    with pytest.raises(GarmentError, match="corrupt.npz: not a readable"):
+        meshio.load_sequence(bad)
+    partial = tmp_path / "partial.npz"
+    np.savez(partial, frames=frames[:1])
+    with pytest.raises(GarmentError, match="missing arrays"):
+        meshio.load_sequence(partial)
+    with pytest.raises(GarmentError, match="no .obj frames"):
+        meshio.load_sequence(tmp_path)
+    with pytest.raises(GarmentError, match="must end in .npz"):
+        meshio.save_sequence(tmp_path / "x.bin", _sequence(sheet))
+
+
+def test_writes_are_atomic(sheet, tmp_path, monkeypatch):
+    p = tmp_path / "out.obj"
+    meshio.save_obj(p, sheet)
+    before = p.read_bytes()
+
+    def boom(*args, **kwargs):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr("os.replace", boom)
+    with pytest.raises(RuntimeError):
+        meshio.save_obj(p, sheet, sheet.vertices * 2)
+    assert p.read_bytes() == before  # old file intact
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["out.obj"]  # no temp left behind

@@ -1,0 +1,568 @@
+"""Garment meshes: the `Garment` pytree, OBJ and sequence IO, and sparse mesh geometry.
+
+A garment is a welded triangle mesh (3D topology `faces`) plus a UV layout whose topology
+(`uv_faces`) may split along seams, exactly like OBJ's separate `v` / `vt` indices:
+
+    vertices  (V, 3) float32, meters        faces     (F, 3) int32 into vertices
+    uvs       (T, 2) float32, UV units      uv_faces  (F, 3) int32 into uvs
+    panels    (F,)   int32 or None (sewing-pattern panel of each face)
+
+Contract of this module:
+  * Setup that depends only on topology (edges, one-rings, Laplacian structure, subdivision
+    operators) is NumPy, computed once, outside `jit`.
+  * Geometry that depends on positions (normals, areas, cotangent weights, applying a sparse
+    operator) is pure JAX: jittable, vmappable over frames, differentiable, and never builds a
+    dense V x V matrix (sparse products are gathers + `segment_sum`).
+  * Bad input raises `GarmentError` naming the source and what is wrong.
+
+OBJ and sequence IO live in `wrinkle_jax.meshio`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wrinkle_jax.numerics import normalize, safe_div, safe_norm
+
+
+class GarmentError(ValueError):
+    """Invalid garment, OBJ file or sequence (the message names the source and the problem)."""
+
+
+# --------------------------------------------------------------------------------------------
+# The Garment pytree
+# --------------------------------------------------------------------------------------------
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Garment:
+    """A garment mesh with a (possibly seamed) UV layout. A pytree: every field is a leaf.
+
+    Attributes:
+      vertices: (V, 3) float32, meters.
+      faces: (F, 3) int32, welded 3D triangles (counter-clockwise seen from the front side).
+      uvs: (T, 2) float32, UV coordinates (any unit; see `uv_scale`).
+      uv_faces: (F, 3) int32, per-corner UV indices; face f's corner k sits at
+        `uvs[uv_faces[f, k]]` and at `vertices[faces[f, k]]`.
+      panels: (F,) int32 panel (sewing-pattern piece) id per face, or None.
+    """
+
+    vertices: Any
+    faces: Any
+    uvs: Any
+    uv_faces: Any
+    panels: Any = None
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.vertices.shape[-2])
+
+    @property
+    def num_faces(self) -> int:
+        return int(self.faces.shape[0])
+
+    def replace(self, **changes) -> Garment:
+        """A copy with some fields replaced (e.g. `g.replace(vertices=frame)`)."""
+        return dataclasses.replace(self, **changes)
+
+
+def make_garment(vertices, faces, uvs, uv_faces, panels=None, source: str = "<garment>") -> Garment:
+    """Build a validated `Garment` from array-likes (NumPy, float32 / int32).
+
+    Raises:
+      GarmentError: naming `source`, on missing UVs, wrong shapes, out-of-range indices or
+        non-finite coordinates.
+    """
+    g = Garment(
+        vertices=np.asarray(vertices, dtype=np.float32),
+        faces=np.asarray(faces, dtype=np.int32),
+        uvs=np.asarray(uvs, dtype=np.float32),
+        uv_faces=np.asarray(uv_faces, dtype=np.int32),
+        panels=None if panels is None else np.asarray(panels, dtype=np.int32),
+    )
+    validate_garment(g, source)
+    return g
+
+
+def validate_garment(g: Garment, source: str = "<garment>") -> None:
+    """Check shapes, index ranges and finiteness of a garment (NumPy, outside jit).
+
+    Raises:
+      GarmentError: the message names `source` and the first problem found.
+    """
+    v, f = np.asarray(g.vertices), np.asarray(g.faces)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise GarmentError(f"{source}: vertices must have shape (V, 3), got {v.shape}")
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise GarmentError(f"{source}: faces must have shape (F, 3), got {f.shape}")
+    if f.shape[0] == 0:
+        raise GarmentError(f"{source}: the mesh has no faces")
+    if g.uvs is None or g.uv_faces is None or np.asarray(g.uvs).size == 0:
+        raise GarmentError(f"{source}: the mesh has no UV coordinates (a UV layout is required)")
+    uv, uf = np.asarray(g.uvs), np.asarray(g.uv_faces)
+    if uv.ndim != 2 or uv.shape[1] != 2:
+        raise GarmentError(f"{source}: uvs must have shape (T, 2), got {uv.shape}")
+    if uf.shape != f.shape:
+        raise GarmentError(f"{source}: uv_faces shape {uf.shape} differs from faces {f.shape}")
+    if f.min() < 0 or f.max() >= v.shape[0]:
+        raise GarmentError(
+            f"{source}: face indices out of range [0, {v.shape[0]}): min {f.min()}, max {f.max()}"
+        )
+    if uf.min() < 0 or uf.max() >= uv.shape[0]:
+        raise GarmentError(
+            f"{source}: UV face indices out of range [0, {uv.shape[0]}): "
+            f"min {uf.min()}, max {uf.max()}"
+        )
+    _check_finite(v, source, "vertex")
+    _check_finite(uv, source, "UV")
+    if g.panels is not None and np.asarray(g.panels).shape != (f.shape[0],):
+        raise GarmentError(
+            f"{source}: panels must have shape ({f.shape[0]},), got {np.asarray(g.panels).shape}"
+        )
+
+
+def _check_finite(a: np.ndarray, source: str, what: str) -> None:
+    bad = ~np.isfinite(a)
+    if bad.any():
+        rows = np.unique(np.nonzero(bad)[0 if a.ndim < 3 else 1])
+        raise GarmentError(
+            f"{source}: {len(rows)} non-finite {what} coordinate(s), first at index {rows[0]}"
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# Per-position geometry (JAX: jittable, vmappable, differentiable)
+# --------------------------------------------------------------------------------------------
+
+
+def face_cross(vertices, faces):
+    """Unnormalized face normals (e1 x e2): length = 2 * area.
+
+    Args:
+      vertices: (V, 3) float, meters.
+      faces: (F, 3) int.
+    Returns:
+      (F, 3) float, square meters.
+    """
+    p = vertices[faces]
+    return jnp.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+
+
+def face_areas(vertices, faces):
+    """Triangle areas (F,) in square meters (0 for degenerate triangles, finite gradients)."""
+    return 0.5 * safe_norm(face_cross(vertices, faces))
+
+
+def face_normals(vertices, faces):
+    """Unit face normals (F, 3) (right-hand rule on corner order; zero for degenerate faces)."""
+    return normalize(face_cross(vertices, faces))
+
+
+def vertex_normals(vertices, faces):
+    """Area-weighted unit vertex normals (V, 3): sum of adjacent face cross products, normalized.
+
+    Isolated vertices and vertices whose faces are all degenerate get a zero normal.
+    """
+    c = face_cross(vertices, faces)
+    acc = jax.ops.segment_sum(jnp.repeat(c, 3, axis=0), faces.reshape(-1),
+                              num_segments=vertices.shape[0])
+    return normalize(acc)
+
+
+def uv_scale(garment: Garment) -> np.ndarray:
+    """Meters per UV unit, per panel: sqrt(3D area / UV area) of each panel (NumPy).
+
+    Returns:
+      (num_panels,) float64, indexed by panel id (one entry when `panels` is None); panels with
+      zero UV area get NaN. Faces with a degenerate UV triangle are ignored.
+    """
+    v = np.asarray(garment.vertices, np.float64)
+    f = np.asarray(garment.faces)
+    uv = np.asarray(garment.uvs, np.float64)
+    uf = np.asarray(garment.uv_faces)
+    a3 = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    e1, e2 = uv[uf[:, 1]] - uv[uf[:, 0]], uv[uf[:, 2]] - uv[uf[:, 0]]
+    a2 = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    panels = np.zeros(len(f), np.int64) if garment.panels is None else np.asarray(garment.panels)
+    n = int(panels.max()) + 1
+    # Faces whose UV triangle is degenerate have no place in the layout: leave their 3D area
+    # out too, or one broken UV triangle would inflate the whole garment's scale.
+    a3 = np.where(a2 > 0, a3, 0.0)
+    s3 = np.bincount(panels, a3, minlength=n)
+    s2 = np.bincount(panels, a2, minlength=n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(s2 > 0, np.sqrt(s3 / np.where(s2 > 0, s2, 1.0)), np.nan)
+
+
+def global_uv_scale(garment: Garment) -> float:
+    """Meters per UV unit over the whole garment: sqrt(total 3D area / total UV area)."""
+    g = garment.replace(panels=None)
+    s = float(uv_scale(g)[0])
+    if not np.isfinite(s) or s <= 0:
+        raise GarmentError("the UV layout has zero area; cannot derive a texel size")
+    return s
+
+
+def mean_edge_length(vertices, edges):
+    """Mean length (meters) of the given edges (E, 2)."""
+    return jnp.mean(safe_norm(vertices[edges[:, 1]] - vertices[edges[:, 0]]))
+
+
+# --------------------------------------------------------------------------------------------
+# Topology (NumPy, once per mesh)
+# --------------------------------------------------------------------------------------------
+
+
+def unique_edges(faces) -> np.ndarray:
+    """Unique undirected edges (E, 2) int32, each sorted (i < j), lexicographically ordered."""
+    f = np.asarray(faces, np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    e.sort(axis=1)
+    return np.unique(e, axis=0).astype(np.int32)
+
+
+def edge_face_counts(faces) -> tuple[np.ndarray, np.ndarray]:
+    """Unique edges (E, 2) and how many faces share each (1 = boundary, 2 = interior)."""
+    f = np.asarray(faces, np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    e.sort(axis=1)
+    edges, counts = np.unique(e, axis=0, return_counts=True)
+    return edges.astype(np.int32), counts
+
+
+def boundary_vertices(faces, num_vertices: int) -> np.ndarray:
+    """(V,) bool: vertex lies on a boundary (or non-manifold) edge."""
+    edges, counts = edge_face_counts(faces)
+    out = np.zeros(num_vertices, bool)
+    out[edges[counts != 2].reshape(-1)] = True
+    return out
+
+
+def one_ring_csr(faces, num_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """One-ring neighbours in CSR form.
+
+    Returns:
+      offsets (V + 1,) int32 and neighbors (2E,) int32; vertex i's neighbours are
+      `neighbors[offsets[i]:offsets[i + 1]]`, sorted ascending.
+    """
+    e = unique_edges(faces).astype(np.int64)
+    src = np.concatenate([e[:, 0], e[:, 1]])
+    dst = np.concatenate([e[:, 1], e[:, 0]])
+    order = np.lexsort((dst, src))
+    src, dst = src[order], dst[order]
+    counts = np.bincount(src, minlength=num_vertices)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
+    return offsets, dst.astype(np.int32)
+
+
+def one_ring_padded(faces, num_vertices: int, max_degree: int | None = None):
+    """One-ring neighbours as a padded table.
+
+    Args:
+      max_degree: table width K; defaults to the largest degree. A vertex with more
+        neighbours raises GarmentError (never silently truncated).
+    Returns:
+      neighbors (V, K) int32 (padding repeats the vertex itself, so gathers stay in range and
+      `p[nbr] - p` is 0 there) and valid (V, K) bool.
+    """
+    offsets, nbrs = one_ring_csr(faces, num_vertices)
+    deg = np.diff(offsets)
+    k = int(deg.max()) if max_degree is None else int(max_degree)
+    if deg.size and deg.max() > k:
+        raise GarmentError(f"a vertex has {deg.max()} neighbours, more than max_degree={k}")
+    col = np.arange(len(nbrs)) - np.repeat(offsets[:-1], deg)
+    row = np.repeat(np.arange(num_vertices), deg)
+    table = np.repeat(np.arange(num_vertices, dtype=np.int32)[:, None], max(k, 1), axis=1)
+    valid = np.zeros((num_vertices, max(k, 1)), bool)
+    table[row, col] = nbrs
+    valid[row, col] = True
+    return table, valid
+
+
+# --------------------------------------------------------------------------------------------
+# Sparse operators
+# --------------------------------------------------------------------------------------------
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class SparseOperator:
+    """A sparse (rows x cols) matrix in coordinate form, applied as gather + `segment_sum`.
+
+    Attributes:
+      rows, cols: (nnz,) int32 indices.
+      values: (nnz,) float32 weights (may depend on positions, e.g. cotangent weights).
+      shape: static (n_rows, n_cols).
+    """
+
+    rows: Any
+    cols: Any
+    values: Any
+    shape: tuple[int, int] = dataclasses.field(metadata=dict(static=True))
+
+    def __matmul__(self, x):
+        return apply(self, x)
+
+    def todense(self) -> np.ndarray:
+        """Dense NumPy copy, for tests and small debugging only."""
+        out = np.zeros(self.shape, np.float64)
+        np.add.at(out, (np.asarray(self.rows), np.asarray(self.cols)), np.asarray(self.values))
+        return out
+
+
+def apply(op: SparseOperator, x):
+    """y = A x for x (n_cols, ...) -> (n_rows, ...); jittable, vmappable and differentiable."""
+    w = op.values.reshape(op.values.shape + (1,) * (x.ndim - 1))
+    return jax.ops.segment_sum(w * x[op.cols], op.rows, num_segments=op.shape[0])
+
+
+def _operator(rows, cols, values, shape) -> SparseOperator:
+    return SparseOperator(np.asarray(rows, np.int32), np.asarray(cols, np.int32),
+                          np.asarray(values, np.float32), (int(shape[0]), int(shape[1])))
+
+
+def uniform_laplacian(faces, num_vertices: int) -> SparseOperator:
+    """Uniform ("umbrella") Laplacian: (L p)_i = mean_{j in ring(i)} p_j - p_i.
+
+    Exactly zero on affine fields wherever the one-ring is point-symmetric (regular grids).
+    Isolated vertices get a zero row.
+    """
+    e = unique_edges(faces).astype(np.int64)
+    src = np.concatenate([e[:, 0], e[:, 1]])
+    dst = np.concatenate([e[:, 1], e[:, 0]])
+    deg = np.bincount(src, minlength=num_vertices).astype(np.float64)
+    w = 1.0 / deg[src]
+    diag = np.where(deg > 0, -1.0, 0.0)
+    idx = np.arange(num_vertices)
+    return _operator(np.r_[src, idx], np.r_[dst, idx], np.r_[w, diag],
+                     (num_vertices, num_vertices))
+
+
+# Cotangents are clipped to this magnitude: a near-degenerate triangle (angle -> 0 or pi) would
+# otherwise give unbounded weights that make any solver using the Laplacian ill-conditioned.
+COT_CLIP = 1e3
+
+
+def cotangent_laplacian(vertices, faces, normalized: bool = False) -> SparseOperator:
+    """Cotangent Laplacian with position-dependent values (jittable, differentiable).
+
+    (L p)_i = sum_j w_ij (p_j - p_i), w_ij = (cot a_ij + cot b_ij) / 2 over the angles opposite
+    edge ij. With `normalized=True` row i is divided by the vertex's barycentric area (a third
+    of its faces' areas), giving the Laplace-Beltrami operator in 1/m^2. Zero on affine fields
+    at interior vertices of any planar mesh. Degenerate triangles contribute clipped, finite
+    weights.
+
+    Args:
+      vertices: (V, 3) meters. faces: (F, 3) int (NumPy or JAX).
+    Returns:
+      SparseOperator (V x V) with 6F off-diagonal entries and V diagonal entries.
+    """
+    nv = vertices.shape[0]
+    p = vertices[faces]  # (F, 3, 3)
+    cots = []
+    for k in range(3):  # angle at corner k is opposite edge (k+1, k+2)
+        a = p[:, (k + 1) % 3] - p[:, k]
+        b = p[:, (k + 2) % 3] - p[:, k]
+        cot = safe_div(jnp.sum(a * b, -1), safe_norm(jnp.cross(a, b)))
+        cots.append(jnp.clip(cot, -COT_CLIP, COT_CLIP))
+    cot = jnp.stack(cots, axis=1)  # (F, 3)
+    i = jnp.stack([faces[:, 1], faces[:, 2], faces[:, 0]], axis=1)  # edge opposite corner k
+    j = jnp.stack([faces[:, 2], faces[:, 0], faces[:, 1]], axis=1)
+    w = 0.5 * cot.reshape(-1)
+    i, j = i.reshape(-1), j.reshape(-1)
+    rows = jnp.concatenate([i, j])
+    cols = jnp.concatenate([j, i])
+    off = jnp.concatenate([w, w])
+    diag = -jax.ops.segment_sum(off, rows, num_segments=nv)
+    vals = jnp.concatenate([off, diag])
+    rows = jnp.concatenate([rows, jnp.arange(nv)])
+    cols = jnp.concatenate([cols, jnp.arange(nv)])
+    if normalized:
+        area = jax.ops.segment_sum(jnp.repeat(face_areas(vertices, faces) / 3.0, 3),
+                                   faces.reshape(-1), num_segments=nv)
+        vals = safe_div(vals, area[rows])
+    return SparseOperator(rows.astype(jnp.int32), cols.astype(jnp.int32),
+                          vals.astype(vertices.dtype), (nv, nv))
+
+
+# --------------------------------------------------------------------------------------------
+# Subdivision
+# --------------------------------------------------------------------------------------------
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Subdivision:
+    """One or more levels of 1-to-4 triangle subdivision, as sparse operators.
+
+    Positions and UVs are upsampled by jittable sparse products; topology is precomputed.
+
+    Attributes:
+      vertex_ops: tuple of SparseOperator, applied in order to (V, ...) per-vertex data.
+      uv_ops: tuple of SparseOperator for (T, 2) UVs (always linear: UV layouts stay exact).
+      faces, uv_faces: (F', 3) int32 topology after all levels.
+      panels: (F',) int32 or None.
+    """
+
+    vertex_ops: tuple
+    uv_ops: tuple
+    faces: Any
+    uv_faces: Any
+    panels: Any
+
+    @property
+    def levels(self) -> int:
+        return len(self.vertex_ops)
+
+    def apply(self, vertices):
+        """Upsample per-vertex data (V, ...) -> (V', ...) (jittable; vmap for frames)."""
+        for op in self.vertex_ops:
+            vertices = apply(op, vertices)
+        return vertices
+
+    def apply_uv(self, uvs):
+        for op in self.uv_ops:
+            uvs = apply(op, uvs)
+        return uvs
+
+    def garment(self, garment: Garment) -> Garment:
+        """The subdivided garment (positions and UVs upsampled, topology replaced)."""
+        return Garment(
+            vertices=np.asarray(self.apply(jnp.asarray(garment.vertices))),
+            faces=np.asarray(self.faces), uvs=np.asarray(self.apply_uv(jnp.asarray(garment.uvs))),
+            uv_faces=np.asarray(self.uv_faces), panels=self.panels,
+        )
+
+
+def _midpoint_level(faces: np.ndarray, n: int):
+    """Edge-midpoint 1-to-4 split of (F,3) over n vertices: new faces, edges, edge id per corner."""
+    f = np.asarray(faces, np.int64)
+    he = np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1)  # edge k: c_k -> c_k+1
+    key = np.sort(he, axis=2).reshape(-1, 2)
+    edges, inv = np.unique(key, axis=0, return_inverse=True)
+    mid = n + inv.reshape(-1, 3)  # new vertex id on edge (k, k+1)
+    a, b, c = f[:, 0], f[:, 1], f[:, 2]
+    ab, bc, ca = mid[:, 0], mid[:, 1], mid[:, 2]
+    new_faces = np.stack([
+        np.stack([a, ab, ca], 1), np.stack([ab, b, bc], 1),
+        np.stack([ca, bc, c], 1), np.stack([ab, bc, ca], 1),
+    ], axis=1).reshape(-1, 3)
+    return new_faces.astype(np.int32), edges, inv.reshape(-1, 3)
+
+
+def _linear_operator(faces: np.ndarray, n: int):
+    new_faces, edges, _ = _midpoint_level(faces, n)
+    ne = len(edges)
+    idx = np.arange(n)
+    eid = n + np.arange(ne)
+    rows = np.r_[idx, eid, eid]
+    cols = np.r_[idx, edges[:, 0], edges[:, 1]]
+    vals = np.r_[np.ones(n), np.full(ne, 0.5), np.full(ne, 0.5)]
+    return _operator(rows, cols, vals, (n + ne, n)), new_faces
+
+
+def _loop_operator(faces: np.ndarray, n: int):
+    """Loop subdivision weights (Loop 1987; boundary and non-manifold edges use the cubic
+    B-spline boundary rules, and corner/non-manifold vertices stay fixed)."""
+    f = np.asarray(faces, np.int64)
+    new_faces, edges, inv = _midpoint_level(f, n)
+    ne = len(edges)
+    # Opposite vertex of each face edge (k, k+1) is corner k+2.
+    opp = f[:, [2, 0, 1]].reshape(-1)
+    e_of = inv.reshape(-1)
+    count = np.bincount(e_of, minlength=ne)
+    interior = count == 2
+    rows, cols, vals = [], [], []
+    eid = n + np.arange(ne)
+    # Odd (edge) vertices.
+    w_end = np.where(interior, 3.0 / 8.0, 0.5)
+    rows += [eid, eid]
+    cols += [edges[:, 0], edges[:, 1]]
+    vals += [w_end, w_end]
+    sel = interior[e_of]
+    rows.append(n + e_of[sel])
+    cols.append(opp[sel])
+    vals.append(np.full(sel.sum(), 1.0 / 8.0))
+    # Even (original) vertices.
+    bnd_edges = edges[~interior]
+    bdeg = np.bincount(bnd_edges.reshape(-1), minlength=n)
+    ue = unique_edges(f).astype(np.int64)
+    deg = np.bincount(ue.reshape(-1), minlength=n).astype(np.float64)
+    idx = np.arange(n)
+    is_bnd = bdeg > 0
+    regular_bnd = bdeg == 2
+    # Interior vertices: (1 - d beta) p + beta sum(neighbours).
+    with np.errstate(divide="ignore", invalid="ignore"):
+        beta = (5.0 / 8.0 - (3.0 / 8.0 + 0.25 * np.cos(2 * np.pi / deg)) ** 2) / deg
+    beta = np.where(deg > 0, beta, 0.0)
+    src = np.r_[ue[:, 0], ue[:, 1]]
+    dst = np.r_[ue[:, 1], ue[:, 0]]
+    m = ~is_bnd[src]
+    rows.append(src[m])
+    cols.append(dst[m])
+    vals.append(beta[src[m]])
+    # Boundary vertices with exactly two boundary edges: 3/4 p + 1/8 (two boundary neighbours).
+    bs = np.r_[bnd_edges[:, 0], bnd_edges[:, 1]]
+    bd = np.r_[bnd_edges[:, 1], bnd_edges[:, 0]]
+    m = regular_bnd[bs]
+    rows.append(bs[m])
+    cols.append(bd[m])
+    vals.append(np.full(m.sum(), 1.0 / 8.0))
+    self_w = np.where(is_bnd, np.where(regular_bnd, 0.75, 1.0), 1.0 - deg * beta)
+    rows.append(idx)
+    cols.append(idx)
+    vals.append(self_w)
+    return _operator(np.concatenate(rows), np.concatenate(cols), np.concatenate(vals),
+                     (n + ne, n)), new_faces
+
+
+def subdivision(garment: Garment, levels: int = 1, scheme: str = "midpoint") -> Subdivision:
+    """Precompute `levels` rounds of 1-to-4 subdivision (NumPy, once per topology).
+
+    Args:
+      garment: topology source (faces, uv_faces, panels; positions are not used).
+      levels: number of rounds (0 gives identity operators' empty tuple).
+      scheme: "midpoint" (linear: the surface is unchanged, edges exactly halve) or "loop"
+        (smooth; UVs are still upsampled linearly so the UV layout stays exact).
+    """
+    if scheme not in ("midpoint", "loop"):
+        raise ValueError(f"unknown subdivision scheme {scheme!r}; use 'midpoint' or 'loop'")
+    faces = np.asarray(garment.faces)
+    uv_faces = np.asarray(garment.uv_faces)
+    panels = None if garment.panels is None else np.asarray(garment.panels)
+    n, t = garment.num_vertices, int(np.asarray(garment.uvs).shape[0])
+    vops, uops = [], []
+    for _ in range(levels):
+        make = _loop_operator if scheme == "loop" else _linear_operator
+        vop, new_faces = make(faces, n)
+        uop, new_uv_faces = _linear_operator(uv_faces, t)
+        vops.append(vop)
+        uops.append(uop)
+        faces, uv_faces = new_faces, new_uv_faces
+        n, t = vop.shape[0], uop.shape[0]
+        if panels is not None:
+            panels = np.repeat(panels, 4)
+    return Subdivision(tuple(vops), tuple(uops), faces, uv_faces, panels)
+
+
+def subdivide_to_edge_length(garment: Garment, target_edge: float, scheme: str = "midpoint",
+                             max_levels: int = 6) -> Subdivision:
+    """Enough subdivision levels that the mean edge length is at most `target_edge` meters.
+
+    Each level halves edge lengths (exactly for "midpoint"), so the level count is
+    ceil(log2(mean_edge / target_edge)), capped at `max_levels`.
+    """
+    if not target_edge > 0:
+        raise ValueError(f"target_edge must be positive, got {target_edge}")
+    edges = unique_edges(garment.faces)
+    mean = float(mean_edge_length(np.asarray(garment.vertices, np.float64), edges))
+    levels = 0 if mean <= target_edge else math.ceil(math.log2(mean / target_edge))
+    return subdivision(garment, min(levels, max_levels), scheme)
+

@@ -1,0 +1,297 @@
+"""Garment IO: Wavefront OBJ files and garment sequences (a folder of OBJ frames or an `.npz`
+bundle). Every reader validates and raises `GarmentError` naming the file; every writer is
+atomic (temporary file + rename).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+
+from wrinkle_jax.fileio import atomic_write_bytes, atomic_write_text
+from wrinkle_jax.mesh import Garment, GarmentError, make_garment
+
+# --------------------------------------------------------------------------------------------
+# OBJ IO
+# --------------------------------------------------------------------------------------------
+
+_PANEL_NAME = re.compile(r"^panel_(\d+)$")
+
+
+def load_obj(path: str | os.PathLike) -> Garment:
+    """Read a Wavefront OBJ with UVs into a `Garment`.
+
+    Polygons are fan-triangulated; `v/vt`, `v/vt/vn` and negative (relative) indices are
+    supported; normals are ignored (we recompute them). Groups (`g`/`o`) become panels: names
+    `panel_<k>` map back to id k (so `save_obj` round-trips), other names get ids in order of
+    first appearance. Without any group, `panels` is None.
+
+    Raises:
+      GarmentError: naming the file, if it is unreadable, has faces without UVs, or bad indices.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError as e:
+        raise GarmentError(f"{path}: cannot read OBJ file ({e.strerror})") from None
+    verts: list[list[float]] = []
+    uvs: list[list[float]] = []
+    faces: list[tuple[int, int, int]] = []
+    uv_faces: list[tuple[int, int, int]] = []
+    face_group: list[int] = []
+    group_ids: dict[str, int] = {}
+    current_group = -1
+    missing_uv_line = 0
+    for lineno, line in enumerate(text.splitlines(), 1):
+        if not line or line[0] == "#":
+            continue
+        parts = line.split()
+        if not parts:
+            continue
+        tag = parts[0]
+        try:
+            if tag == "v":
+                verts.append([float(parts[1]), float(parts[2]), float(parts[3])])
+            elif tag == "vt":
+                uvs.append([float(parts[1]), float(parts[2])])
+            elif tag == "f":
+                vi, ti = [], []
+                for tok in parts[1:]:
+                    fields = tok.split("/")
+                    a = int(fields[0])
+                    vi.append(a - 1 if a > 0 else len(verts) + a)
+                    if len(fields) > 1 and fields[1]:
+                        b = int(fields[1])
+                        ti.append(b - 1 if b > 0 else len(uvs) + b)
+                if len(vi) < 3:
+                    raise GarmentError(f"{path}:{lineno}: a face needs at least 3 vertices")
+                if len(ti) != len(vi):
+                    missing_uv_line = missing_uv_line or lineno
+                    ti = [0] * len(vi)
+                for k in range(1, len(vi) - 1):
+                    faces.append((vi[0], vi[k], vi[k + 1]))
+                    uv_faces.append((ti[0], ti[k], ti[k + 1]))
+                    face_group.append(current_group)
+            elif tag in ("g", "o"):
+                name = " ".join(parts[1:]) or "default"
+                if name not in group_ids:
+                    m = _PANEL_NAME.match(name)
+                    group_ids[name] = int(m.group(1)) if m else len(group_ids)
+                current_group = group_ids[name]
+        except (ValueError, IndexError):
+            raise GarmentError(
+                f"{path}:{lineno}: malformed '{tag}' line: {line.strip()!r}"
+            ) from None
+    if not faces:
+        raise GarmentError(f"{path}: no faces found")
+    if missing_uv_line or not uvs:
+        where = f" (first at line {missing_uv_line})" if missing_uv_line else ""
+        raise GarmentError(f"{path}: faces without UV coordinates{where}; a UV layout is required")
+    panels = None
+    if group_ids:
+        panels = np.asarray(face_group, dtype=np.int32)
+        panels[panels < 0] = 0
+    return make_garment(
+        np.asarray(verts, np.float32).reshape(-1, 3),
+        np.asarray(faces, np.int64),
+        np.asarray(uvs, np.float32).reshape(-1, 2),
+        np.asarray(uv_faces, np.int64),
+        panels,
+        source=str(path),
+    )
+
+
+def save_obj(path: str | os.PathLike, garment: Garment, vertices=None) -> None:
+    """Write a garment as OBJ with `v`, `vt` and `f v/vt` lines (seams preserved).
+
+    Args:
+      path: output file; written atomically (temporary file + rename).
+      garment: topology and UVs.
+      vertices: optional (V, 3) positions replacing `garment.vertices` (e.g. one frame).
+    """
+    v = np.asarray(garment.vertices if vertices is None else vertices, dtype=np.float64)
+    f = np.asarray(garment.faces, dtype=np.int64) + 1
+    uv = np.asarray(garment.uvs, dtype=np.float64)
+    uf = np.asarray(garment.uv_faces, dtype=np.int64) + 1
+    if v.shape != (garment.num_vertices, 3):
+        raise GarmentError(f"{path}: vertices shape {v.shape} does not match the garment topology")
+    chunks = ["# wrinkle-jax garment\n", _format_rows("v", v, "%.7g"),
+              _format_rows("vt", uv, "%.7g")]
+    corners = [_corner_tokens(f[:, k], uf[:, k]) for k in range(3)]
+    face_lines = np.char.add(np.char.add(np.char.add("f ", corners[0]), " "),
+                             np.char.add(np.char.add(corners[1], " "), corners[2]))
+    if garment.panels is None:
+        chunks.append("\n".join(face_lines.tolist()) + "\n")
+    else:
+        panels = np.asarray(garment.panels)
+        # A new group line wherever the panel id changes along the face order (order preserved).
+        starts = np.flatnonzero(np.r_[True, panels[1:] != panels[:-1]])
+        ends = np.r_[starts[1:], len(panels)]
+        for s, e in zip(starts, ends, strict=True):
+            chunks.append(f"g panel_{int(panels[s])}\n")
+            chunks.append("\n".join(face_lines[s:e].tolist()) + "\n")
+    atomic_write_text(path, "".join(chunks))
+
+
+def _format_rows(tag: str, a: np.ndarray, fmt: str) -> str:
+    if len(a) == 0:
+        return ""
+    line = tag + (" " + fmt) * a.shape[1] + "\n"
+    return "".join(line % tuple(row) for row in a.tolist())
+
+
+def _corner_tokens(vi: np.ndarray, ti: np.ndarray) -> np.ndarray:
+    return np.char.add(np.char.add(vi.astype(str), "/"), ti.astype(str))
+
+
+# --------------------------------------------------------------------------------------------
+# Sequences
+# --------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class GarmentSequence:
+    """An animation of one garment: shared topology and UVs, per-frame positions.
+
+    Attributes:
+      frames: (T, V, 3) float32, meters.
+      garment: topology and UVs (its `vertices` are the first frame unless given otherwise).
+      fps: frames per second.
+      metadata: JSON-serializable dict (material, scene config, source, ...).
+    """
+
+    frames: np.ndarray
+    garment: Garment
+    fps: float = 30.0
+    metadata: dict = dataclasses.field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.frames.shape[0])
+
+
+def make_sequence(frames, garment: Garment, fps: float = 30.0, metadata=None,
+                  source: str = "<sequence>") -> GarmentSequence:
+    """Validate and build a `GarmentSequence` (frames must match the garment's vertex count)."""
+    frames = np.asarray(frames, dtype=np.float32)
+    if frames.ndim != 3 or frames.shape[2] != 3:
+        raise GarmentError(f"{source}: frames must have shape (T, V, 3), got {frames.shape}")
+    if frames.shape[0] == 0:
+        raise GarmentError(f"{source}: the sequence has no frames")
+    if frames.shape[1] != garment.num_vertices:
+        raise GarmentError(
+            f"{source}: frames have {frames.shape[1]} vertices but the garment has "
+            f"{garment.num_vertices}"
+        )
+    bad = ~np.isfinite(frames).all(axis=(1, 2))
+    if bad.any():
+        raise GarmentError(f"{source}: frame {int(np.flatnonzero(bad)[0])} has non-finite vertices")
+    if not (np.isfinite(fps) and fps > 0):
+        raise GarmentError(f"{source}: fps must be positive, got {fps}")
+    return GarmentSequence(frames, garment, float(fps), dict(metadata or {}))
+
+
+def _natural_key(name: str):
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
+
+
+def load_sequence(path: str | os.PathLike, fps: float = 30.0) -> GarmentSequence:
+    """Load a sequence from an `.npz` bundle or a folder of per-frame OBJ files.
+
+    A folder's OBJs are ordered naturally (`f2.obj` before `f10.obj`) and must share topology
+    (faces, UV faces) with the first; `fps` applies to folders only (`.npz` stores its own).
+
+    Raises:
+      GarmentError: naming the offending file (unreadable, missing keys, mismatched topology,
+        non-finite vertices).
+    """
+    path = Path(path)
+    if path.is_dir():
+        files = sorted((p for p in path.iterdir() if p.suffix.lower() == ".obj"),
+                       key=lambda p: _natural_key(p.name))
+        if not files:
+            raise GarmentError(f"{path}: no .obj frames in this folder")
+        first = load_obj(files[0])
+        frames = [np.asarray(first.vertices)]
+        for p in files[1:]:
+            g = load_obj(p)
+            if g.num_vertices != first.num_vertices or not np.array_equal(g.faces, first.faces):
+                raise GarmentError(
+                    f"{p}: topology differs from the first frame {files[0].name} "
+                    f"({g.num_vertices} vs {first.num_vertices} vertices)"
+                )
+            frames.append(np.asarray(g.vertices))
+        return make_sequence(np.stack(frames), first, fps,
+                             {"source": str(path), "files": [p.name for p in files]}, str(path))
+    if path.suffix.lower() != ".npz":
+        raise GarmentError(f"{path}: expected a folder of OBJ frames or an .npz sequence")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except FileNotFoundError:
+        raise GarmentError(f"{path}: no such file") from None
+    except Exception as e:  # zipfile / format errors: report them as a bad file
+        raise GarmentError(f"{path}: not a readable .npz sequence ({e})") from None
+    missing = [k for k in ("frames", "faces", "uvs", "uv_faces") if k not in data]
+    if missing:
+        raise GarmentError(f"{path}: missing arrays {missing} in the sequence bundle")
+    meta = {}
+    if "metadata" in data:
+        try:
+            meta = json.loads(str(data["metadata"]))
+        except json.JSONDecodeError:
+            raise GarmentError(f"{path}: metadata is not valid JSON") from None
+    frames = np.asarray(data["frames"], np.float32)
+    if frames.ndim != 3 or frames.shape[0] == 0:
+        raise GarmentError(f"{path}: frames must have shape (T, V, 3), got {frames.shape}")
+    garment = make_garment(frames[0], data["faces"], data["uvs"], data["uv_faces"],
+                           data.get("panels"), source=str(path))
+    seq_fps = float(data["fps"]) if "fps" in data else fps
+    return make_sequence(frames, garment, seq_fps, meta, str(path))
+
+
+def save_sequence(path: str | os.PathLike, seq: GarmentSequence, **extra_arrays) -> None:
+    """Write a sequence as an `.npz` bundle (atomically).
+
+    Keys: frames (T,V,3) float32, faces, uvs, uv_faces, panels (if any), fps, metadata (JSON
+    string), plus any `extra_arrays` (e.g. collider tracks).
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".npz":
+        raise GarmentError(f"{path}: sequence bundles must end in .npz")
+    g = seq.garment
+    arrays = dict(
+        frames=np.asarray(seq.frames, np.float32),
+        faces=np.asarray(g.faces, np.int32),
+        uvs=np.asarray(g.uvs, np.float32),
+        uv_faces=np.asarray(g.uv_faces, np.int32),
+        fps=np.float64(seq.fps),
+        metadata=np.str_(json.dumps(seq.metadata)),
+        **{k: np.asarray(v) for k, v in extra_arrays.items()},
+    )
+    if g.panels is not None:
+        arrays["panels"] = np.asarray(g.panels, np.int32)
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def save_obj_sequence(folder: str | os.PathLike, seq: GarmentSequence,
+                      prefix: str = "frame_") -> list[Path]:
+    """Write one OBJ per frame (`frame_00000.obj`, ...) into `folder`; returns the paths."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise GarmentError(f"{folder}: exists and is not a folder")
+    folder.mkdir(parents=True, exist_ok=True)
+    digits = max(5, len(str(len(seq) - 1)))
+    paths = []
+    for t in range(len(seq)):
+        p = folder / f"{prefix}{t:0{digits}d}.obj"
+        save_obj(p, seq.garment, seq.frames[t])
+        paths.append(p)
+    return paths

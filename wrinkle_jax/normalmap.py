@@ -346,9 +346,18 @@ def bake(plan: RasterPlan, vertices, smooth: bool = True):
     return n[plan.index_map]
 
 
-def bake_frames(plan: RasterPlan, frames, smooth: bool = True):
-    """Bake a batch of frames (T, V, 3) -> (T, H, W, 3) (vmapped `bake`)."""
-    return jax.vmap(lambda v: bake(plan, v, smooth))(frames)
+def bake_frames(plan: RasterPlan, frames, smooth: bool = True, batch_size: int | None = None):
+    """Bake a batch of frames (T, V, 3) -> (T, H, W, 3).
+
+    Args:
+      batch_size: None vmaps over all T frames at once; an integer bakes `batch_size` frames
+        at a time under `lax.map`, which keeps each step's working set in cache (on a CPU this
+        is faster per frame for large maps; see benchmarks/bench_normalmap.py) and bounds
+        memory.
+    """
+    if batch_size is None:
+        return jax.vmap(lambda v: bake(plan, v, smooth))(frames)
+    return jax.lax.map(lambda v: bake(plan, v, smooth), frames, batch_size=batch_size)
 
 
 def sample(normal_map, uv, layout: UVLayout, renormalize: bool = True):

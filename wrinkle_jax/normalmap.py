@@ -284,14 +284,15 @@ def make_plan(garment: Garment, texel_size: float = DEFAULT_TEXEL_SIZE, gutter: 
     index_map = np.full(h * w, len(pix), np.int32)
     index_map[pix] = np.arange(len(pix), dtype=np.int32)
     faces = np.asarray(garment.faces, np.int32)
+    # Device arrays: passing the plan to a jitted bake then copies nothing per call.
     return RasterPlan(
-        faces=faces,
-        texel_pixel=pix.astype(np.int32),
-        texel_tri=tid.astype(np.int32),
-        texel_vertex=faces[tid].reshape(-1, 3),
-        texel_bary=bary.astype(np.float32).reshape(-1, 3),
-        index_map=index_map.reshape(h, w),
-        mask=mask.reshape(h, w, 1),
+        faces=jnp.asarray(faces),
+        texel_pixel=jnp.asarray(pix.astype(np.int32)),
+        texel_tri=jnp.asarray(tid.astype(np.int32)),
+        texel_vertex=jnp.asarray(faces[tid].reshape(-1, 3)),
+        texel_bary=jnp.asarray(bary.astype(np.float32).reshape(-1, 3)),
+        index_map=jnp.asarray(index_map.reshape(h, w)),
+        mask=jnp.asarray(mask.reshape(h, w, 1)),
         layout=layout,
     )
 

@@ -121,13 +121,13 @@ def save_obj(path: str | os.PathLike, garment: Garment, vertices=None) -> None:
     uf = np.asarray(garment.uv_faces, dtype=np.int64) + 1
     if v.shape != (garment.num_vertices, 3):
         raise GarmentError(f"{path}: vertices shape {v.shape} does not match the garment topology")
-    chunks = ["# wrinkle-jax garment\n", _format_rows("v", v, "%.7g"),
-              _format_rows("vt", uv, "%.7g")]
-    corners = [_corner_tokens(f[:, k], uf[:, k]) for k in range(3)]
-    face_lines = np.char.add(np.char.add(np.char.add("f ", corners[0]), " "),
-                             np.char.add(np.char.add(corners[1], " "), corners[2]))
+    chunks = ["# wrinkle-jax garment\n", _format_rows("v ", v, "%.7g %.7g %.7g"),
+              _format_rows("vt ", uv, "%.7g %.7g")]
+    # Interleave (v, vt) per corner: "f v0/t0 v1/t1 v2/t2".
+    corners = np.stack([f, uf], axis=2).reshape(-1, 6)
+    face_fmt = "f %d/%d %d/%d %d/%d"
     if garment.panels is None:
-        chunks.append("\n".join(face_lines.tolist()) + "\n")
+        chunks.append(_format_rows("", corners, face_fmt))
     else:
         panels = np.asarray(garment.panels)
         # A new group line wherever the panel id changes along the face order (order preserved).
@@ -135,19 +135,17 @@ def save_obj(path: str | os.PathLike, garment: Garment, vertices=None) -> None:
         ends = np.r_[starts[1:], len(panels)]
         for s, e in zip(starts, ends, strict=True):
             chunks.append(f"g panel_{int(panels[s])}\n")
-            chunks.append("\n".join(face_lines[s:e].tolist()) + "\n")
+            chunks.append(_format_rows("", corners[s:e], face_fmt))
     atomic_write_text(path, "".join(chunks))
 
 
-def _format_rows(tag: str, a: np.ndarray, fmt: str) -> str:
+def _format_rows(prefix: str, a: np.ndarray, fmt: str) -> str:
+    """Rows of `a` formatted with `fmt` (NumPy's C-level formatting), one line each."""
     if len(a) == 0:
         return ""
-    line = tag + (" " + fmt) * a.shape[1] + "\n"
-    return "".join(line % tuple(row) for row in a.tolist())
-
-
-def _corner_tokens(vi: np.ndarray, ti: np.ndarray) -> np.ndarray:
-    return np.char.add(np.char.add(vi.astype(str), "/"), ti.astype(str))
+    buf = io.StringIO()
+    np.savetxt(buf, a, fmt=prefix + fmt)
+    return buf.getvalue()
 
 
 # --------------------------------------------------------------------------------------------

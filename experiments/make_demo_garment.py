@@ -28,7 +28,8 @@ def skirt_frames(garment, num_frames: int = 12, fps: float = 30.0) -> np.ndarray
     frames = []
     for t in range(num_frames):
         phase = 2 * np.pi * t / num_frames
-        folds = 0.025 * depth**1.5 * (np.sin(7 * theta + phase) + 0.4 * np.sin(13 * theta - 2 * phase))
+        waves = np.sin(7 * theta + phase) + 0.4 * np.sin(13 * theta - 2 * phase)
+        folds = 0.025 * depth**1.5 * waves
         rr = r + folds
         swing = 0.06 * depth**2 * np.sin(phase)
         frames.append(np.stack([rr * np.cos(theta) + swing, rr * np.sin(theta), v[:, 2]], -1))

@@ -1,0 +1,203 @@
+"""Benchmark VGG19 features and style-loss gradients on 128x128 patches; prints JSON.
+
+For each style-layer set (ending at relu2_1 / relu3_1 / relu4_1 / relu5_1) and compute dtype
+(float32, bfloat16 conv inputs/weights with float32 accumulation) it reports milliseconds per
+patch for the forward pass and for forward + backward (gradient of the masked style loss
+w.r.t. the input images), median over repetitions after a warm-up compile; the relative error
+bfloat16 introduces in the style loss and its gradient against float32; and whether the
+compiled CPU program keeps bfloat16 convolutions (native bf16 / AMX kernels) or converts them
+back to float32.
+
+Usage: python benchmarks/bench_vgg.py [--batch 8] [--size 128] [--reps 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import re
+import statistics
+import time
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wrinkle_jax.nn import losses, vgg
+
+LAYER_SETS = {
+    "relu2_1": ("relu1_2", "relu2_1"),
+    "relu3_1": ("relu1_2", "relu2_1", "relu3_1"),
+    "relu4_1": ("relu1_2", "relu2_1", "relu3_1", "relu4_1"),
+    "relu5_1": ("relu1_2", "relu2_1", "relu3_1", "relu4_1", "relu5_1"),
+}
+DTYPES = {"float32": None, "bfloat16": jnp.bfloat16}
+
+
+def synthetic_normal_maps(rng, batch, size):
+    """Wrinkle-like normal maps: random sinusoidal height fields, RGB form in [0, 1]."""
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size
+    images = []
+    for _ in range(batch):
+        dhdx = np.zeros((size, size), np.float32)
+        dhdy = np.zeros((size, size), np.float32)
+        for _ in range(12):
+            kx, ky = rng.normal(0, 12, 2)
+            amp, phase = rng.uniform(0.002, 0.01), rng.uniform(0, 2 * np.pi)
+            arg = 2 * np.pi * (kx * xx + ky * yy) + phase
+            dhdx += amp * 2 * np.pi * kx * np.cos(arg)
+            dhdy += amp * 2 * np.pi * ky * np.cos(arg)
+        n = np.stack([-dhdx, -dhdy, np.ones_like(dhdx)], -1)
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        images.append((n + 1) / 2)
+    return jnp.asarray(np.stack(images), jnp.float32)
+
+
+def timed_interleaved(runs, reps):
+    """Median wall time (s) per entry of `runs` ({key: (jitted fn, args)}).
+
+    Each function is compiled and run once first; the timed repetitions then cycle through all
+    entries, so slow drifts in background load hit every variant alike.
+    """
+    compile_s, samples = {}, {key: [] for key in runs}
+    for key, (fn, args) in runs.items():
+        start = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        compile_s[key] = time.perf_counter() - start
+    for _ in range(reps):
+        for key, (fn, args) in runs.items():
+            start = time.perf_counter()
+            jax.block_until_ready(fn(*args))
+            samples[key].append(time.perf_counter() - start)
+    return {key: statistics.median(v) for key, v in samples.items()}, compile_s
+
+
+def hlo_conv_dtypes(fn, *args):
+    """Operand dtypes of the convolutions in the optimized (compiled) CPU HLO of `fn`."""
+    text = fn.lower(*args).compile().as_text()
+    # Every instruction is defined once as `%name = dtype[shape]{layout} op(...)`.
+    types = dict(re.findall(r"%([\w.\-]+) = (\w+)\[", text))
+    operand_dtypes = []
+    for line in text.splitlines():
+        match = re.search(r"= (\w+)\[[^=]*?\bconvolution\(([^)]*)\)", line)
+        if match:
+            names = re.findall(r"%([\w.\-]+)", match.group(2))
+            operand_dtypes.append("/".join(types.get(n, "?") for n in names))
+    counts = {k: operand_dtypes.count(k) for k in sorted(set(operand_dtypes))}
+    return {
+        "convolution_operand_dtypes": counts,
+        "bf16_convolutions": sum(v for k, v in counts.items() if "bf16" in k),
+        "onednn_custom_calls": len(re.findall(r"__onednn", text)),
+        "xnn_or_ynn_fusions": len(re.findall(r"%[xy]nn_fusion[\w.]* = ", text)),
+    }
+
+
+def cpu_flags():
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = next(line for line in f if line.startswith("flags")).split()
+    except (OSError, StopIteration):
+        return []
+    return sorted(f for f in flags if f.startswith(("amx", "avx512_bf16", "avx512f", "avx2")))
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--batch", type=int, default=8)
+    parser.add_argument("--size", type=int, default=128)
+    parser.add_argument("--reps", type=int, default=5)
+    args = parser.parse_args()
+
+    params = vgg.load_vgg19()
+    rng = np.random.default_rng(0)
+    images = synthetic_normal_maps(rng, args.batch, args.size)
+    target = synthetic_normal_maps(rng, args.batch, args.size)
+    mask = np.ones((args.batch, args.size, args.size, 1), np.float32)
+    mask[:, :, : args.size // 5] = 0.0  # some background, as in real UV patches
+    mask = jnp.asarray(mask)
+
+    results, hlo, speedups = [], {}, {}
+    load_before = os.getloadavg()[0]
+    for last, layers in LAYER_SETS.items():
+        target_feats = vgg.features(params, target, layers=layers)  # float32 reference
+
+        # Target features and mask are arguments, not closed-over constants: XLA would
+        # otherwise constant-fold the target Grams at compile time.
+        def loss(p, x, target_feats, mask, layers=layers, dtype=None):
+            feats = vgg.features(p, x, layers=layers, dtype=dtype)
+            per_sample = losses.style_loss(feats, target_feats, mask, layers)
+            return jnp.sum(per_sample), per_sample
+
+        runs = {}
+        for dtype_name, dtype in DTYPES.items():
+            fwd = jax.jit(partial(vgg.features, layers=layers, dtype=dtype))
+            fwd_bwd = jax.jit(jax.value_and_grad(partial(loss, dtype=dtype), argnums=1,
+                                                 has_aux=True))
+            runs[(dtype_name, "fwd")] = (fwd, (params, images))
+            runs[(dtype_name, "fwd_bwd")] = (fwd_bwd, (params, images, target_feats, mask))
+            if dtype is not None and last == "relu5_1":
+                hlo = hlo_conv_dtypes(fwd, params, images)
+        times, compile_s = timed_interleaved(runs, reps=args.reps)
+
+        ref_loss, ref_grad = None, None
+        for dtype_name in DTYPES:
+            fwd_bwd, fb_args = runs[(dtype_name, "fwd_bwd")]
+            (_, per_sample), grad = fwd_bwd(*fb_args)
+            row = {
+                "dtype": dtype_name,
+                "last_layer": last,
+                "layers": list(layers),
+                "forward_ms_per_patch": round(1e3 * times[(dtype_name, "fwd")] / args.batch, 2),
+                "fwd_bwd_ms_per_patch": round(
+                    1e3 * times[(dtype_name, "fwd_bwd")] / args.batch, 2),
+                "compile_s": round(compile_s[(dtype_name, "fwd")]
+                                   + compile_s[(dtype_name, "fwd_bwd")], 2),
+                "style_loss_mean": float(jnp.mean(per_sample)),
+            }
+            if ref_loss is None:
+                ref_loss, ref_grad = per_sample, grad
+            else:
+                row["style_loss_rel_err_vs_f32"] = float(
+                    jnp.max(jnp.abs(per_sample - ref_loss) / jnp.abs(ref_loss)))
+                row["grad_rel_err_vs_f32"] = float(
+                    jnp.linalg.norm(grad - ref_grad) / jnp.linalg.norm(ref_grad))
+            results.append(row)
+        speedups[last] = {
+            kind: round(times[("float32", kind)] / times[("bfloat16", kind)], 3)
+            for kind in ("fwd", "fwd_bwd")
+        }
+
+    flags = cpu_flags()
+    native = hlo.get("bf16_convolutions", 0) > 0
+    median_speedup = statistics.median(v for s in speedups.values() for v in s.values())
+    report = {
+        "benchmark": "vgg19_features",
+        "jax": jax.__version__,
+        "backend": jax.default_backend(),
+        "cpu": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "cpu_flags": flags,
+        "amx_available": any(f.startswith("amx") for f in flags),
+        "weights": params["spec"].preprocess,
+        "pool": "avg",
+        "batch": args.batch,
+        "patch": args.size,
+        "reps": args.reps,
+        "results": results,
+        "bf16_speedup_vs_f32": speedups,
+        "bf16_compiled_hlo_relu5_1_forward": hlo,
+        "loadavg_1min_before_after": [round(load_before, 2), round(os.getloadavg()[0], 2)],
+        "bf16_verdict": (
+            ("bf16 convolutions kept in the compiled program" if native
+             else "XLA:CPU converts bf16 convolutions back to f32 (no native bf16/AMX kernels)")
+            + f"; median f32/bf16 time ratio {median_speedup:.2f}"
+        ),
+    }
+    print(json.dumps(report, indent=1))
+
+
+if __name__ == "__main__":
+    main()

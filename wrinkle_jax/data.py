@@ -1,0 +1,322 @@
+"""Patch data sets for the enhancer: fine sequences -> (coarse-looking input, fine target) patch
+pairs in memory-mappable shards, and a deterministic, resumable batch iterator.
+
+Building (paper Sec. 5, "Dataset"): each fine frame is baked to a normal map at a fixed texel
+size; the network input is made from it by `normalmap.downsample_like_coarse` with factor =
+coarse PD / fine PD (the paper trains on downsampled fine maps so that input and target are
+aligned); random crops with at least `min_coverage` garment texels are cut from the stacked
+(input, target, mask) map, with the 8 dihedral augmentations.
+
+On disk (`root/`):
+    shards/<sequence>_<k>.npy   (n, S, S, 7) uint16: channels 0-2 input and 3-5 target in the
+                                RGB form (n + 1) / 2 scaled to 0..65535, channel 6 the mask
+    index/<sequence>.json       one per finished sequence: its split, material, scene, garment,
+                                motion, and per shard the frame of every patch
+A sequence whose index file exists is skipped, so an interrupted build resumes; every file is
+written atomically. Memory is bounded by one bake batch plus one shard, however long the
+sequences are.
+
+Splits are by garment and by motion: a sequence whose garment is in `heldout_garments` or whose
+motion is in `heldout_motions` is "heldout", whatever its metadata claims; everything else is
+"train". Held-out garments and motions never reach training.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import io
+import json
+import os
+from collections.abc import Iterable
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wrinkle_jax import MATERIALS, material_index, normalmap, patches
+from wrinkle_jax.fileio import atomic_write_bytes, atomic_write_text
+from wrinkle_jax.meshio import GarmentSequence, load_sequence
+
+CHANNELS = 7  # input RGB, target RGB, mask
+_SCALE = 65535.0
+
+
+@dataclasses.dataclass(frozen=True)
+class PatchDataConfig:
+    """How patches are cut (static, hashable).
+
+    Attributes:
+      texel_size: meters of cloth per texel.
+      patch_size: patch side in texels.
+      crops_per_frame: random crops per baked frame.
+      min_coverage: minimum fraction of garment texels in a crop.
+      downsample_factor: coarse PD / fine PD (30 mm / 10 mm in the paper).
+      frame_stride: use every k-th frame.
+      bake_batch: frames baked per jitted call (bounds memory).
+      shard_size: patches per shard file.
+      augment: random dihedral transforms.
+      seed: base seed; each sequence derives its own key from it and its name.
+      heldout_garments, heldout_motions: names that never reach the train split.
+    """
+
+    texel_size: float = normalmap.DEFAULT_TEXEL_SIZE
+    patch_size: int = 128
+    crops_per_frame: int = 8
+    min_coverage: float = 0.09
+    downsample_factor: float = 3.0
+    frame_stride: int = 1
+    bake_batch: int = 4
+    shard_size: int = 512
+    augment: bool = True
+    seed: int = 0
+    heldout_garments: tuple[str, ...] = ("dress", "cape")
+    heldout_motions: tuple[str, ...] = ("walk_unseen",)
+
+
+def sequence_info(seq: GarmentSequence, name: str) -> dict:
+    """Material, scene, garment and motion of a sequence, from its metadata.
+
+    Raises:
+      ValueError: naming the sequence, if the material is missing or unknown.
+    """
+    meta = seq.metadata
+    material = meta.get("material")
+    if material is None:
+        raise ValueError(f"{name}: sequence metadata has no 'material'")
+    try:
+        material_index(material)
+    except ValueError as e:
+        raise ValueError(f"{name}: {e}") from None
+    scene = meta.get("scene", name)
+    return {"material": material, "scene": scene, "garment": meta.get("garment", scene),
+            "motion": meta.get("motion", scene)}
+
+
+def split_of(info: dict, config: PatchDataConfig) -> str:
+    """'heldout' if the garment or the motion is held out, else 'train'."""
+    if info["garment"] in config.heldout_garments or info["motion"] in config.heldout_motions:
+        return "heldout"
+    return "train"
+
+
+def _to_uint16(rgb: np.ndarray) -> np.ndarray:
+    return np.round(np.clip(rgb, 0.0, 1.0) * _SCALE).astype(np.uint16)
+
+
+def _seed_for(name: str, seed: int) -> int:
+    # A stable per-sequence seed (Python's hash() is salted per process).
+    h = 2166136261
+    for ch in f"{seed}:{name}".encode():
+        h = ((h ^ ch) * 16777619) & 0xFFFFFFFF
+    return h
+
+
+@functools.lru_cache(maxsize=8)
+def _make_crop_fn(config: PatchDataConfig):
+    """Jitted (key, fine map, mask) -> (n, S, S, 7) float32 crops in the RGB form.
+
+    Cached per config, so every sequence reuses the compiled function.
+    """
+    factor = float(config.downsample_factor)
+
+    def crops(key, fine, mask):
+        coarse = normalmap.downsample_like_coarse(fine, mask, factor)
+        stacked = jnp.concatenate([normalmap.to_rgb(coarse) * mask,
+                                   normalmap.to_rgb(fine) * mask, mask], axis=-1)
+        out, _, _ = patches.random_crops(key, stacked, mask, config.crops_per_frame,
+                                         config.patch_size, config.min_coverage,
+                                         augment=config.augment)
+        return out
+
+    return jax.jit(crops)
+
+
+def build_sequence(seq: GarmentSequence, name: str, root: Path, config: PatchDataConfig) -> dict:
+    """Cut one sequence into shards under `root`; returns (and writes) its index entry."""
+    info = sequence_info(seq, name)
+    split = split_of(info, config)
+    plan = normalmap.make_plan(seq.garment, texel_size=config.texel_size)
+    h, w = plan.shape
+    size = config.patch_size
+    mask = plan.mask
+    if h < size or w < size:
+        mask = jnp.asarray(patches.pad_to_patch(np.asarray(mask), size)[0])
+    counts = np.asarray(patches.crop_mask_counts(mask, size))
+    if counts.max() < config.min_coverage * size * size:
+        raise ValueError(f"{name}: no {size}x{size} patch reaches {config.min_coverage:.0%} "
+                         f"garment coverage at texel size {config.texel_size} m")
+    bake = jax.jit(normalmap.bake_frames)
+    crop = _make_crop_fn(config)
+    key = jax.random.key(_seed_for(name, config.seed))
+    frames = np.arange(0, len(seq), config.frame_stride)
+    shard_dir = root / "shards"
+    shard_dir.mkdir(parents=True, exist_ok=True)
+    shards, buf, buf_frames = [], [], []
+
+    def flush():
+        if not buf:
+            return
+        arr = np.concatenate(buf)
+        path = shard_dir / f"{name}_{len(shards):05d}.npy"
+        out = io.BytesIO()
+        np.save(out, arr)
+        atomic_write_bytes(path, out.getvalue())
+        shards.append({"file": path.name, "frames": [int(f) for f in buf_frames]})
+        buf.clear()
+        buf_frames.clear()
+
+    for start in range(0, len(frames), config.bake_batch):
+        idx = frames[start:start + config.bake_batch]
+        padded = np.resize(idx, config.bake_batch)  # fixed batch shape: compile once
+        maps = bake(plan, jnp.asarray(seq.frames[padded]))
+        for j, t in enumerate(idx):
+            fine = maps[j]
+            if fine.shape[:2] != mask.shape[:2]:
+                fine = jnp.asarray(patches.pad_to_patch(np.asarray(fine), size)[0])
+            key, sub = jax.random.split(key)
+            out = _to_uint16(np.asarray(crop(sub, fine, mask)))
+            buf.append(out)
+            buf_frames.extend([int(t)] * len(out))
+            if sum(len(b) for b in buf) >= config.shard_size:
+                flush()
+    flush()
+    entry = {"sequence": name, "split": split, **info,
+             "material_id": material_index(info["material"]),
+             "patch_size": size, "texel_size": config.texel_size,
+             "config": dataclasses.asdict(config), "shards": shards}
+    (root / "index").mkdir(parents=True, exist_ok=True)
+    atomic_write_text(root / "index" / f"{name}.json", json.dumps(entry))
+    return entry
+
+
+def build_dataset(sources: Iterable[str | os.PathLike], root: str | os.PathLike,
+                  config: PatchDataConfig = PatchDataConfig(), progress=None) -> list[dict]:
+    """Build (or resume building) a patch data set from sequence files.
+
+    Args:
+      sources: `.npz` sequences (or OBJ folders) of FINE simulations with metadata `material`
+        and, ideally, `scene`, `garment`, `motion`.
+      root: output folder.
+      config: PatchDataConfig.
+      progress: optional callable(name, entry) called after each sequence.
+    Returns:
+      the index entries of all sequences (finished before or now).
+    """
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    entries = []
+    for src in sources:
+        src = Path(src)
+        name = src.stem if src.suffix else src.name
+        done = root / "index" / f"{name}.json"
+        if done.exists():
+            entries.append(json.loads(done.read_text()))
+            continue
+        entry = build_sequence(load_sequence(src), name, root, config)
+        entries.append(entry)
+        if progress is not None:
+            progress(name, entry)
+    return entries
+
+
+# --------------------------------------------------------------------------------------------
+# Reading
+# --------------------------------------------------------------------------------------------
+
+
+class PatchDataset:
+    """Memory-mapped patches of one split.
+
+    Attributes:
+      root: data set folder. split: "train" or "heldout".
+      entries: index entries of the sequences in this split.
+      materials: (N,) int32 material id of every patch.
+    """
+
+    def __init__(self, root: str | os.PathLike, split: str = "train"):
+        self.root = Path(root)
+        self.split = split
+        index_dir = self.root / "index"
+        if not index_dir.is_dir():
+            raise FileNotFoundError(f"{self.root}: not a patch data set (no index/ folder)")
+        self.entries = [e for e in (json.loads(p.read_text())
+                                    for p in sorted(index_dir.glob("*.json")))
+                        if e["split"] == split]
+        self._shards, shard_ids, rows, mats, frames = [], [], [], [], []
+        for e in self.entries:
+            for s in e["shards"]:
+                arr = np.load(self.root / "shards" / s["file"], mmap_mode="r")
+                if arr.ndim != 4 or arr.shape[-1] != CHANNELS:
+                    raise ValueError(f"{s['file']}: expected (n, S, S, {CHANNELS}) patches")
+                k = len(self._shards)
+                self._shards.append(arr)
+                shard_ids.append(np.full(len(arr), k, np.int32))
+                rows.append(np.arange(len(arr), dtype=np.int32))
+                mats.append(np.full(len(arr), e["material_id"], np.int32))
+                frames.append(np.asarray(s["frames"], np.int32))
+        def cat(xs):
+            return np.concatenate(xs) if xs else np.zeros(0, np.int32)
+
+        self._shard_of, self._row_of = cat(shard_ids), cat(rows)
+        self.materials, self.frames = cat(mats), cat(frames)
+
+    def __len__(self) -> int:
+        return int(len(self.materials))
+
+    @property
+    def patch_size(self) -> int:
+        return int(self._shards[0].shape[1]) if self._shards else 0
+
+    def get(self, indices) -> dict:
+        """Patches by global index -> dict of float32 arrays.
+
+        Returns:
+          {"input": (B,S,S,3), "target": (B,S,S,3), "mask": (B,S,S,1)} in the RGB form /
+          [0, 1], and "material": (B,) int32.
+        """
+        indices = np.asarray(indices)
+        out = np.stack([self._shards[self._shard_of[i]][self._row_of[i]] for i in indices])
+        x = out.astype(np.float32) / _SCALE
+        return {"input": x[..., 0:3], "target": x[..., 3:6], "mask": x[..., 6:7],
+                "material": self.materials[indices]}
+
+    def material_counts(self) -> dict[str, int]:
+        return {MATERIALS[k]: int((self.materials == k).sum()) for k in range(len(MATERIALS))}
+
+
+@dataclasses.dataclass(frozen=True)
+class IteratorState:
+    """Position of a `BatchIterator` (saved in checkpoints for an exact resume)."""
+
+    epoch: int = 0
+    cursor: int = 0
+
+
+class BatchIterator:
+    """Deterministic shuffled batches: epoch e visits a permutation seeded by (seed, e).
+
+    The state is two integers, so a resumed run draws exactly the batches the uninterrupted
+    run would have drawn.
+    """
+
+    def __init__(self, dataset: PatchDataset, batch_size: int, seed: int = 0,
+                 state: IteratorState = IteratorState()):
+        if len(dataset) < batch_size:
+            raise ValueError(f"{len(dataset)} patches are fewer than one batch of {batch_size}")
+        self.dataset, self.batch_size, self.seed, self.state = dataset, batch_size, seed, state
+
+    def _perm(self, epoch: int) -> np.ndarray:
+        return np.random.default_rng([self.seed, epoch]).permutation(len(self.dataset))
+
+    def __iter__(self):
+        return self
+
+    def __next__(self) -> dict:
+        epoch, cursor = self.state.epoch, self.state.cursor
+        if cursor + self.batch_size > len(self.dataset):  # drop the ragged tail of an epoch
+            epoch, cursor = epoch + 1, 0
+        idx = self._perm(epoch)[cursor:cursor + self.batch_size]
+        self.state = IteratorState(epoch, cursor + self.batch_size)
+        return self.dataset.get(idx)

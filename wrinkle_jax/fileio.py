@@ -1,5 +1,5 @@
-"""Atomic file writes: readers never see a partial output file, and a failed write leaves
-nothing behind."""
+"""Where files go and how they are written: the user cache folder, and atomic file writes
+(readers never see a partial output file, and a failed write leaves nothing behind)."""
 
 from __future__ import annotations
 
@@ -12,13 +12,32 @@ _UMASK = os.umask(0o022)
 os.umask(_UMASK)
 
 
+def user_cache_dir() -> Path:
+    """The user cache folder (need not exist yet), read from the environment at each call.
+
+    `$WRINKLE_JAX_CACHE` if set (and non-empty), else `$XDG_CACHE_HOME/wrinkle-jax`, else
+    `~/.cache/wrinkle-jax`.
+    """
+    explicit = os.environ.get("WRINKLE_JAX_CACHE")
+    if explicit:
+        return Path(explicit)
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "wrinkle-jax"
+
+
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     """Write text to `path` via a temporary file in the same folder and `os.replace`."""
     atomic_write_bytes(path, text.encode("utf-8"))
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write bytes to `path` atomically: readers never see a partial file."""
+def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, fsync: bool = False) -> None:
+    """Write bytes to `path` atomically: readers never see a partial file.
+
+    Args:
+      fsync: flush the data to disk before the rename, so that a crash or power loss cannot
+        leave an empty or truncated file under `path` (for cache entries that are read back
+        without being rewritten; costs a disk sync per call).
+    """
     path = Path(path)
     if path.is_dir():
         raise IsADirectoryError(f"{path}: is a directory, cannot write a file there")
@@ -27,6 +46,9 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
+            if fsync:
+                fh.flush()
+                os.fsync(fh.fileno())
         # mkstemp creates 0600 files; give the result the usual permissions (umask applied).
         os.chmod(tmp, 0o666 & ~_UMASK)
         os.replace(tmp, path)

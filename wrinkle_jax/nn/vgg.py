@@ -42,8 +42,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import importlib.util
-import os
-import tempfile
+import io
 import warnings
 import zipfile
 from pathlib import Path
@@ -52,6 +51,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wrinkle_jax.fileio import atomic_write_bytes, user_cache_dir
 from wrinkle_jax.io import torch_pickle
 
 __all__ = [
@@ -368,16 +368,10 @@ def _to_device(params):
 
 
 def cache_dir() -> Path:
-    """Where converted weights are cached.
-
-    ``$WRINKLE_JAX_CACHE`` if set, else ``$XDG_CACHE_HOME/wrinkle-jax``, else
-    ``~/.cache/wrinkle-jax``.
-    """
-    explicit = os.environ.get("WRINKLE_JAX_CACHE")
-    if explicit:
-        return Path(explicit)
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    return (Path(xdg) if xdg else Path.home() / ".cache") / "wrinkle-jax"
+    """Where converted weights are cached: :func:`wrinkle_jax.fileio.user_cache_dir`
+    (``$WRINKLE_JAX_CACHE``, else ``$XDG_CACHE_HOME/wrinkle-jax``, else
+    ``~/.cache/wrinkle-jax``)."""
+    return user_cache_dir()
 
 
 def _sha256(path, chunk=1 << 20):
@@ -389,18 +383,11 @@ def _sha256(path, chunk=1 << 20):
 
 
 def _save_npz_atomic(flat, target: Path):
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=target.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **flat)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, target)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    """Write the flat arrays as ``.npz`` via :func:`~wrinkle_jax.fileio.atomic_write_bytes`,
+    synced to disk before the rename (a crash never leaves a truncated cache entry)."""
+    buf = io.BytesIO()
+    np.savez(buf, **flat)
+    atomic_write_bytes(target, buf.getvalue(), fsync=True)
 
 
 def default_weights_path() -> Path:

@@ -5,6 +5,7 @@ Exit codes: 0 success, 1 failure (bad input file, runtime error), 2 bad usage.
     wrinkle-jax demo [--out DIR]
     wrinkle-jax bake INPUT --out DIR [--texel-size M] [--frames A:B] [--flat]
     wrinkle-jax assets fetch makehuman [--force]
+    wrinkle-jax train-enhancer --data DIR --out DIR [--steps N] [--width W] [--batch B] [--resume]
 """
 
 from __future__ import annotations
@@ -137,6 +138,25 @@ def _cmd_assets_fetch(args) -> int:
     return 0
 
 
+def _cmd_train_enhancer(args) -> int:
+    import dataclasses
+
+    from wrinkle_jax import train
+
+    config = dataclasses.replace(
+        train.TrainConfig(), steps=args.steps, width=args.width, batch_size=args.batch,
+        learning_rate=args.lr, seed=args.seed, eval_every=args.eval_every,
+        checkpoint_every=args.checkpoint_every,
+        **({"style_layers": tuple(args.style_layers)} if args.style_layers else {}))
+    if not Path(args.data, "index").is_dir():
+        print(f"wrinkle-jax train-enhancer: error: {args.data}: not a patch data set "
+              "(no index/ folder; build one with wrinkle_jax.data.build_dataset)", file=sys.stderr)
+        return 1
+    result = train.train(config, args.data, args.out, resume=args.resume)
+    print(json.dumps({k: v for k, v in result["last"].items()}, indent=2))
+    return 0
+
+
 def _print_report(report: dict) -> None:
     short = dict(report)
     outs = short.pop("outputs")
@@ -184,6 +204,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("name", choices=["makehuman"], help="which asset")
     p.add_argument("--force", action="store_true", help="fetch again even if present")
     p.set_defaults(func=_cmd_assets_fetch)
+
+    p = sub.add_parser("train-enhancer", help="train the CIN U-Net on a patch data set",
+                       description="Train (or resume) the enhancer; writes checkpoints, "
+                       "metrics.jsonl and loss_curve.png into --out.")
+    p.add_argument("--data", required=True, help="patch data set folder (data.build_dataset)")
+    p.add_argument("--out", required=True, help="run folder")
+    p.add_argument("--steps", type=int, default=1000)
+    p.add_argument("--width", type=int, default=32)
+    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--lr", type=float, default=1e-4)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--eval-every", type=int, default=50)
+    p.add_argument("--checkpoint-every", type=int, default=100)
+    p.add_argument("--style-layers", nargs="+", default=None, help="VGG layers of the style loss")
+    p.add_argument("--resume", action="store_true", help="continue from the last checkpoint")
+    p.set_defaults(func=_cmd_train_enhancer)
     return parser
 
 

@@ -279,6 +279,8 @@ def test_subdivision_apply_is_jittable_vmappable_and_linear(skirt):
     frames = jnp.stack([jnp.asarray(skirt.vertices), 2 * jnp.asarray(skirt.vertices)])
     out = jax.jit(jax.vmap(sub.apply))(frames)
     np.testing.assert_allclose(out[1], 2 * out[0], rtol=1e-5, atol=1e-6)
+    # The NumPy path used at setup time agrees with the jitted one.
+    np.testing.assert_allclose(sub.garment(skirt).vertices, out[0], rtol=1e-5, atol=1e-6)
     # Partition of unity: every row of every operator sums to 1 (affine invariance).
     for op in sub.vertex_ops + sub.uv_ops:
         np.testing.assert_allclose(op.todense().sum(1), 1.0, atol=1e-6)

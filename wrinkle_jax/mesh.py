@@ -310,6 +310,16 @@ class SparseOperator:
     def __matmul__(self, x):
         return apply(self, x)
 
+    def apply_numpy(self, x) -> np.ndarray:
+        """y = A x in NumPy (float64), for setup code outside jit (no compilation)."""
+        x = np.asarray(x, np.float64)
+        rows, cols = np.asarray(self.rows), np.asarray(self.cols)
+        w = np.asarray(self.values, np.float64)
+        flat = x.reshape(x.shape[0], -1)
+        out = np.stack([np.bincount(rows, w * flat[cols, c], minlength=self.shape[0])
+                        for c in range(flat.shape[1])], axis=1)
+        return out.reshape((self.shape[0],) + x.shape[1:])
+
     def todense(self) -> np.ndarray:
         """Dense NumPy copy, for tests and small debugging only."""
         out = np.zeros(self.shape, np.float64)
@@ -433,12 +443,15 @@ class Subdivision:
         return uvs
 
     def garment(self, garment: Garment) -> Garment:
-        """The subdivided garment (positions and UVs upsampled, topology replaced)."""
-        return Garment(
-            vertices=np.asarray(self.apply(jnp.asarray(garment.vertices))),
-            faces=np.asarray(self.faces), uvs=np.asarray(self.apply_uv(jnp.asarray(garment.uvs))),
-            uv_faces=np.asarray(self.uv_faces), panels=self.panels,
-        )
+        """The subdivided garment (positions and UVs upsampled in NumPy, topology replaced)."""
+        v, uv = np.asarray(garment.vertices, np.float64), np.asarray(garment.uvs, np.float64)
+        for op in self.vertex_ops:
+            v = op.apply_numpy(v)
+        for op in self.uv_ops:
+            uv = op.apply_numpy(uv)
+        return Garment(vertices=v.astype(np.float32), faces=np.asarray(self.faces),
+                       uvs=uv.astype(np.float32), uv_faces=np.asarray(self.uv_faces),
+                       panels=self.panels)
 
 
 def _midpoint_level(faces: np.ndarray, n: int):

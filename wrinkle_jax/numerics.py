@@ -52,3 +52,14 @@ def safe_div(num, den, eps=EPS_DIV, fill=0.0):
     """num / den where |den| > eps, else `fill`; gradients stay finite everywhere."""
     ok = jnp.abs(den) > eps
     return jnp.where(ok, num / jnp.where(ok, den, 1.0), fill)
+
+
+def positive_div(num, den):
+    """num / den where den > 0, else 0: a scale-free guard (no absolute threshold).
+
+    For quantities that are legitimately tiny but positive (CG step sizes of energies divided
+    by the vertex count, squared lengths of small triangles), where `safe_div`'s absolute
+    threshold would silently zero them. Gradients stay finite.
+    """
+    ok = den > 0
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)

@@ -1,0 +1,276 @@
+"""Benchmark the normal-guided lifting solvers; prints JSON.
+
+Problem (analytic, at the pipeline's 10 mm fine resolution): a coarse sheet (40 mm grid,
+smooth drape z0 = 3 cm sin(2 pi x / 0.8 m) cos(2 pi y / 1.1 m)) is upsampled twice by midpoint
+subdivision to 10 mm; the target normals are those of z0 plus wrinkles of 3-5 mm amplitude: two
+wave trains (10 and 13 cm wavelength, crossing directions) blended smoothly over the sheet.
+Sizes: ~2k, 10k and 40k vertices (0.45, 1 and 2 m squares: same resolution, more cloth, so
+the weights mean the same).
+
+For each size and solver: per-frame time of the jitted `lift` (median of repeats, compile time
+separately), iterations, final energy and mean normal angle error (degrees, all vertices,
+between the lifted mesh's area-weighted vertex normals and the targets). Solvers:
+  * reference: Adam, learning rate 1 mm (0.1 edge), early stop when the energy changes by less
+    than `--ref-tol` relatively (calibrated so it stops after ~50 iterations at 10k, like the
+    authors' PyTorch solver: ~0.33 s/iteration, ~15 s/frame, 52 iterations, dense 0.37 GiB
+    Laplacian at 10k on this machine class);
+  * fast: Gauss-Newton / Levenberg-Marquardt with matrix-free PCG (default settings), and the
+    smallest GN iteration count whose energy and angle error are both at most the
+    reference's ("gn_matched");
+  * L-BFGS (optax) for comparison.
+Then a speed-against-error curve at 10k (cumulative time, energy and angle error after every
+iteration, from the (init, step) API jitted once), and a memory estimate (bytes of the largest
+arrays, per vertex, against the dense V x V Laplacian).
+
+    python benchmarks/bench_lift.py [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import re
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wrinkle_jax import lift as L
+from wrinkle_jax import mesh, primitives
+
+AUTHORS_S_PER_FRAME_10K = 15.0
+AUTHORS_S_PER_ITER_10K = 0.33
+
+
+def _coarse_height(x, y):
+    return 0.03 * np.sin(2 * np.pi * x / 0.8) * np.cos(2 * np.pi * y / 1.1)
+
+
+def _height(x, y):
+    """Coarse drape + two wrinkle trains (10 and 13 cm, fixed directions) blended smoothly."""
+    amp = 0.005 * (0.6 + 0.4 * np.cos(2 * np.pi * y / 0.9))
+    blend = 0.5 + 0.5 * np.sin(2 * np.pi * x / 1.3) * np.cos(2 * np.pi * y / 1.7)
+    w1 = np.sin(2 * np.pi / 0.10 * (x * np.cos(0.5) + y * np.sin(0.5)))
+    w2 = np.sin(2 * np.pi / 0.13 * (x * np.cos(2.0) + y * np.sin(2.0)) + 1.0)
+    return _coarse_height(x, y) + amp * (blend * w1 + (1 - blend) * w2)
+
+
+def make_case(cells: int):
+    """Upsampled coarse sheet (p0), target normals and the ideal wrinkled surface."""
+    size = cells * 0.01
+    coarse = primitives.grid_sheet(cells // 4, cells // 4, size=(size, size),
+                                   height_fn=_coarse_height)
+    sub = mesh.subdivision(coarse, 2)
+    fine = sub.garment(coarse)
+    x = fine.vertices[:, 0].astype(np.float64)
+    y = fine.vertices[:, 1].astype(np.float64)
+    d = 1e-6
+    hx = (_height(x + d, y) - _height(x - d, y)) / (2 * d)
+    hy = (_height(x, y + d) - _height(x, y - d)) / (2 * d)
+    n = np.stack([-hx, -hy, np.ones_like(hx)], 1)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    ideal = np.stack([x, y, _height(x, y)], 1)
+    return fine, jnp.asarray(fine.vertices), jnp.asarray(n, jnp.float32), jnp.asarray(
+        ideal, jnp.float32)
+
+
+def _timed(fn, reps: int):
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(fn())
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t0)
+    return out, first, statistics.median(times), min(times)
+
+
+def run_solver(v0, top, nrm, faces, cfg: L.SolverConfig, reps: int) -> dict:
+    (p, info), first, med, best = _timed(lambda: L.lift_with_info(v0, top, nrm, solver=cfg),
+                                         reps)
+    return {
+        "config": {"method": cfg.method, "max_iters": cfg.max_iters, "tol": cfg.tol,
+                   **({"cg_max_iters": cfg.cg_max_iters, "cg_tol": cfg.cg_tol}
+                      if cfg.method == "gauss_newton" else {}),
+                   **({"learning_rate": cfg.learning_rate, "patience": cfg.patience}
+                      if cfg.method in ("adam", "gd") else {})},
+        "seconds_per_frame": round(med, 4),
+        "seconds_per_frame_min": round(best, 4),
+        "compile_plus_first_run_s": round(first, 2),
+        "iterations": int(info.iterations),
+        "inner_iterations": int(info.inner_iterations),
+        "converged": bool(info.converged),
+        "energy": round(float(info.energy), 6),
+        "angle_error_deg": round(float(L.normal_angle_error(p, faces, nrm)), 3),
+    }
+
+
+CURVE_COLUMNS = ["iteration", "seconds", "energy", "angle_error_deg"]
+
+
+def curve(v0, top, nrm, faces, cfg: L.SolverConfig, iters: int) -> list:
+    """[iteration, cumulative seconds, energy, angle error] after each iteration (one
+    compile; the problem assembly is not timed)."""
+    prob = jax.jit(L.make_problem)(v0, top, nrm)
+    solver = L.make_solver(cfg)
+    init = jax.jit(solver.init)
+    step = jax.jit(solver.step)
+    err = jax.jit(L.normal_angle_error)
+    # Compile (two steps: some optimizer states change weak types after the first update).
+    jax.block_until_ready(step(prob, step(prob, init(prob, v0))))
+    points = []
+    t0 = time.perf_counter()
+    state = jax.block_until_ready(init(prob, v0))
+    elapsed = time.perf_counter() - t0
+    for i in range(iters):
+        t0 = time.perf_counter()
+        state = jax.block_until_ready(step(prob, state))
+        elapsed += time.perf_counter() - t0
+        points.append([i + 1, round(elapsed, 4), round(float(state.energy), 6),
+                       round(float(err(state.vertices, faces, nrm)), 3)])
+    return points
+
+
+def _first_reaching(points: list, energy: float, angle: float):
+    for it, sec, e, a in points:
+        if e <= energy and a <= angle:
+            return {"iteration": it, "seconds": sec}
+    return None
+
+
+def memory_estimate(v: int, top: L.LiftTopology) -> dict:
+    k = int(top.neighbors.shape[1])
+    f32 = 4
+    arrays = {
+        "topology_tables (neighbors, valid, L, L^T on the one-ring)": 4 * v * k * f32,
+        "gn_blocks_M (V, K, 3, 3)": v * k * 9 * f32,
+        "per_slot_rows (g_f, g_b: V, K, 3)": 2 * v * k * 3 * f32,
+        "cg_vectors (x, r, z, p, Ap: V, 3)": 5 * v * 3 * f32,
+    }
+    total = sum(arrays.values())
+    return {"vertices": v, "ring_width_K": k, "bytes": arrays, "total_bytes": total,
+            "bytes_per_vertex": round(total / v, 1),
+            "dense_laplacian_bytes_for_comparison": v * v * f32}
+
+
+def bench_size(cells: int, reps: int, ref_tol: float, ref_patience: int, gn_probe: int):
+    fine, v0, nrm, ideal = make_case(cells)
+    faces = jnp.asarray(fine.faces)
+    t0 = time.perf_counter()
+    top = L.lift_topology(fine.faces, fine.num_vertices)
+    topo_s = time.perf_counter() - t0
+    ref = run_solver(v0, top, nrm, faces,
+                     L.SolverConfig(method="adam", max_iters=1000, tol=ref_tol,
+                                    patience=ref_patience), reps)
+    gn = run_solver(v0, top, nrm, faces, L.SolverConfig(), reps)
+    lbfgs = run_solver(v0, top, nrm, faces, L.SolverConfig(method="lbfgs", max_iters=200,
+                                                           tol=1e-5), reps)
+    matched = None
+    for it in range(1, gn_probe + 1):  # fewest GN iterations matching the reference
+        r = run_solver(v0, top, nrm, faces, L.SolverConfig(max_iters=it, tol=0.0), reps)
+        if r["energy"] <= ref["energy"] and r["angle_error_deg"] <= ref["angle_error_deg"]:
+            matched = r
+            break
+    prob = L.make_problem(v0, top, nrm)
+    out = {
+        "vertices": fine.num_vertices,
+        "edge_mm": round(1e3 * float(prob.edge), 2),
+        "topology_build_s": round(topo_s, 3),
+        "start": {"energy": round(float(L.energy(v0, prob)), 6),
+                  "angle_error_deg": round(float(L.normal_angle_error(v0, faces, nrm)), 3)},
+        "ideal_wrinkled_surface": {
+            "energy": round(float(L.energy(ideal, prob)), 6),
+            "angle_error_deg": round(float(L.normal_angle_error(ideal, faces, nrm)), 3)},
+        "reference_adam": ref,
+        "gauss_newton": gn,
+        "gn_matched": matched,
+        "lbfgs": lbfgs,
+        "speedup": {
+            "gn_default_vs_reference": round(ref["seconds_per_frame"] / gn["seconds_per_frame"], 1),
+            **({"gn_matched_vs_reference": round(ref["seconds_per_frame"]
+                                                 / matched["seconds_per_frame"], 1)}
+               if matched else {}),
+        },
+        "memory": memory_estimate(fine.num_vertices, top),
+    }
+    if fine.num_vertices == 10201:
+        out["speedup"]["gn_default_vs_authors_15s"] = round(
+            AUTHORS_S_PER_FRAME_10K / gn["seconds_per_frame"], 1)
+        if matched:
+            out["speedup"]["gn_matched_vs_authors_15s"] = round(
+                AUTHORS_S_PER_FRAME_10K / matched["seconds_per_frame"], 1)
+        out["speedup"]["reference_adam_vs_authors_15s"] = round(
+            AUTHORS_S_PER_FRAME_10K / ref["seconds_per_frame"], 1)
+    return out, (v0, top, nrm, faces)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="2k and 10k only, fewer repeats")
+    ap.add_argument("--ref-tol", type=float, default=2e-2,
+                    help="relative improvement the reference Adam's early stop waits for")
+    ap.add_argument("--ref-patience", type=int, default=3,
+                    help="iterations without that improvement before the reference stops")
+    args = ap.parse_args()
+    reps = 3 if args.quick else 5
+    sizes = (45, 100) if args.quick else (45, 100, 200)
+    results, case10k = {}, None
+    for cells in sizes:
+        res, case = bench_size(cells, reps, args.ref_tol, args.ref_patience, gn_probe=4)
+        results[f"{res['vertices']}"] = res
+        if cells == 100:
+            case10k = case
+    curves, summary = {}, {}
+    if case10k is not None:
+        n_adam, n_gn, n_lbfgs = (100, 4, 60) if args.quick else (150, 8, 100)
+        curves = {
+            "vertices": 10201,
+            "columns": CURVE_COLUMNS,
+            "adam_lr0.1": curve(*case10k, L.SolverConfig(method="adam"), n_adam),
+            "gauss_newton": curve(*case10k, L.SolverConfig(), n_gn),
+            "lbfgs": curve(*case10k, L.SolverConfig(method="lbfgs"), n_lbfgs),
+        }
+        ref = results["10201"]["reference_adam"]
+        matched = results["10201"]["gn_matched"]
+        summary = {
+            "reference_final": {k: ref[k] for k in ("seconds_per_frame", "iterations",
+                                                     "energy", "angle_error_deg")},
+            "time_to_reference_error_from_curves": {
+                name: _first_reaching(curves[name], ref["energy"], ref["angle_error_deg"])
+                for name in ("adam_lr0.1", "gauss_newton", "lbfgs")},
+            "gn_per_frame_at_reference_error_s": matched and matched["seconds_per_frame"],
+            "gn_speedup_at_reference_error": matched and round(
+                ref["seconds_per_frame"] / matched["seconds_per_frame"], 1),
+            "gn_speedup_vs_authors_15s": matched and round(
+                AUTHORS_S_PER_FRAME_10K / matched["seconds_per_frame"], 1),
+        }
+        for name in ("adam_lr0.1", "lbfgs"):  # keep every 5th point of the long curves
+            curves[name] = curves[name][::5] + curves[name][-1:]
+    text = json.dumps({
+        "benchmark": "lift",
+        "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
+                    "jax": jax.__version__, "backend": jax.default_backend(),
+                    "load_average_1min": round(os.getloadavg()[0], 2)},
+        "authors_reference_10k": {"seconds_per_iteration": AUTHORS_S_PER_ITER_10K,
+                                  "seconds_per_frame": AUTHORS_S_PER_FRAME_10K,
+                                  "iterations": 52, "dense_laplacian_gib": 0.37},
+        "weights": {"eta": L.LiftWeights().eta, "omega": L.LiftWeights().omega,
+                    "laplacian_of": L.LiftWeights().laplacian_of,
+                    "chord_correction": L.LiftWeights().chord_correction,
+                    "normal_at": L.LiftWeights().normal_at},
+        "summary_10k": summary,
+        "sizes": results,
+        "speed_vs_error_10k": curves,
+    }, indent=1)
+    # Keep innermost number lists (curve points) on one line.
+    print(re.sub(r"\[\s+([^\[\]{}]+?)\s+\]", lambda m: "[" + " ".join(m.group(1).split()) + "]",
+                 text))
+
+
+if __name__ == "__main__":
+    main()

@@ -11,6 +11,7 @@ Exit codes: 0 success, 1 failure (bad input file, runtime error), 2 bad usage.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 import time
@@ -66,7 +67,10 @@ def bake_sequence_to_pngs(input_path: Path, out: Path, texel_size: float, frames
     timings["plan_s"] = time.perf_counter() - t0
 
     sel = list(_parse_frames(frames, len(seq)))
-    bake_batch = jax.jit(normalmap.bake_frames, static_argnames="smooth")
+    # lax.map over pairs of frames: measured faster per frame than one vmap over the whole
+    # batch on this CPU (benchmarks/bench_normalmap.py), and memory stays bounded.
+    bake_batch = jax.jit(functools.partial(normalmap.bake_frames, batch_size=2),
+                         static_argnames="smooth")
     batch = max(1, min(batch, len(sel)))
     # Fixed-size batches (the last one padded) so the bake compiles once.
     t0 = time.perf_counter()

@@ -147,7 +147,7 @@ def build_sequence(seq: GarmentSequence, name: str, root: Path, config: PatchDat
     if counts.max() < config.min_coverage * size * size:
         raise ValueError(f"{name}: no {size}x{size} patch reaches {config.min_coverage:.0%} "
                          f"garment coverage at texel size {config.texel_size} m")
-    bake = jax.jit(normalmap.bake_frames)
+    bake = jax.jit(functools.partial(normalmap.bake_frames, batch_size=2))
     crop = _make_crop_fn(config)
     key = jax.random.key(_seed_for(name, config.seed))
     frames = np.arange(0, len(seq), config.frame_stride)

@@ -51,7 +51,10 @@ Modelling choices (each can be switched back to the paper's literal term in `Lif
     mesh's normals" an exact fixed point on curved meshes too (the uncorrected term moves a
     20 cm cylinder by 1.3 mm and a coarse skirt by 15 cm). It is zero on flat regions.
 
-Solvers (`SolverConfig.method`), each an (init, step) pair iterated by `lax.while_loop`:
+Solvers (`SolverConfig.method`): the generic (init, step) drivers of `wrinkle_jax.solvers`,
+iterated by `lax.while_loop`. This module supplies what is specific to E, bundled as the
+`solvers.Objective` `OBJECTIVE` (closed-form value and gradient, the Gauss-Newton model, the
+change of variables u = (p - p0) / h of the first-order solvers); `make_solver(config)` binds it.
   * "adam" (the paper's code: Adam, learning rate 0.1 edge = 1 mm at 10 mm edges, early
     stop after `patience` iterations without a `tol` relative improvement) and "gd" (plain
     gradient descent on the per-vertex energy in edge units) - the references;
@@ -81,11 +84,11 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 from wrinkle_jax import bodies as body_lib
-from wrinkle_jax import mesh, normalmap
-from wrinkle_jax.numerics import normalize, positive_div, safe_div, safe_norm
+from wrinkle_jax import mesh, normalmap, solvers
+from wrinkle_jax.numerics import normalize, safe_div, safe_norm
+from wrinkle_jax.solvers import SolverConfig  # re-exported: the `solver` argument of `lift`
 
 REFERENCE_EDGE = 0.01  # meters: the paper's fine particle distance, where weights are calibrated
 EDGE_SOFTENING = 1e-2  # |e|_eps = sqrt(|e|^2 + (EDGE_SOFTENING * h)^2)
@@ -127,41 +130,6 @@ class LiftWeights:
             raise ValueError(f"normal_at must be 'vertex' or 'edge', got {self.normal_at!r}")
         if not (self.eta >= 0 and self.omega > 0):
             raise ValueError(f"need eta >= 0 and omega > 0, got {self.eta}, {self.omega}")
-
-
-@dataclasses.dataclass(frozen=True)
-class SolverConfig:
-    """Solver settings (hashable; a static argument).
-
-    Attributes:
-      method: "gauss_newton" (fast, default), "lbfgs", "adam" (the paper's reference) or "gd".
-      max_iters: outer iterations (GN/LM steps, L-BFGS/Adam/GD updates).
-      tol: stop when an iteration lowers the energy by less than `tol * E`. Adam and GD
-        (the paper's early stop) stop when the best energy of their iterates has not improved
-        by more than `tol * E` for `patience` consecutive iterations.
-      patience: see `tol` (Adam and GD only).
-      learning_rate: Adam/GD step, in mean-edge lengths (0.1 = 1 mm at 10 mm edges, the
-        paper's Adam learning rate of 1e-3 m). For GD it multiplies the per-vertex gradient.
-      cg_max_iters, cg_tol: inner conjugate-gradient budget and relative residual (GN).
-      damping: initial Levenberg-Marquardt damping, relative to the block diagonal of J^T J.
-      adjoint_max_iters, adjoint_tol: CG budget of the implicit-gradient (backward) solve.
-    """
-
-    method: str = "gauss_newton"
-    max_iters: int = 20
-    tol: float = 1e-3
-    learning_rate: float = 0.1
-    patience: int = 5
-    cg_max_iters: int = 25
-    cg_tol: float = 1e-2
-    damping: float = 1e-3
-    adjoint_max_iters: int = 400
-    adjoint_tol: float = 1e-6
-
-    def __post_init__(self):
-        if self.method not in ("gauss_newton", "lbfgs", "adam", "gd"):
-            raise ValueError(f"unknown method {self.method!r}; use 'gauss_newton', 'lbfgs', "
-                             "'adam' or 'gd'")
 
 
 @jax.tree_util.register_dataclass
@@ -476,249 +444,49 @@ def _gn_matvec(sys: _GNSystem, prob: LiftProblem, v):
 
 
 # --------------------------------------------------------------------------------------------
-# Preconditioned conjugate gradients (matrix-free)
+# The lifting energy as a `solvers.Objective`
 # --------------------------------------------------------------------------------------------
 
 
-class CGResult(NamedTuple):
-    x: Any
-    iterations: Any
-    residual: Any
+def _gauss_newton_model(prob: LiftProblem, p) -> solvers.GaussNewtonModel:
+    """The Gauss-Newton model of E at p: H = 2 J^T J from per-slot 3x3 blocks (gathers only)."""
+    system = _gn_system(_rows(p, prob), prob)
+
+    def damped(lam):  # H + lam D, D = the block diagonal of H (assembled once)
+        damped_system = system._replace(s=system.s + lam * system.diag)
+        return lambda v: _gn_matvec(damped_system, prob, v)
+
+    return solvers.GaussNewtonModel(matvec=lambda v: _gn_matvec(system, prob, v),
+                                    damped=damped, diag=system.diag)
 
 
-
-def pcg(matvec, b, precond, tol: float, max_iters: int, x0=None) -> CGResult:
-    """Solve A x = b for symmetric positive-definite A by preconditioned CG (jittable).
-
-    Stops when |r| <= tol |b| or after `max_iters`; a direction of non-positive curvature
-    ends the iteration with the current iterate (never NaN).
-    """
-    vdot = lambda a, c: jnp.sum(a * c)  # noqa: E731
-    x = jnp.zeros_like(b) if x0 is None else x0
-    r = b - matvec(x) if x0 is not None else b
-    z = precond(r)
-    stop = tol * jnp.sqrt(vdot(b, b))
-
-    def cond(s):
-        x, r, z, p, rz, k, ok = s
-        return (k < max_iters) & (jnp.sqrt(vdot(r, r)) > stop) & ok
-
-    def body(s):
-        x, r, z, p, rz, k, ok = s
-        ap = matvec(p)
-        pap = vdot(p, ap)
-        ok = pap > 0
-        alpha = positive_div(rz, pap)
-        x = x + alpha * p
-        r = r - alpha * ap
-        z = precond(r)
-        rz_new = vdot(r, z)
-        p = z + positive_div(rz_new, rz) * p
-        return x, r, z, p, rz_new, k + 1, ok
-
-    x, r, _, _, _, k, _ = jax.lax.while_loop(
-        cond, body, (x, r, z, z, vdot(r, z), jnp.asarray(0, jnp.int32), jnp.asarray(True)))
-    return CGResult(x, k, jnp.sqrt(vdot(r, r)))
+def _scaling(prob: LiftProblem) -> solvers.Scaling:
+    """First-order solvers iterate on u = (p - p0) / h and minimize V * E (the per-vertex
+    energy summed): learning rates are in mean-edge lengths."""
+    return solvers.Scaling(origin=prob.vertices0, length=prob.edge,
+                           weight=prob.vertices0.shape[0])
 
 
-def _block_inverse(blocks):
-    """Inverse of SPD 3x3 blocks (V, 3, 3) as a function applying it to (V, 3)."""
-    inv = jnp.linalg.inv(blocks)
-    return lambda r: jnp.einsum("vab,vb->va", inv, r)
+OBJECTIVE = solvers.Objective(
+    value=lambda prob, p: energy(p, prob),
+    value_and_grad=lambda prob, p: _value_and_grad(p, prob),
+    gauss_newton=_gauss_newton_model,
+    scaling=_scaling,
+)
+"""The lifting energy E(prob, p) with its closed-form gradient and Gauss-Newton model."""
 
 
-# --------------------------------------------------------------------------------------------
-# Solvers: (init, step) factories over frozen pytree states
-# --------------------------------------------------------------------------------------------
-
-
-class Solver(NamedTuple):
-    """init(prob, p0) -> state; step(prob, state) -> state; both jittable. States have fields
-    `vertices`, `energy`, `iteration`, `done`, `converged`."""
-
-    init: Any
-    step: Any
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class GaussNewtonState:
-    """Levenberg-Marquardt state: positions, energy, gradient, damping lambda and its growth
-    factor nu (Nielsen's rule), counters and flags."""
-
-    vertices: Any
-    energy: Any
-    grad: Any
-    damping: Any
-    nu: Any
-    iteration: Any
-    cg_iterations: Any
-    done: Any
-    converged: Any
-
-
-def gauss_newton(config: SolverConfig) -> Solver:
-    """Levenberg-Marquardt with matrix-free PCG on (J^T J + lambda D) d = -grad.
-
-    D is the 3x3 block diagonal of J^T J (Marquardt scaling) and also the preconditioner.
-    A step is accepted when the energy decreases; lambda follows Nielsen's gain-ratio rule.
-    """
-
-    def init(prob: LiftProblem, p0) -> GaussNewtonState:
-        e, g = _value_and_grad(p0, prob)
-        z = jnp.asarray(0, jnp.int32)
-        return GaussNewtonState(p0, e, g, jnp.asarray(config.damping, p0.dtype),
-                                jnp.asarray(2.0, p0.dtype), z, z, jnp.asarray(False),
-                                jnp.asarray(False))
-
-    def step(prob: LiftProblem, s: GaussNewtonState) -> GaussNewtonState:
-        p = s.vertices
-        system = _gn_system(_rows(p, prob), prob)
-        lam = s.damping
-        damped = system._replace(s=system.s + lam * system.diag)  # Marquardt scaling
-        sol = pcg(lambda v: _gn_matvec(damped, prob, v), -s.grad,
-                  _block_inverse((1.0 + lam) * system.diag), config.cg_tol, config.cg_max_iters)
-        d = sol.x
-        # Predicted decrease of the quadratic model (without damping).
-        pred = -jnp.sum(s.grad * d) - 0.5 * jnp.sum(d * _gn_matvec(system, prob, d))
-        p_new = p + d
-        e_new, g_new = _value_and_grad(p_new, prob)
-        actual = s.energy - e_new
-        rho = positive_div(actual, pred)
-        accept = (actual > 0) & jnp.isfinite(e_new)
-        lam_acc = lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-        damping = jnp.where(accept, lam_acc, lam * s.nu)
-        nu = jnp.where(accept, 2.0, 2.0 * s.nu)
-        small = accept & (actual <= config.tol * jnp.abs(e_new))
-        # A lightly damped model that predicts no progress: stationary (e.g. exact targets).
-        flat = (lam <= 1.0) & (pred <= 1e-2 * config.tol * jnp.abs(s.energy))
-        stuck = ~accept & (damping > 1e8)
-        return GaussNewtonState(
-            vertices=jnp.where(accept, p_new, p), energy=jnp.where(accept, e_new, s.energy),
-            grad=jnp.where(accept, g_new, s.grad), damping=damping, nu=nu,
-            iteration=s.iteration + 1, cg_iterations=s.cg_iterations + sol.iterations,
-            done=small | flat | stuck, converged=small | flat)
-
-    return Solver(init, step)
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class OptaxState:
-    """State of the first-order solvers: displacement u = (p - p0) / h in edge units, the
-    optax state, energy, counters, flags, and the early-stop record (best energy, number of
-    iterations since it last improved)."""
-
-    vertices: Any
-    u: Any
-    opt_state: Any
-    energy: Any
-    iteration: Any
-    evaluations: Any
-    done: Any
-    converged: Any
-    best: Any = None
-    stall: Any = None
-
-
-def _scaled_objective(prob: LiftProblem):
-    """f(u) = V * E(p0 + h u) with its closed-form gradient (custom VJP: no scatter-adds)."""
-    nv = prob.vertices0.shape[0]
-
-    @jax.custom_vjp
-    def f(u):
-        return nv * energy(prob.vertices0 + prob.edge * u, prob)
-
-    def f_fwd(u):
-        e, g = _value_and_grad(prob.vertices0 + prob.edge * u, prob)
-        return nv * e, nv * prob.edge * g
-
-    def f_bwd(g, ct):
-        return (ct * g,)
-
-    f.defvjp(f_fwd, f_bwd)
-    return f
-
-
-def first_order(config: SolverConfig) -> Solver:
-    """The reference solvers: "adam" (paper's code) or "gd", on u = (p - p0) / h."""
-
-    def opt(_):
-        if config.method == "adam":
-            return optax.adam(config.learning_rate)
-        return optax.sgd(config.learning_rate)
-
-    def init(prob: LiftProblem, p0) -> OptaxState:
-        u = (p0 - prob.vertices0) / prob.edge
-        z = jnp.asarray(0, jnp.int32)
-        e = energy(p0, prob)
-        # The early-stop record starts empty (not at E(p0)): Adam's first steps may raise E.
-        return OptaxState(p0, u, opt(prob).init(u), e, z, z, jnp.asarray(False),
-                          jnp.asarray(False), jnp.asarray(jnp.inf, e.dtype), z)
-
-    def step(prob: LiftProblem, s: OptaxState) -> OptaxState:
-        f = _scaled_objective(prob)
-        g = jax.grad(f)(s.u)
-        updates, opt_state = opt(prob).update(g, s.opt_state, s.u)
-        u = optax.apply_updates(s.u, updates)
-        p = prob.vertices0 + prob.edge * u
-        e = energy(p, prob)
-        improved = e < s.best - config.tol * jnp.abs(e)
-        stall = jnp.where(improved, 0, s.stall + 1)
-        stop = stall >= config.patience
-        return OptaxState(p, u, opt_state, e, s.iteration + 1, s.evaluations + 1, stop, stop,
-                          jnp.where(improved, e, s.best), stall)
-
-    return Solver(init, step)
-
-
-def lbfgs(config: SolverConfig) -> Solver:
-    """L-BFGS (`optax.lbfgs`, zoom line search) on u = (p - p0) / h."""
-    opt = optax.lbfgs()
-
-    def init(prob: LiftProblem, p0) -> OptaxState:
-        u = (p0 - prob.vertices0) / prob.edge
-        z = jnp.asarray(0, jnp.int32)
-        return OptaxState(p0, u, opt.init(u), energy(p0, prob), z, z, jnp.asarray(False),
-                          jnp.asarray(False))
-
-    def step(prob: LiftProblem, s: OptaxState) -> OptaxState:
-        f = _scaled_objective(prob)
-        value, grad = optax.value_and_grad_from_state(f)(s.u, state=s.opt_state)
-        updates, opt_state = opt.update(grad, s.opt_state, s.u, value=value, grad=grad,
-                                        value_fn=f)
-        u = optax.apply_updates(s.u, updates)
-        p = prob.vertices0 + prob.edge * u
-        e = optax.tree.get(opt_state, "value") / prob.vertices0.shape[0]
-        evals = optax.tree.get(opt_state, "num_linesearch_steps")
-        small = (s.energy - e) <= config.tol * jnp.abs(e)
-        return OptaxState(p, u, opt_state, e, s.iteration + 1, s.evaluations + evals, small,
-                          small)
-
-    return Solver(init, step)
-
-
-def make_solver(config: SolverConfig) -> Solver:
-    """The (init, step) pair of `config.method`."""
-    if config.method == "gauss_newton":
-        return gauss_newton(config)
-    if config.method == "lbfgs":
-        return lbfgs(config)
-    return first_order(config)
-
-
-def run(solver: Solver, prob: LiftProblem, p0, max_iters: int):
-    """Iterate `solver` from p0 until `done` or `max_iters` (lax.while_loop; jittable)."""
-    state = solver.init(prob, p0)
-    return jax.lax.while_loop(
-        lambda s: (s.iteration < max_iters) & ~s.done,
-        lambda s: solver.step(prob, s), state)
+def make_solver(config: SolverConfig) -> solvers.Solver:
+    """The (init, step) pair of `config.method` on the lifting energy: init(prob, p0) and
+    step(prob, state) take a `LiftProblem`; states carry `vertices` (V, 3) and `energy`."""
+    return solvers.make_solver(config, OBJECTIVE)
 
 
 def _info(state, prob: LiftProblem) -> LiftInfo:
-    g = state.grad if isinstance(state, GaussNewtonState) else energy_grad(state.vertices, prob)
+    gauss_newton = isinstance(state, solvers.GaussNewtonState)
+    g = state.grad if gauss_newton else energy_grad(state.vertices, prob)
     g = g * prob.vertices0.shape[0] * prob.edge
-    inner = state.cg_iterations if isinstance(state, GaussNewtonState) else state.evaluations
+    inner = state.cg_iterations if gauss_newton else state.evaluations
     return LiftInfo(iterations=state.iteration, inner_iterations=inner, energy=state.energy,
                     grad_rms=jnp.sqrt(jnp.mean(g * g)), converged=state.converged)
 
@@ -731,7 +499,7 @@ def _info(state, prob: LiftProblem) -> LiftInfo:
 @functools.partial(jax.custom_vjp, nondiff_argnums=(3, 4))
 def _solve(vertices0, topology, target_normals, weights, solver):
     prob = make_problem(vertices0, topology, target_normals, weights)
-    state = run(make_solver(solver), prob, prob.vertices0, solver.max_iters)
+    state = solvers.run(make_solver(solver), prob, prob.vertices0, solver.max_iters)
     return state.vertices, _info(state, prob)
 
 
@@ -749,8 +517,8 @@ def _solve_bwd(weights, solver, res, cotangents):
 
     prob = make_problem(vertices0, topology, target_normals, weights)
     hvp = lambda v: jax.jvp(lambda x: grad_at(x, vertices0, target_normals), (p,), (v,))[1]  # noqa: E731
-    precond = _block_inverse(_gn_system(_rows(p, prob), prob).diag)
-    lam = pcg(hvp, g_p, precond, solver.adjoint_tol, solver.adjoint_max_iters).x
+    precond = solvers.block_inverse(_gn_system(_rows(p, prob), prob).diag)
+    lam = solvers.pcg(hvp, g_p, precond, solver.adjoint_tol, solver.adjoint_max_iters).x
     _, vjp = jax.vjp(lambda v0, n: grad_at(p, v0, n), vertices0, target_normals)
     ct_v0, ct_n = vjp(-lam)
     return ct_v0, None, ct_n
@@ -761,14 +529,14 @@ _solve.defvjp(_solve_fwd, _solve_bwd)
 
 @functools.partial(jax.jit, static_argnames=("weights", "solver"))
 def lift_with_info(vertices0, topology: LiftTopology, target_normals,
-                   weights: LiftWeights = LiftWeights(), solver: SolverConfig = SolverConfig()):
+                   weights: LiftWeights = LiftWeights(), solver: SolverConfig = SolverConfig()):  # noqa: B008
     """`lift` that also returns a `LiftInfo` (iterations, energy, convergence)."""
     return _solve(jnp.asarray(vertices0), topology, jnp.asarray(target_normals), weights, solver)
 
 
 @functools.partial(jax.jit, static_argnames=("weights", "solver"))
 def lift(vertices0, topology: LiftTopology, target_normals,
-         weights: LiftWeights = LiftWeights(), solver: SolverConfig = SolverConfig()):
+         weights: LiftWeights = LiftWeights(), solver: SolverConfig = SolverConfig()):  # noqa: B008
     """Deform the upsampled coarse mesh so its edges follow the target normals.
 
     Args:
@@ -792,7 +560,7 @@ def lift(vertices0, topology: LiftTopology, target_normals,
 def lift_from_normal_map(coarse_vertices, subdivision: mesh.Subdivision,
                          fine_garment: mesh.Garment, topology: LiftTopology, normal_map,
                          layout: normalmap.UVLayout, weights: LiftWeights = LiftWeights(),
-                         solver: SolverConfig = SolverConfig()):
+                         solver: SolverConfig = SolverConfig()):  # noqa: B008
     """One frame end to end: upsample the coarse frame, sample N*, lift (jittable with
     weights/solver/layout static; differentiable in coarse_vertices and normal_map).
 
@@ -924,7 +692,7 @@ def _resolve(vertices, topology: LiftTopology, body, phi: float, config: Resolve
         target = c * (q.closest + eps * q.normal - p)
         matvec = lambda v: c * v + a * lap_t_lap(v) + b * (1.0 - c) * v  # noqa: E731
         diag = c + a * ltl[:, None] + b * (1.0 - c)
-        sol = pcg(matvec, target, lambda r: r / diag, config.cg_tol, config.cg_max_iters)
+        sol = solvers.pcg(matvec, target, lambda r: r / diag, config.cg_tol, config.cg_max_iters)
         p = p + sol.x
         return p, body_lib.query(body, p), k + 1, cg_total + sol.iterations
 

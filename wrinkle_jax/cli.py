@@ -6,6 +6,7 @@ Exit codes: 0 success, 1 failure (bad input file, runtime error), 2 bad usage.
     wrinkle-jax bake INPUT --out DIR [--texel-size M] [--frames A:B] [--flat]
     wrinkle-jax assets fetch makehuman [--force]
     wrinkle-jax train-enhancer --data DIR --out DIR [--steps N] [--width W] [--batch B] [--resume]
+    wrinkle-jax simulate SCENE --material NAME --resolution fine|coarse --frames N --out PATH
 """
 
 from __future__ import annotations
@@ -224,6 +225,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--style-layers", nargs="+", default=None, help="VGG layers of the style loss")
     p.add_argument("--resume", action="store_true", help="continue from the last checkpoint")
     p.set_defaults(func=_cmd_train_enhancer)
+
+    from wrinkle_jax.sim.command import add_simulate_parser
+
+    add_simulate_parser(sub)
     return parser
 
 

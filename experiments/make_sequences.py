@@ -1,0 +1,218 @@
+"""Generate the simulated training and test sequences (resumable, background-friendly).
+
+    nohup nice -n 10 python -m experiments.make_sequences [--out data/sequences] \
+        [--train-frames 600] [--test-frames 300] [--tiny] > /dev/null 2>&1 &
+    python -m experiments.make_sequences --previews experiments/results/sim
+
+Writes `<out>/<scene>/<material>_<resolution>_s<seed>.npz` (`scenes.save_simulation`: frames
+(T, V, 3) m, UVs in meters, metadata with material / PD / scene config JSON, pin and collider
+tracks) for:
+
+  * training scenes (sheet_balls_wind, skirt_dance, pleated_skirt_dance2): all five materials,
+    fine (PD 10 mm), seed 0 (the same motion for every material, as in the paper);
+  * test-only scenes (dress_dance, cape_walk, skirt_walk): all five materials, fine AND coarse
+    (PD 30 mm), seed 1.
+
+Files already present are skipped, each file is written atomically (temporary file + rename),
+and progress goes to `<out>/make_sequences.log` (one line per chunk of frames and per file,
+with ms/frame and an ETA) and `<out>/manifest.json` (rewritten after every file). One mesh,
+model and compiled solver per scene and resolution serve all five materials.
+
+Sizing (measured on the 2-core shared CPU, 20 substeps, 2 stretch sweeps; see
+benchmarks/bench_sim.py): fine 120-235 ms/frame (11.5k-20k vertices), coarse 7-15 ms/frame.
+With 600 training and 300 test frames (20 s and 10 s at 30 fps, plus 1-2 s pre-roll each) the
+set is ~45 sequences, ~1 h of simulation on an idle machine (up to ~2 h under load), ~2.5 GB.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from wrinkle_jax import MATERIALS
+from wrinkle_jax.fileio import atomic_write_text
+from wrinkle_jax.sim import scenes
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# Measured ms/frame (fine, coarse) used for the ETA only.
+EST_MS = {"sheet_balls_wind": (125, 8), "skirt_dance": (210, 15), "pleated_skirt_dance2": (130, 10),
+          "dress_dance": (135, 8), "cape_walk": (131, 8), "skirt_walk": (235, 15)}
+
+
+def plan(train_frames: int, test_frames: int) -> list[dict]:
+    """The jobs: one per (scene, resolution, material), grouped by scene and resolution."""
+    jobs = []
+    for name in scenes.TRAINING_SCENES:
+        for mat in MATERIALS:
+            jobs.append({"scene": name, "resolution": "fine", "material": mat, "seed": 0,
+                         "frames": train_frames})
+    for name in scenes.TEST_SCENES:
+        for res in ("fine", "coarse"):
+            for mat in MATERIALS:
+                jobs.append({"scene": name, "resolution": res, "material": mat, "seed": 1,
+                             "frames": test_frames})
+    return jobs
+
+
+def job_path(out: Path, job: dict) -> Path:
+    return out / job["scene"] / f"{job['material']}_{job['resolution']}_s{job['seed']}.npz"
+
+
+def estimate_s(job: dict) -> float:
+    sc = scenes.get_scene(job["scene"])
+    ms = EST_MS.get(job["scene"], (200, 15))[0 if job["resolution"] == "fine" else 1]
+    return ms * (job["frames"] + sc.preroll_s * 30) / 1e3
+
+
+def make_previews(out: Path, data: Path, frame: int = 90, material: str = "silk_charmeuse",
+                  texel: float = 0.004) -> list[str]:
+    """Fine-vs-coarse preview PNGs per scene (3D views and baked normal maps at frame `frame`).
+
+    Uses the generated fine/coarse files when present (same seed and frame), otherwise runs a
+    short simulation of `frame + 1` frames.
+    """
+    import jax.numpy as jnp
+    import numpy as np
+
+    from wrinkle_jax import meshio, normalmap
+    from wrinkle_jax.sim import preview
+
+    paths = []
+    for name, sc in scenes.SCENES.items():
+        seed = 1 if sc.test_only else 0
+        seqs = {}
+        for res in ("fine", "coarse"):
+            p = data / name / f"{material}_{res}_s{seed}.npz"
+            seq = meshio.load_sequence(p) if p.exists() else None
+            if seq is None or len(seq) <= frame:
+                seq = scenes.simulate(name, material, res, frames=frame + 1, seed=seed)
+                tracks = seq.tracks
+            else:
+                with np.load(p) as z:
+                    tracks = {k: z[k] for k in ("capsule_ends", "capsule_radii",
+                                                "sphere_centers", "sphere_radii") if k in z}
+            seqs[res] = (seq, tracks)
+        layout = normalmap.layout_for(seqs["fine"][0].garment, texel, margin=4,
+                                      meters_per_uv=1.0)
+        panels, titles = [], []
+        for res in ("fine", "coarse"):
+            seq, tr = seqs[res]
+
+            def view(ax, seq=seq, tr=tr):
+                preview.render_frame(
+                    ax, seq.frames[frame], seq.garment.faces, azim=25, elev=12,
+                    capsules=tr["capsule_ends"][frame] if "capsule_ends" in tr else None,
+                    capsule_radii=tr.get("capsule_radii"),
+                    spheres=tr["sphere_centers"][frame] if "sphere_centers" in tr else None,
+                    sphere_radii=tr.get("sphere_radii"))
+
+            panels.append(view)
+            titles.append(f"{res} PD {seq.metadata.get('pd_mm', '?')} mm, "
+                          f"{seq.garment.num_vertices} v")
+        for res in ("fine", "coarse"):
+            seq, _ = seqs[res]
+            plan = normalmap.make_plan(seq.garment, layout=layout)
+            rgb = np.asarray(normalmap.to_rgb(normalmap.bake(plan, jnp.asarray(seq.frames[frame]))))
+            rgb = np.where(np.asarray(plan.mask) > 0, rgb, 1.0)
+
+            def image(ax, rgb=rgb):
+                ax.imshow(rgb, interpolation="nearest")
+                ax.axis("off")
+
+            panels.append(image)
+            titles.append(f"normal map ({res}, {texel * 1e3:.0f} mm texels)")
+        path = out / f"{name}.png"
+        preview.save_comparison(path, panels, titles, dpi=55, ncols=4)
+        paths.append(str(path))
+    return paths
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default=str(ROOT / "data" / "sequences"))
+    ap.add_argument("--train-frames", type=int, default=600)
+    ap.add_argument("--test-frames", type=int, default=300)
+    ap.add_argument("--tiny", action="store_true", help="3 frames each, coarse only (smoke test)")
+    ap.add_argument("--previews", default=None, metavar="DIR",
+                    help="only write fine-vs-coarse preview PNGs into DIR (from --out data)")
+    args = ap.parse_args(argv)
+    if args.previews:
+        for p in make_previews(Path(args.previews), Path(args.out)):
+            print(p)
+        return 0
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    log_path = out / "make_sequences.log"
+    jobs = plan(args.train_frames, args.test_frames)
+    if args.tiny:
+        tiny = {}
+        for j in jobs:
+            if j["material"] == MATERIALS[0]:
+                t = dict(j, frames=3, resolution="coarse")
+                tiny[job_path(out, t)] = t
+        jobs = list(tiny.values())
+
+    def log(msg: str) -> None:
+        line = f"{time.strftime('%Y-%m-%d %H:%M:%S')} {msg}"
+        with open(log_path, "a", encoding="utf-8") as fh:
+            fh.write(line + "\n")
+
+    todo = [j for j in jobs if not job_path(out, j).exists()]
+    log(f"start: {len(jobs)} jobs, {len(jobs) - len(todo)} already done, "
+        f"estimated {sum(estimate_s(j) for j in todo) / 60:.0f} min on an idle machine")
+    manifest_path = out / "manifest.json"
+    t_start = time.perf_counter()
+    done_est = 0.0
+    total_est = sum(estimate_s(j) for j in todo)
+    setup_key, setup = None, None
+    failures = 0
+    for k, job in enumerate(todo):
+        path = job_path(out, job)
+        key = (job["scene"], job["resolution"], job["frames"], job["seed"])
+        try:
+            if key != setup_key:
+                setup = scenes.setup_scene(job["scene"], job["resolution"], job["frames"],
+                                           job["seed"])
+                setup_key = key
+            last = [time.perf_counter()]
+
+            def progress(done, total, job=job, last=last):
+                now = time.perf_counter()
+                if now - last[0] > 60 or done == total:
+                    last[0] = now
+                    log(f"  {job['scene']} {job['material']} {job['resolution']}: "
+                        f"frame {done}/{total}")
+
+            t0 = time.perf_counter()
+            seq = scenes.simulate(job["scene"], job["material"], job["resolution"],
+                                  job["frames"], job["seed"], progress=progress, setup=setup)
+            scenes.save_simulation(path, seq)
+            wall = time.perf_counter() - t0
+        except Exception as e:  # log and go on with the next job; rerun to retry
+            failures += 1
+            log(f"FAILED {path.name} ({job['scene']}): {type(e).__name__}: {e}")
+            continue
+        done_est += estimate_s(job)
+        elapsed = time.perf_counter() - t_start
+        eta = elapsed / max(done_est, 1e-9) * (total_est - done_est)
+        log(f"wrote {path.relative_to(out)} ({seq.frames.shape[1]} vertices, {len(seq)} frames, "
+            f"{path.stat().st_size / 2**20:.1f} MiB) in {wall:.0f} s "
+            f"({seq.metadata['ms_per_frame']:.0f} ms/frame); {k + 1}/{len(todo)} done, "
+            f"ETA {eta / 60:.0f} min")
+        entries = []
+        for j in jobs:
+            p = job_path(out, j)
+            if p.exists():
+                entries.append(dict(j, path=str(p.relative_to(out)), bytes=p.stat().st_size))
+        atomic_write_text(manifest_path, json.dumps({"jobs": len(jobs), "done": entries},
+                                                    indent=1))
+    log(f"finished: {len(todo) - failures} written, {failures} failed, "
+        f"{(time.perf_counter() - t_start) / 60:.1f} min")
+    return 1 if failures else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

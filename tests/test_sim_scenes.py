@@ -1,0 +1,124 @@
+"""Tests for sim.scenes, sim.command and sim.intersect: determinism, metadata and tracks,
+the `simulate` command's exit codes, and the self-intersection counter."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from wrinkle_jax import meshio
+from wrinkle_jax.sim import command, intersect, mannequin, scenes
+
+# A tiny variant of the base scene: PD 60 mm, a short pre-roll.
+TINY = dataclasses.replace(scenes.get_scene("sheet_balls_wind"), name="tiny_sheet",
+                           preroll_s=0.2, substeps=8)
+
+
+def test_same_seed_bit_identical_and_different_seed_differs():
+    a = scenes.simulate(TINY, "silk_chiffon", 0.06, frames=4, seed=3)
+    b = scenes.simulate(TINY, "silk_chiffon", 0.06, frames=4, seed=3)
+    c = scenes.simulate(TINY, "silk_chiffon", 0.06, frames=4, seed=4)
+    assert a.frames.shape == (4, a.garment.num_vertices, 3)
+    np.testing.assert_array_equal(a.frames, b.frames)
+    assert not np.array_equal(a.frames, c.frames)
+
+
+def test_metadata_tracks_and_roundtrip(tmp_path):
+    seq = scenes.simulate(TINY, "denim_light", 0.06, frames=3, seed=1)
+    meta = seq.metadata
+    assert meta["material"] == "denim_light" and meta["material_index"] == 4
+    assert meta["pd"] == pytest.approx(0.06)
+    assert json.loads(meta["scene_config"])["name"] == "tiny_sheet"
+    assert seq.tracks["sphere_centers"].shape == (3, 2, 3)
+    assert seq.tracks["pins"].shape[0] == 3
+    path = tmp_path / "s.npz"
+    scenes.save_simulation(path, seq)
+    back = meshio.load_sequence(path)
+    np.testing.assert_array_equal(back.frames, seq.frames)
+    assert back.metadata["scene"] == "tiny_sheet"
+    with np.load(path) as z:
+        np.testing.assert_array_equal(z["sphere_centers"], seq.tracks["sphere_centers"])
+        # UVs are pattern coordinates in meters.
+        assert z["uvs"].max() == pytest.approx(1.0, abs=1e-5)
+
+
+def test_scene_registry_and_errors():
+    assert set(scenes.TRAINING_SCENES) == {"sheet_balls_wind", "skirt_dance",
+                                           "pleated_skirt_dance2"}
+    assert {"dress_dance", "cape_walk"} <= set(scenes.TEST_SCENES)
+    for name in scenes.TRAINING_SCENES:
+        s = scenes.get_scene(name)
+        assert s.garment not in ("dress", "cape") and s.motion not in mannequin.TEST_MOTIONS
+    with pytest.raises(scenes.SceneError, match="unknown scene"):
+        scenes.get_scene("ballroom")
+    with pytest.raises(ValueError, match="unknown material"):
+        scenes.simulate(TINY, "velvet", 0.06, frames=1)
+    with pytest.raises(scenes.SceneError, match="resolution"):
+        scenes.resolution_pd("ultra")
+
+
+def test_mannequin_tracks_shapes_and_rest():
+    t = np.linspace(-0.5, 2.0, 40)
+    for motion in mannequin.MOTIONS:
+        ends, radii, frames = mannequin.body_tracks(motion, t, seed=0)
+        assert ends.shape == (40, len(mannequin.CAPSULES), 2, 3) and radii.shape == (14,)
+        assert np.isfinite(ends).all()
+        # Pre-roll (t < 0) is the rest pose for every motion.
+        rest, _, _ = mannequin.body_tracks("rest", t[:1])
+        np.testing.assert_allclose(ends[0], rest[0], atol=1e-6)
+        rot = frames["pelvis"][:, :, :3]
+        eye = np.broadcast_to(np.eye(3), rot.shape)
+        np.testing.assert_allclose(rot @ rot.transpose(0, 2, 1), eye, atol=1e-6)
+
+
+def _parse(argv):
+    parser = argparse.ArgumentParser(prog="wrinkle-jax")
+    sub = parser.add_subparsers(dest="command", required=True)
+    command.add_simulate_parser(sub)
+    return parser.parse_args(argv)
+
+
+def test_command_writes_sequence(tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(scenes.SCENES, "sheet_balls_wind", TINY)
+    monkeypatch.setitem(scenes.RESOLUTIONS, "coarse", 0.06)
+    out = tmp_path / "o.npz"
+    args = _parse(["simulate", "sheet_balls_wind", "--material", "knit_terry",
+                   "--resolution", "coarse", "--frames", "2", "--out", str(out)])
+    assert args.func(args) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["frames"] == 2 and out.exists()
+    assert meshio.load_sequence(out).metadata["material"] == "knit_terry"
+    bad = _parse(["simulate", "sheet_balls_wind", "--material", "knit_terry",
+                  "--frames", "1", "--out", str(tmp_path / "o.txt")])
+    assert bad.func(bad) == 1
+    assert "npz" in capsys.readouterr().err
+
+
+def test_command_bad_usage_exits_2():
+    for argv in (["simulate", "nope", "--material", "knit_terry", "--out", "x.npz"],
+                 ["simulate", "skirt_dance", "--material", "velvet", "--out", "x.npz"],
+                 ["simulate", "skirt_dance", "--material", "knit_terry", "--frames", "0",
+                  "--out", "x.npz"]):
+        with pytest.raises(SystemExit) as e:
+            _parse(argv)
+        assert e.value.code == 2
+
+
+def test_self_intersection_counter():
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0],           # triangle in z = 0
+                  [0.2, 0.2, -0.5], [0.3, 0.2, 0.5], [0.2, 0.3, 0.5],  # pierces it
+                  [1, 1, 0], [2, 1, 0], [1, 2, 0]], float)   # far away
+    f = np.array([[0, 1, 2], [3, 4, 5], [6, 7, 8], [1, 6, 2]])  # the last shares vertices
+    pairs = intersect.intersecting_pairs(v, f)
+    assert pairs.tolist() == [[0, 1]]
+    stats = intersect.self_intersection_stats(np.stack([v, v + 1]), f)
+    assert stats["counts"] == [1, 1] and stats["frames_with_intersections"] == 1.0
+    # A flat sheet does not intersect itself.
+    from wrinkle_jax.primitives import grid_sheet
+
+    g = grid_sheet(10, 10)
+    assert len(intersect.intersecting_pairs(g.vertices, g.faces)) == 0

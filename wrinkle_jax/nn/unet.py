@@ -25,11 +25,13 @@ XLA's convolutions. "im2col_bf16" runs the convs, transposed convs and CIN throu
 accumulation per layer, the transposed convs as four sub-pixel phases, CIN in one fused pass,
 2x2 max-pool as a reshape; the first conv (the raw image: bfloat16 would round its fine detail
 to 8 bits) and the last conv (2% of the FLOPs together) stay float32. On AVX512-BF16 CPUs it
-is ~1.5x faster at inference and ~20x faster to train than "xla" (whose transposed-conv
-gradients are pathologically slow on XLA:CPU), with ~4e-3 relative output error (see
-`benchmarks/bench_unet.py`). "im2col_f32" is the same index arithmetic with float32 dots
-(exact to float32 rounding; for checking). All forms have the same parameters (names, shapes,
-init), so converted weights and checkpoints work with any of them.
+infers 1.4-2.7x faster than "xla", and a training step (with the fast VGG loss) is 2-8x faster
+(8x at width 64: XLA:CPU's own transposed-conv gradients are pathologically slow), with ~4e-3
+relative output error (see `benchmarks/bench_unet.py`). "im2col_f32" is the same index
+arithmetic with float32 dots: exact to float32 rounding, and (since it avoids XLA's
+transposed-conv gradient) a training step ~5x faster than "xla" without any bfloat16. All forms
+have the same parameters (names, shapes, init), so converted weights and checkpoints work with
+any of them.
 
 Interop: `from_torch_state_dict` converts the authors' PyTorch state dict (modules
 `E1_Conv2d`..`E4_Conv2d`, `D1_Deconv2d`..`D4_Deconv2d`, `D{1..4}_CIN.inns.{k}.weight|bias`,

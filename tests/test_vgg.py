@@ -1,17 +1,13 @@
 """Tests for wrinkle_jax.nn.vgg: NumPy reference convs, Gatys normalization, loading and cache."""
 
-import collections
 import importlib.util
-import io
-import pickle
 import sys
-import types
-import zipfile
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from torch_checkpoint_writer import save_state_dict  # tests/ is on sys.path
 
 from wrinkle_jax.io import torch_pickle
 from wrinkle_jax.nn import vgg
@@ -177,58 +173,6 @@ def test_layer_names_and_levels():
 # --- torchvision zip checkpoint (written here, without torch) ----------------------------------
 
 
-def _write_torchvision_zip(path, state):
-    """Minimal torch >= 1.6 zip writer for a flat dict of float32 arrays."""
-    torch = types.ModuleType("torch")
-    utils = types.ModuleType("torch._utils")
-    float_storage = type("FloatStorage", (), {"__module__": "torch"})
-
-    def rebuild(*args):
-        raise AssertionError
-
-    rebuild.__module__, rebuild.__qualname__ = "torch._utils", "_rebuild_tensor_v2"
-    torch.FloatStorage, utils._rebuild_tensor_v2, torch._utils = float_storage, rebuild, utils
-
-    class Storage:
-        def __init__(self, key, array):
-            self.key, self.array = key, array
-
-    class Tensor:
-        def __init__(self, storage):
-            self.storage = storage
-
-        def __reduce__(self):
-            array = self.storage.array
-            stride = tuple(s // array.itemsize for s in array.strides)
-            return rebuild, (self.storage, 0, array.shape, stride, False,
-                             collections.OrderedDict())
-
-    class Pickler(pickle.Pickler):
-        def persistent_id(self, obj):
-            if isinstance(obj, Storage):
-                return ("storage", float_storage, obj.key, "cpu", obj.array.size)
-            return None
-
-    storages = {k: Storage(str(i), np.ascontiguousarray(v, np.float32))
-                for i, (k, v) in enumerate(state.items())}
-    saved = {k: sys.modules.get(k) for k in ("torch", "torch._utils")}
-    sys.modules.update({"torch": torch, "torch._utils": utils})
-    try:
-        buf = io.BytesIO()
-        Pickler(buf, protocol=2).dump(
-            collections.OrderedDict((k, Tensor(v)) for k, v in storages.items()))
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                sys.modules.pop(k, None)
-            else:
-                sys.modules[k] = v
-    with zipfile.ZipFile(path, "w") as z:
-        z.writestr("vgg19/data.pkl", buf.getvalue())
-        for st in storages.values():
-            z.writestr(f"vgg19/data/{st.key}", st.array.tobytes())
-
-
 def test_torchvision_checkpoint(tmp_path, cache_root):
     rng = np.random.default_rng(1)
     shapes = {0: (64, 3), 2: (64, 64), 5: (128, 64), 7: (128, 128)}  # blocks 1-2 of vgg19
@@ -239,7 +183,8 @@ def test_torchvision_checkpoint(tmp_path, cache_root):
         state[f"features.{index}.bias"] = rng.normal(0, 0.1, c_out)
     state["classifier.6.bias"] = rng.normal(size=10)
     path = tmp_path / "vgg19-0123abcd.pth"
-    _write_torchvision_zip(path, state)
+    # A bare float32 state dict, as torchvision ships it.
+    save_state_dict(path, {k: np.float32(v) for k, v in state.items()}, wrap_key=None)
     assert torch_pickle.load(path).keys() == state.keys()
 
     params = vgg.load_vgg19(path)
@@ -263,7 +208,8 @@ def test_damaged_cache_entry_is_rebuilt(tmp_path, monkeypatch):
     state = {"features.0.weight": rng.normal(size=(64, 3, 3, 3)),
              "features.0.bias": rng.normal(size=64)}
     path = tmp_path / "vgg19-tiny.pth"
-    _write_torchvision_zip(path, state)
+    # A bare float32 state dict, as torchvision ships it.
+    save_state_dict(path, {k: np.float32(v) for k, v in state.items()}, wrap_key=None)
     first = vgg.load_vgg19(path)
     (entry,) = (tmp_path / "cache").glob("vgg19-*.npz")
     entry.write_bytes(b"not an npz")
@@ -274,7 +220,7 @@ def test_damaged_cache_entry_is_rebuilt(tmp_path, monkeypatch):
 
 def test_unknown_checkpoint_layout(tmp_path):
     path = tmp_path / "other.pth"
-    _write_torchvision_zip(path, {"encoder.weight": np.zeros((2, 2))})
+    save_state_dict(path, {"encoder.weight": np.zeros((2, 2), np.float32)}, wrap_key=None)
     with pytest.raises(ValueError, match="not a VGG19 checkpoint"):
         vgg.load_vgg19(path, cache=False)
 

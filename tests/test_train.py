@@ -104,8 +104,10 @@ SHARDED = textwrap.dedent("""
     from wrinkle_jax import train
     from wrinkle_jax.nn import vgg
     assert jax.device_count() == 2, jax.devices()
+    # float32 convolutions: bfloat16 rounding would turn reduction-order differences between
+    # the 1- and 2-device programs into ~1e-4 gradient differences.
     cfg = train.TrainConfig(width=4, batch_size=4, style_layers=("relu1_2", "relu2_1"),
-                            w_s=10.0, learning_rate=1e-3)
+                            w_s=10.0, learning_rate=1e-3, conv_impl="im2col_f32")
     tiny = vgg.init_vgg19(jax.random.key(0, impl="rbg"), widths=(4, 8, 8, 8, 8), num_convs=4,
                           spec=vgg.VGGSpec("custom", "REFLECT"))
     rng = np.random.default_rng(0)

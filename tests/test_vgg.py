@@ -12,7 +12,7 @@ from torch_checkpoint_writer import save_state_dict  # tests/ is on sys.path
 from wrinkle_jax.io import torch_pickle
 from wrinkle_jax.nn import vgg
 
-features_jit = jax.jit(vgg.features, static_argnames=("layers", "pool", "dtype"))
+features_jit = jax.jit(vgg.features, static_argnames=("layers", "pool", "dtype", "conv_impl"))
 BLOCKS_1_2 = ("relu1_1", "relu1_2", "relu2_1", "relu2_2")
 
 
@@ -266,3 +266,33 @@ def test_bfloat16_compute_is_close(gatys_params):
     assert bf16.dtype == jnp.float32
     rel = float(jnp.linalg.norm(bf16 - f32) / jnp.linalg.norm(f32))
     assert rel < 3e-2
+
+
+def test_im2col_bf16_features_and_gradients_are_close(gatys_params):
+    """The fast conv form agrees with XLA convolutions to bfloat16 rounding, values and input
+    gradients alike (the loss backpropagates through VGG to the U-Net output)."""
+    rng = np.random.default_rng(4)
+    images = jnp.asarray(rng.uniform(size=(2, 32, 32, 3)), jnp.float32)
+    layers = ("relu1_1", "relu2_1", "relu3_1")
+    ref = features_jit(gatys_params, images, layers=layers)
+    fast = features_jit(gatys_params, images, layers=layers, conv_impl="im2col_bf16")
+    for name in layers:
+        assert fast[name].dtype == jnp.float32 and fast[name].shape == ref[name].shape
+        rel = float(jnp.linalg.norm(fast[name] - ref[name]) / jnp.linalg.norm(ref[name]))
+        # conv1_1 stays float32 (raw image), so the first layer is exact; deeper layers carry
+        # bfloat16 rounding (nonzero: the fast path is really taken).
+        if name == "relu1_1":
+            assert rel < 1e-5, rel
+        else:
+            assert 1e-5 < rel < 2e-2, (name, rel)
+
+    def energy(x, impl):
+        f = vgg.features(gatys_params, x, layers=("relu3_1",), conv_impl=impl)["relu3_1"]
+        return jnp.mean(f ** 2)
+
+    g_ref = jax.jit(jax.grad(energy), static_argnums=1)(images, "xla")
+    g_fast = jax.jit(jax.grad(energy), static_argnums=1)(images, "im2col_bf16")
+    cos = float(jnp.vdot(g_ref, g_fast) / (jnp.linalg.norm(g_ref) * jnp.linalg.norm(g_fast)))
+    assert cos > 0.999, cos
+    with pytest.raises(ValueError, match="conv_impl"):
+        vgg.features(gatys_params, images, layers=layers, conv_impl="cudnn")

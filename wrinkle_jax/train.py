@@ -53,6 +53,9 @@ class TrainConfig:
       learning_rate, b1, b2, weight_decay: Adam(W).
       style_layers, content_layer, w_c, w_s, normalize_channels, pool: the loss (see
         `nn.losses.enhancer_loss`).
+      conv_impl: convolution form of the U-Net and of the loss's VGG ("xla", "im2col_f32" --
+        U-Net only, exact -- or "im2col_bf16"; see `nn.unet`). Parameters are the same for all
+        forms, so a run may resume with another one.
       seed: parameter init and data order.
       eval_every, eval_batches: held-out evaluation cadence and size.
       checkpoint_every, keep_checkpoints: Orbax cadence and retention.
@@ -74,6 +77,7 @@ class TrainConfig:
     w_s: float = 1e4
     normalize_channels: bool = True
     pool: str = "avg"
+    conv_impl: str = "im2col_bf16"
     seed: int = 0
     eval_every: int = 50
     eval_batches: int = 4
@@ -82,7 +86,12 @@ class TrainConfig:
 
     def model(self) -> unet.CINUNet:
         return unet.CINUNet(num_materials=self.num_materials, width=self.width,
-                            residual=self.residual, input_norm=self.input_norm)
+                            residual=self.residual, input_norm=self.input_norm,
+                            conv_impl=self.conv_impl)
+
+    @property
+    def vgg_conv_impl(self) -> str:
+        return "im2col_bf16" if self.conv_impl == "im2col_bf16" else "xla"
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -130,7 +139,7 @@ def loss_fn(params, batch, vgg_params, config: TrainConfig):
         vgg_params, out, batch["input"], batch["target"], batch["mask"],
         style_layers=config.style_layers, content_layer=config.content_layer,
         w_c=config.w_c, w_s=config.w_s, pool=config.pool,
-        normalize_channels=config.normalize_channels)
+        normalize_channels=config.normalize_channels, conv_impl=config.vgg_conv_impl)
 
 
 def data_mesh(devices=None) -> jax.sharding.Mesh:
@@ -181,7 +190,7 @@ def make_eval_step(config: TrainConfig, vgg_params):
         out = _forward(config, params, batch)
         n = out.shape[0]
         feats = vgg.features(vgg_params, jnp.concatenate([batch["input"], out, batch["target"]]),
-                             layers=layers, pool=config.pool)
+                             layers=layers, pool=config.pool, conv_impl=config.vgg_conv_impl)
         f_in, f_out, f_tgt = ({k: v[i * n:(i + 1) * n] for k, v in feats.items()}
                               for i in range(3))
         mask = batch["mask"]
@@ -240,7 +249,8 @@ def restore_checkpoint(manager, template: TrainState, config: TrainConfig, step=
     got = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
                                                         meta=ocp.args.JsonRestore()))
     saved = TrainConfig.from_json(got["meta"]["config"])
-    free = ("steps", "eval_every", "eval_batches", "checkpoint_every", "keep_checkpoints")
+    free = ("steps", "eval_every", "eval_batches", "checkpoint_every", "keep_checkpoints",
+            "conv_impl")
     diff = {f.name for f in dataclasses.fields(TrainConfig)
             if f.name not in free and getattr(saved, f.name) != getattr(config, f.name)}
     if diff:

@@ -171,7 +171,8 @@ def content_loss(out_feats, inp_feats, mask, layer=DEFAULT_CONTENT_LAYER):
 
 def enhancer_loss(vgg_params, out_images, inp_images, target_images, mask,
                   style_layers=DEFAULT_STYLE_LAYERS, content_layer=DEFAULT_CONTENT_LAYER,
-                  w_c=1.0, w_s=1e4, layer_weights=None, pool="avg", normalize_channels=False):
+                  w_c=1.0, w_s=1e4, layer_weights=None, pool="avg", normalize_channels=False,
+                  conv_impl="xla"):
     """Training objective of the enhancer: ``w_c content(out, inp) + w_s style(out, target)``.
 
     VGG runs once per image set and only as deep as needed: the output to the deepest of the
@@ -184,7 +185,7 @@ def enhancer_loss(vgg_params, out_images, inp_images, target_images, mask,
       inp_images: (N, H, W, 3) coarse input patches.
       target_images: (N, H, W, 3) detailed (material-specific) target patches.
       mask: (N or 1, H, W, 1) UV mask in [0, 1].
-      style_layers, content_layer, layer_weights, pool, normalize_channels: see
+      style_layers, content_layer, layer_weights, pool, normalize_channels, conv_impl: see
         :func:`style_loss`, :func:`content_loss`, ``vgg.features`` (all static under jit).
       w_c, w_s: content and style weights (paper: 1 and 1e4).
 
@@ -194,11 +195,12 @@ def enhancer_loss(vgg_params, out_images, inp_images, target_images, mask,
     """
     style_layers = (style_layers,) if isinstance(style_layers, str) else tuple(style_layers)
     out_layers = tuple(sorted(set(style_layers) | {content_layer}))
-    out_f = vgg.features(vgg_params, out_images, layers=out_layers, pool=pool)
+    out_f = vgg.features(vgg_params, out_images, layers=out_layers, pool=pool,
+                         conv_impl=conv_impl)
     inp_f = vgg.features(vgg_params, jax.lax.stop_gradient(inp_images), layers=(content_layer,),
-                         pool=pool)
+                         pool=pool, conv_impl=conv_impl)
     tgt_f = vgg.features(vgg_params, jax.lax.stop_gradient(target_images), layers=style_layers,
-                         pool=pool)
+                         pool=pool, conv_impl=conv_impl)
     content = content_loss(out_f, inp_f, mask, content_layer)
     style = style_loss(out_f, tgt_f, mask, style_layers, layer_weights, normalize_channels)
     per_sample = w_c * content + w_s * style

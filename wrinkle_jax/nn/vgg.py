@@ -53,6 +53,7 @@ import numpy as np
 
 from wrinkle_jax.fileio import atomic_write_bytes, user_cache_dir
 from wrinkle_jax.io import torch_pickle
+from wrinkle_jax.nn import fastconv
 
 __all__ = [
     "DEFAULT_LAYERS",
@@ -101,6 +102,7 @@ _IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
 _CACHE_VERSION = "v1"
 _PREPROCESS = ("gatys_bgr255", "imagenet_rgb", "custom")
 _PADDING = ("REFLECT", "ZERO")
+CONV_IMPLS = ("xla", "im2col_bf16")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -144,8 +146,18 @@ def layer_level(name: str) -> int:
 # Forward pass.
 
 
-def _conv3x3(x, layer, padding, dtype):
-    """3x3 stride-1 'same' conv; `dtype` is the compute dtype, accumulation is float32."""
+def _conv3x3(x, layer, padding, dtype, conv_impl="xla"):
+    """3x3 stride-1 'same' conv; `dtype` is the compute dtype, accumulation is float32.
+
+    ``conv_impl="im2col_bf16"``: patches + one bfloat16 dot with float32 accumulation
+    (:func:`wrinkle_jax.nn.fastconv.conv3x3`; `dtype` is ignored); on the raw RGB image
+    (conv1_1, 3 channels) the same form in float32: bfloat16 would round the image's fine
+    detail to 8 bits, and the layer is ~1% of the FLOPs.
+    """
+    if conv_impl == "im2col_bf16":
+        compute = jnp.float32 if x.shape[-1] <= 4 else jnp.bfloat16
+        return fastconv.conv3x3(x, layer["kernel"], layer["bias"], padding=padding,
+                                compute_dtype=compute)
     kernel = layer["kernel"]
     if dtype is not None:
         x = x.astype(dtype)
@@ -180,7 +192,7 @@ def pool2x2(x, pool="avg"):
     return x.mean(axis=(2, 4)) if pool == "avg" else x.max(axis=(2, 4))
 
 
-def features(params, images, layers=DEFAULT_LAYERS, pool="avg", dtype=None):
+def features(params, images, layers=DEFAULT_LAYERS, pool="avg", dtype=None, conv_impl="xla"):
     """VGG19 features of RGB images, computed only up to the deepest requested layer.
 
     Args:
@@ -192,6 +204,9 @@ def features(params, images, layers=DEFAULT_LAYERS, pool="avg", dtype=None):
       pool: ``"avg"`` (the reference implementation) or ``"max"`` (static).
       dtype: optional compute dtype for the conv inputs and weights (e.g. ``jnp.bfloat16``);
         accumulation, bias, ReLU and pooling stay float32 (static).
+      conv_impl: ``"xla"`` (XLA convolutions) or ``"im2col_bf16"`` (patches + bfloat16 dots,
+        ~1.5-2x faster forward and backward on AVX512-BF16 CPUs, ~2.5e-3 relative error per
+        layer; see :mod:`wrinkle_jax.nn.fastconv`) (static).
 
     Returns:
       dict layer name -> (N, H // 2**layer_level(name), W // 2**layer_level(name), C) float32.
@@ -212,6 +227,8 @@ def features(params, images, layers=DEFAULT_LAYERS, pool="avg", dtype=None):
         layer_level(name)  # validates the name
     if pool not in ("avg", "max"):
         raise ValueError(f"pool must be 'avg' or 'max', got {pool!r}")
+    if conv_impl not in CONV_IMPLS:
+        raise ValueError(f"conv_impl must be one of {CONV_IMPLS}, got {conv_impl!r}")
     if images.ndim != 4 or images.shape[-1] != 3:
         raise ValueError(f"images must be (N, H, W, 3) RGB, got shape {images.shape}")
     spec = params["spec"]
@@ -224,7 +241,7 @@ def features(params, images, layers=DEFAULT_LAYERS, pool="avg", dtype=None):
         if kind == "conv":
             if name not in params:
                 raise KeyError(f"VGG params have no {name!r} (needed for layers {sorted(wanted)})")
-            x = _conv3x3(x, params[name], spec.padding, dtype)
+            x = _conv3x3(x, params[name], spec.padding, dtype, conv_impl)
         elif kind == "relu":
             x = jax.nn.relu(x)
         else:

@@ -1,0 +1,81 @@
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from wrinkle_jax import enhancer
+
+KEY = jax.random.key(0, impl="rbg")
+SMALL = enhancer.EnhancerConfig(width=4, patch_size=32)
+
+
+@pytest.fixture(scope="module")
+def small():
+    return enhancer.init_enhancer(KEY, SMALL, conv_impl="im2col_f32")
+
+
+def test_round_trip_float32_is_exact(small, tmp_path):
+    path = enhancer.save_enhancer(tmp_path / "m.npz", small.params, SMALL, {"steps": 7},
+                                  dtype=np.float32)
+    got = enhancer.load_enhancer(path, conv_impl="im2col_f32")
+    assert got.config == SMALL and got.meta["steps"] == 7
+    for a, b in zip(jax.tree.leaves(small.params), jax.tree.leaves(got.params), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_float16_storage_changes_outputs_little(small, tmp_path):
+    path = enhancer.save_enhancer(tmp_path / "m.npz", small.params, SMALL)
+    got = enhancer.load_enhancer(path, conv_impl="im2col_f32")
+    x = np.random.default_rng(0).uniform(size=(3, 32, 32, 3)).astype(np.float32)
+    mat = np.array([0, 2, 4])
+    apply = enhancer.make_apply(small, clip=False)
+    a, b = np.asarray(apply(small.params, x, mat)), np.asarray(apply(got.params, x, mat))
+    assert np.linalg.norm(a - b) / np.linalg.norm(a) < 2e-3
+    assert not np.array_equal(a, b)  # float16 really rounded
+
+
+def test_materials_condition_the_output(small):
+    apply = enhancer.make_apply(small)
+    x = np.random.default_rng(1).uniform(size=(1, 32, 32, 3)).astype(np.float32)
+    outs = [np.asarray(apply(small.params, x, np.array([m]))) for m in range(5)]
+    assert all(o.min() >= 0 and o.max() <= 1 for o in outs)
+    # CIN tables start equal (scale 1, shift 0), so perturb one material's tables.
+    params = jax.tree.map(lambda v: v, small.params)
+    params["cin1"]["scale"] = params["cin1"]["scale"].at[3].mul(2.0)
+    o3 = np.asarray(apply(params, x, np.array([3])))
+    o2 = np.asarray(apply(params, x, np.array([2])))
+    np.testing.assert_allclose(o2, outs[2], atol=1e-6)
+    assert np.abs(o3 - outs[3]).max() > 1e-4
+
+
+def test_material_names(small):
+    assert SMALL.material_id("denim_light") == SMALL.materials.index("denim_light")
+    with pytest.raises(ValueError, match="leather"):
+        SMALL.material_id("leather")
+
+
+def test_bad_files_name_the_problem(small, tmp_path):
+    with pytest.raises(enhancer.EnhancerError, match="no such enhancer file"):
+        enhancer.load_enhancer(tmp_path / "missing.npz")
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"not a zip")
+    with pytest.raises(enhancer.EnhancerError, match="junk.npz"):
+        enhancer.load_enhancer(junk)
+    # Parameters of another width under this config.
+    path = enhancer.save_enhancer(tmp_path / "w.npz", small.params, SMALL)
+    with np.load(path) as z:
+        files = dict(z)
+    cfg = json.loads(bytes(files["config.json"]).decode())
+    cfg["width"] = 8
+    files["config.json"] = np.frombuffer(json.dumps(cfg).encode(), np.uint8)
+    np.savez(tmp_path / "mismatch.npz", **files)
+    with pytest.raises(enhancer.EnhancerError, match="do not match"):
+        enhancer.load_enhancer(tmp_path / "mismatch.npz")
+
+
+def test_non_finite_after_cast_is_refused(small, tmp_path):
+    params = jax.tree.map(lambda v: v, small.params)
+    params["out"]["bias"] = params["out"]["bias"] + 1e6
+    with pytest.raises(enhancer.EnhancerError, match="float16"):
+        enhancer.save_enhancer(tmp_path / "big.npz", params, SMALL)

@@ -1,0 +1,217 @@
+"""A trained enhancer as one portable file: save, load, and apply to patches.
+
+The shipped default lives at ``wrinkle_jax/assets/enhancer.npz`` and is loaded by
+:func:`load_enhancer` with no arguments. The file is a plain ``.npz`` (no pickle):
+
+    params/<module>/<leaf>   float16 (or float32) arrays of the CINUNet parameter pytree
+    config.json              uint8 bytes of the JSON :class:`EnhancerConfig`
+    meta.json                uint8 bytes of free-form JSON (training data, steps, scores, ...)
+
+Parameters are stored in float16 to keep the package small (the U-Net's weights are far inside
+float16's range; the rounding, ~5e-4 relative, is below the bfloat16 rounding of the fast
+inference convolutions) and are cast back to float32 on load.
+
+Example:
+    >>> import jax, numpy as np
+    >>> enh = init_enhancer(jax.random.key(0, impl="rbg"), EnhancerConfig(width=4))
+    >>> apply = make_apply(enh)
+    >>> out = apply(enh.params, np.full((2, 32, 32, 3), 0.5, np.float32), np.array([0, 3]))
+    >>> out.shape
+    (2, 32, 32, 3)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import os
+import zipfile
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wrinkle_jax import MATERIALS, normalmap
+from wrinkle_jax.fileio import atomic_write_bytes
+from wrinkle_jax.nn import unet
+
+__all__ = ["DEFAULT_PATH", "Enhancer", "EnhancerConfig", "EnhancerError", "init_enhancer",
+           "load_enhancer", "make_apply", "save_enhancer"]
+
+DEFAULT_PATH = Path(__file__).resolve().parent / "assets" / "enhancer.npz"
+_FORMAT = "wrinkle-jax-enhancer/1"
+
+
+class EnhancerError(ValueError):
+    """An enhancer file is missing, unreadable or inconsistent (the message names the file)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class EnhancerConfig:
+    """What a model needs at inference.
+
+    Attributes:
+      width: U-Net first-level channels.
+      residual: the U-Net returns input + network output.
+      input_norm: "imagenet" or "none" (see `nn.unet.CINUNet`).
+      materials: material names in the order of the CIN tables.
+      patch_size: patch side in texels the model was trained on.
+      texel_size: meters of cloth per texel of the normal maps it was trained on.
+      downsample_factor: coarse PD / fine PD of its training inputs.
+    """
+
+    width: int = 32
+    residual: bool = False
+    input_norm: str = "imagenet"
+    materials: tuple[str, ...] = MATERIALS
+    patch_size: int = 128
+    texel_size: float = normalmap.DEFAULT_TEXEL_SIZE
+    downsample_factor: float = 3.0
+
+    def model(self, conv_impl: str = "im2col_bf16") -> unet.CINUNet:
+        return unet.CINUNet(num_materials=len(self.materials), width=self.width,
+                            residual=self.residual, input_norm=self.input_norm,
+                            conv_impl=conv_impl)
+
+    def material_id(self, name: str) -> int:
+        if name not in self.materials:
+            raise ValueError(f"unknown material {name!r}; this model knows "
+                             f"{', '.join(self.materials)}")
+        return self.materials.index(name)
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_json(cls, d: dict) -> EnhancerConfig:
+        d = dict(d)
+        d["materials"] = tuple(d["materials"])
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"unknown enhancer config fields {sorted(unknown)}")
+        return cls(**d)
+
+
+class Enhancer(NamedTuple):
+    """A ready-to-apply model: `model.apply({"params": params}, x, material_ids)`."""
+
+    model: unet.CINUNet
+    params: Any
+    config: EnhancerConfig
+    meta: dict
+
+
+def init_enhancer(key, config: EnhancerConfig = EnhancerConfig(), conv_impl: str = "im2col_bf16",
+                  meta: dict | None = None) -> Enhancer:
+    """An untrained enhancer (random parameters) -- for tests and as a training start."""
+    model = config.model(conv_impl)
+    params = unet.init_params(model, key, config.patch_size)
+    return Enhancer(model, params, config, dict(meta or {}))
+
+
+def _flatten(params, leaf_fn=np.asarray) -> dict[str, Any]:
+    flat = {}
+    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+        keys = "/".join(str(getattr(p, "key", p)) for p in path)
+        flat[keys] = leaf_fn(leaf)
+    return flat
+
+
+def _unflatten(flat: dict[str, np.ndarray]) -> dict:
+    tree: dict = {}
+    for keys, value in flat.items():
+        node = tree
+        parts = keys.split("/")
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+        node[parts[-1]] = value
+    return tree
+
+
+def save_enhancer(path: str | os.PathLike, params, config: EnhancerConfig,
+                  meta: dict | None = None, dtype=np.float16) -> Path:
+    """Write `params` (a CINUNet pytree), `config` and `meta` to `path` atomically.
+
+    Raises:
+      EnhancerError: if a parameter does not fit `dtype` (non-finite after the cast).
+    """
+    path = Path(path)
+    arrays = {}
+    for k, v in _flatten(params).items():
+        with np.errstate(over="ignore"):
+            cast = v.astype(dtype)
+        if not np.all(np.isfinite(cast)):
+            raise EnhancerError(f"{path}: parameter {k} does not fit {np.dtype(dtype).name}")
+        arrays[f"params/{k}"] = cast
+    arrays["config.json"] = np.frombuffer(json.dumps(config.to_json()).encode(), np.uint8)
+    meta = {"format": _FORMAT, **(meta or {})}
+    arrays["meta.json"] = np.frombuffer(json.dumps(meta, indent=1).encode(), np.uint8)
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    atomic_write_bytes(path, buf.getvalue())
+    return path
+
+
+def load_enhancer(path: str | os.PathLike | None = None,
+                  conv_impl: str = "im2col_bf16") -> Enhancer:
+    """Load an enhancer file (default: the shipped model).
+
+    Args:
+      path: an ``.npz`` written by :func:`save_enhancer`; None for ``DEFAULT_PATH``.
+      conv_impl: the U-Net's convolution form ("im2col_bf16" fast on CPU, "im2col_f32" or
+        "xla" exact); the parameters are the same for all forms.
+
+    Raises:
+      EnhancerError: naming the file, if it is missing, not an enhancer file, or its
+        parameters do not match its config.
+    """
+    path = Path(DEFAULT_PATH if path is None else path)
+    if not path.is_file():
+        hint = (" (the shipped model is built by `python -m experiments.train_default`)"
+                if path == DEFAULT_PATH else "")
+        raise EnhancerError(f"{path}: no such enhancer file{hint}")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            files = {k: z[k] for k in z.files}
+        config = EnhancerConfig.from_json(json.loads(bytes(files.pop("config.json")).decode()))
+        meta = json.loads(bytes(files.pop("meta.json")).decode())
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, UnicodeDecodeError) as e:
+        raise EnhancerError(f"{path}: not a readable enhancer file ({e})") from None
+    if meta.get("format") != _FORMAT:
+        raise EnhancerError(f"{path}: unknown format {meta.get('format')!r}")
+    flat = {k[len("params/"):]: v.astype(np.float32) for k, v in files.items()
+            if k.startswith("params/")}
+    params = jax.tree.map(jnp.asarray, _unflatten(flat))
+    model = config.model(conv_impl)
+    want = jax.eval_shape(lambda: unet.init_params(model, jax.random.key(0, impl="rbg"),
+                                                   config.patch_size))
+    want_shapes = _flatten(want, lambda s: tuple(s.shape))
+    got_shapes = {k: v.shape for k, v in flat.items()}
+    if want_shapes != got_shapes:
+        missing = sorted(set(want_shapes) - set(got_shapes))[:3]
+        wrong = sorted(k for k in set(want_shapes) & set(got_shapes)
+                       if want_shapes[k] != got_shapes[k])[:3]
+        raise EnhancerError(f"{path}: parameters do not match the config (width "
+                            f"{config.width}); missing {missing}, wrong shape {wrong}")
+    return Enhancer(model, params, config, meta)
+
+
+def make_apply(enhancer: Enhancer, clip: bool = True):
+    """Jitted ``(params, x (N, H, W, 3) RGB-form patches, material (N,) int) -> (N, H, W, 3)``.
+
+    With `clip`, outputs are clipped to [0, 1] (the RGB form of unit normals); the parameters
+    are an argument (not a closed-over constant), so one compile serves any weights of the same
+    shapes and gradients flow to them.
+    """
+    model = enhancer.model
+
+    @jax.jit
+    def apply(params, x, material):
+        out = model.apply({"params": params}, x, material)
+        return jnp.clip(out, 0.0, 1.0) if clip else out
+
+    return apply

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -32,8 +33,12 @@ def sources(tmp_path_factory):
         "sheet_wind_silk": dict(material="silk_charmeuse", garment="sheet", motion="wind"),
         "dress_dance_denim": dict(material="denim_light", garment="dress", motion="dance",
                                   split="train"),  # a claim that must be ignored
-        "skirt_walk_unseen": dict(material="wool_melton", garment="skirt",
-                                  motion="walk_unseen"),
+        "skirt_walk_unseen": dict(material="wool_melton", garment="skirt", motion="walk"),
+        # The simulator's layout: garment and motion inside the scene config JSON.
+        "sim_skirt_dance": dict(material="knit_terry", scene="skirt_dance", scene_config=json.dumps(
+            {"garment": "flared_skirt", "motion": "dance", "test_only": False})),
+        "sim_cape": dict(material="knit_terry", scene="cape_x", scene_config=json.dumps(
+            {"garment": "cape", "motion": "dance2", "test_only": True})),
     }
     paths = []
     for name, meta in specs.items():
@@ -53,17 +58,21 @@ def test_splits_by_garment_and_motion(built):
     _, entries = built
     split = {e["sequence"]: e["split"] for e in entries}
     assert split == {"sheet_wind_silk": "train", "dress_dance_denim": "heldout",
-                     "skirt_walk_unseen": "heldout"}
+                     "skirt_walk_unseen": "heldout", "sim_skirt_dance": "train",
+                     "sim_cape": "heldout"}
+    info = {e["sequence"]: (e["garment"], e["motion"]) for e in entries}
+    assert info["sim_skirt_dance"] == ("flared_skirt", "dance")
 
 
 def test_patches_are_valid_pairs(built):
     root, _ = built
     ds = data.PatchDataset(root, "train")
-    assert len(ds) == 3 * CONFIG.crops_per_frame
+    assert len(ds) == 2 * 3 * CONFIG.crops_per_frame  # two training sequences of 3 frames
     assert ds.patch_size == 32
     b = ds.get(np.arange(len(ds)))
-    assert b["input"].shape == (9, 32, 32, 3) and b["mask"].shape == (9, 32, 32, 1)
-    assert (b["material"] == material_index("silk_charmeuse")).all()
+    assert b["input"].shape == (18, 32, 32, 3) and b["mask"].shape == (18, 32, 32, 1)
+    assert set(b["material"].tolist()) == {material_index("silk_charmeuse"),
+                                           material_index("knit_terry")}
     coverage = b["mask"].mean(axis=(1, 2, 3))
     assert (coverage >= CONFIG.min_coverage).all()
     m = b["mask"][..., 0] > 0
@@ -127,7 +136,7 @@ def test_bad_metadata(tmp_path):
 def test_batch_iterator_resumes_exactly(built):
     root, _ = built
     ds = data.PatchDataset(root, "heldout")
-    assert len(ds) == 18
+    assert len(ds) == 27
     straight = data.BatchIterator(ds, 4, seed=3)
     seen = [next(straight)["input"] for _ in range(7)]  # crosses an epoch boundary
     first = data.BatchIterator(ds, 4, seed=3)
@@ -139,7 +148,7 @@ def test_batch_iterator_resumes_exactly(built):
     # Every patch of an epoch appears at most once; epochs are shuffled differently.
     it = data.BatchIterator(ds, 4, seed=3)
     p0 = it._perm(0)
-    assert sorted(p0.tolist()) == list(range(18))
+    assert sorted(p0.tolist()) == list(range(27))
     assert not np.array_equal(p0, it._perm(1))
     with pytest.raises(ValueError, match="fewer than one batch"):
         data.BatchIterator(ds, 100)

@@ -16,9 +16,9 @@ A sequence whose index file exists is skipped, so an interrupted build resumes; 
 written atomically. Memory is bounded by one bake batch plus one shard, however long the
 sequences are.
 
-Splits are by garment and by motion: a sequence whose garment is in `heldout_garments` or whose
-motion is in `heldout_motions` is "heldout", whatever its metadata claims; everything else is
-"train". Held-out garments and motions never reach training.
+Splits are by garment and by motion: a sequence whose garment is in `heldout_garments`, whose
+motion is in `heldout_motions` (the simulator's test scenes: dress, cape, walk), or whose metadata
+marks it `test_only` is "heldout"; everything else is "train". Held-out garments and motions never reach training.
 """
 
 from __future__ import annotations
@@ -72,7 +72,7 @@ class PatchDataConfig:
     augment: bool = True
     seed: int = 0
     heldout_garments: tuple[str, ...] = ("dress", "cape")
-    heldout_motions: tuple[str, ...] = ("walk_unseen",)
+    heldout_motions: tuple[str, ...] = ("walk",)
 
 
 def sequence_info(seq: GarmentSequence, name: str) -> dict:
@@ -90,13 +90,25 @@ def sequence_info(seq: GarmentSequence, name: str) -> dict:
     except ValueError as e:
         raise ValueError(f"{name}: {e}") from None
     scene = meta.get("scene", name)
-    return {"material": material, "scene": scene, "garment": meta.get("garment", scene),
-            "motion": meta.get("motion", scene)}
+    # Simulated sequences keep garment and motion inside their scene config (JSON string).
+    scene_cfg = meta.get("scene_config", {})
+    if isinstance(scene_cfg, str):
+        try:
+            scene_cfg = json.loads(scene_cfg)
+        except json.JSONDecodeError:
+            raise ValueError(f"{name}: metadata 'scene_config' is not valid JSON") from None
+    garment = meta.get("garment", scene_cfg.get("garment", scene))
+    motion = meta.get("motion", scene_cfg.get("motion", scene))
+    test_only = bool(meta.get("test_only", scene_cfg.get("test_only", False)))
+    return {"material": material, "scene": scene, "garment": garment,
+            "motion": str(motion), "test_only": test_only}
 
 
 def split_of(info: dict, config: PatchDataConfig) -> str:
-    """'heldout' if the garment or the motion is held out, else 'train'."""
-    if info["garment"] in config.heldout_garments or info["motion"] in config.heldout_motions:
+    """'heldout' if the garment or the motion is held out or the sequence is marked test-only,
+    else 'train'."""
+    if (info["garment"] in config.heldout_garments or info["motion"] in config.heldout_motions
+            or info.get("test_only", False)):
         return "heldout"
     return "train"
 

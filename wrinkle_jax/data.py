@@ -18,7 +18,8 @@ sequences are.
 
 Splits are by garment and by motion: a sequence whose garment is in `heldout_garments`, whose
 motion is in `heldout_motions` (the simulator's test scenes: dress, cape, walk), or whose metadata
-marks it `test_only` is "heldout"; everything else is "train". Held-out garments and motions never reach training.
+marks it `test_only` is "heldout"; everything else is "train". Held-out garments and motions
+never reach training.
 """
 
 from __future__ import annotations

@@ -60,7 +60,7 @@ class EnhancerConfig:
       materials: material names in the order of the CIN tables.
       patch_size: patch side in texels the model was trained on.
       texel_size: meters of cloth per texel of the normal maps it was trained on.
-      downsample_factor: coarse PD / fine PD of its training inputs.
+      coarse_pd: particle distance (m) of the coarse inputs it was trained for.
     """
 
     width: int = 32
@@ -69,7 +69,7 @@ class EnhancerConfig:
     materials: tuple[str, ...] = MATERIALS
     patch_size: int = 128
     texel_size: float = normalmap.DEFAULT_TEXEL_SIZE
-    downsample_factor: float = 3.0
+    coarse_pd: float = 0.03
 
     def model(self, conv_impl: str = "im2col_bf16") -> unet.CINUNet:
         return unet.CINUNet(num_materials=len(self.materials), width=self.width,

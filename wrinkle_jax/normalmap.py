@@ -414,7 +414,8 @@ def downsample_like_coarse(normal_map, mask, factor: float):
 
     Args:
       normal_map: (H, W, 3) float32; mask: (H, W, 1) float32 in {0, 1}.
-      factor: coarse / fine particle distance (e.g. 30 mm / 10 mm = 3); 1 returns the input.
+      factor: coarse particle distance / texel size, in texels (e.g. 30 mm / 2 mm = 15): the
+        coarse mesh cannot hold detail finer than its particle distance. 1 returns the input.
     Returns:
       (H, W, 3) float32, zero outside the mask. Jittable with `factor` static.
     """

@@ -4,8 +4,8 @@ pairs in memory-mappable shards, and a deterministic, resumable batch iterator.
 Building (paper Sec. 5, "Dataset"): each fine frame is baked to a normal map at a fixed texel
 size; the network input is made from it by `normalmap.downsample_like_coarse` to texels of the
 coarse particle distance (factor = coarse PD / texel size; the paper trains on downsampled fine
-maps so that input and target are aligned); random crops with at least `min_coverage` garment texels are cut from the stacked
-(input, target, mask) map, with the 8 dihedral augmentations.
+maps so that input and target are aligned); random crops with at least `min_coverage` garment
+texels are cut from the stacked (input, target, mask) map, with the 8 dihedral augmentations.
 
 On disk (`root/`):
     shards/<sequence>_<k>.npy   (n, S, S, 7) uint16: channels 0-2 input and 3-5 target in the

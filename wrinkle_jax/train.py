@@ -206,7 +206,8 @@ def make_eval_step(config: TrainConfig, vgg_params):
         score = metrics_lib.improvement_score_from_losses(loss_in, loss_out, eps=eps)
         content = losses.content_loss(f_out, f_in, mask, config.content_layer)
         return {"content": content, "style": loss_out, "input_style": loss_in,
-                "improvement": score.score, "valid": score.valid}
+                "improvement": score.score, "improvement_signed": score.signed_score,
+                "valid": score.valid}
 
     return jax.jit(eval_fn)
 
@@ -274,6 +275,11 @@ def evaluate(eval_step, params, batches: list[dict]) -> dict:
             "heldout_input_style": float(cat["input_style"].mean()),
             "heldout_improvement": float(cat["improvement"][valid].mean()) if valid.any()
             else float("nan"),
+            # The paper's score takes |.|, so an output that overshoots the target's style by
+            # as much as the input misses it also scores 100; the signed form is negative
+            # when the output is further from the target than the input.
+            "heldout_improvement_signed": float(cat["improvement_signed"][valid].mean())
+            if valid.any() else float("nan"),
             "heldout_improvement_valid": float(valid.mean())}
 
 
@@ -349,9 +355,11 @@ def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.P
 
     step_fn = make_train_step(config, vgg_params, mesh)
     eval_step = make_eval_step(config, vgg_params)
+    # Fixed held-out patches spread over the whole split (all held-out sequences), not its head.
     n_eval = min(len(held_set), config.eval_batches * config.batch_size)
-    held_batches = [held_set.get(np.arange(i, min(i + config.batch_size, n_eval)))
-                    for i in range(0, n_eval, config.batch_size)]
+    held_idx = np.unique(np.linspace(0, len(held_set) - 1, n_eval).round().astype(int))
+    held_batches = [held_set.get(held_idx[i:i + config.batch_size])
+                    for i in range(0, len(held_idx), config.batch_size)]
     start = int(state.step)
     last: dict = {}
     with open(metrics_path, "a") as log, tqdm(total=config.steps, initial=start,

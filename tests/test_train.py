@@ -96,6 +96,26 @@ def test_resume_equals_straight_run(data_root, tmp_path, tiny_vgg):
     assert [r["step"] for r in evals] == [2, 4]
     assert all(np.isfinite(r["heldout_improvement"]) for r in evals)
     assert (tmp_path / "b" / "loss_curve.png").stat().st_size > 1000
+    # A time limit stops after the first step that ends past it, with an eval and a
+    # checkpoint, and --resume continues from there to the same parameters.
+    cut = train.train(CONFIG, data_root, tmp_path / "c", vgg_params=tiny_vgg, progress=False,
+                      time_limit_s=0.0)
+    assert int(cut["state"].step) == 1 and "heldout_style" in cut["last"]
+    again = train.train(CONFIG, data_root, tmp_path / "c", resume=True, vgg_params=tiny_vgg,
+                        progress=False)
+    for a, b in zip(jax.tree_util.tree_leaves(straight["state"]),
+                    jax.tree_util.tree_leaves(again["state"]), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_warm_start_from_params(data_root, tmp_path, tiny_vgg):
+    cfg = dataclasses.replace(CONFIG, steps=1)
+    donor = train.create_train_state(cfg, jax.random.key(5, impl="rbg"), patch_size=32).params
+    got = train.train(dataclasses.replace(cfg, learning_rate=0.0), data_root, tmp_path,
+                      vgg_params=tiny_vgg, progress=False, init_params=donor)
+    for a, b in zip(jax.tree_util.tree_leaves(donor),
+                    jax.tree_util.tree_leaves(got["state"].params), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 SHARDED = textwrap.dedent("""

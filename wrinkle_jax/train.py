@@ -318,11 +318,19 @@ def plot_curves(metrics_path: Path, out_png: Path) -> None:
 
 
 def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.PathLike,
-          resume: bool = False, vgg_params=None, progress: bool = True) -> dict:
+          resume: bool = False, vgg_params=None, progress: bool = True,
+          time_limit_s: float | None = None, init_params=None) -> dict:
     """Train (or resume training) the enhancer; returns the last metrics.
 
     Writes `out_dir/checkpoints/<step>/`, `out_dir/metrics.jsonl` (one JSON object per logged
     train step and per evaluation), `out_dir/loss_curve.png` and `out_dir/config.json`.
+
+    Args:
+      time_limit_s: stop (with an evaluation and a checkpoint) after the first step that ends
+        past this many seconds of wall time, counted from the first step -- for
+        equal-wall-clock comparisons and session budgets; `--resume` continues later.
+      init_params: warm-start parameters (a CINUNet pytree of this config's shapes) for a fresh
+        run, e.g. the shipped model's; ignored when resuming from a checkpoint.
     """
     from tqdm import tqdm
 
@@ -341,6 +349,11 @@ def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.P
     # rbg keys: threefry initialization compiles ~8x slower on CPU (see unet.init_params).
     key = jax.random.key(config.seed, impl="rbg")
     state = create_train_state(config, key, train_set.patch_size)
+    if init_params is not None:
+        # Copies: the train step donates its state, which must not delete the caller's arrays.
+        params = jax.tree.map(lambda p, q: jnp.array(q, p.dtype, copy=True).reshape(p.shape),
+                              state.params, init_params)
+        state = TrainState(state.step, params, optimizer(config).init(params))
     metrics_path = out_dir / "metrics.jsonl"
     if resume and manager.latest_step() is not None:
         state, iterator.state = restore_checkpoint(manager, state, config)
@@ -362,6 +375,7 @@ def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.P
                     for i in range(0, len(held_idx), config.batch_size)]
     start = int(state.step)
     last: dict = {}
+    t_start = time.perf_counter()
     with open(metrics_path, "a") as log, tqdm(total=config.steps, initial=start,
                                               disable=not progress, desc="train") as bar:
         for step in range(start, config.steps):
@@ -373,16 +387,21 @@ def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.P
             log.write(json.dumps(m) + "\n")
             last = m
             done = step + 1
-            if held_batches and (done % config.eval_every == 0 or done == config.steps):
+            out_of_time = (time_limit_s is not None
+                           and time.perf_counter() - t_start > time_limit_s)
+            final = done == config.steps or out_of_time
+            if held_batches and (done % config.eval_every == 0 or final):
                 e = evaluate(eval_step, state.params, held_batches)
                 e.update(kind="eval", step=done)
                 log.write(json.dumps(e) + "\n")
                 last = {**last, **e}
                 bar.set_postfix(style=f"{m['style']:.3g}", held=f"{e['heldout_style']:.3g}")
             log.flush()
-            if done % config.checkpoint_every == 0 or done == config.steps:
+            if done % config.checkpoint_every == 0 or final:
                 save_checkpoint(manager, state, iterator.state, config)
             bar.update(1)
+            if out_of_time:
+                break
     if metrics_path.stat().st_size:
         plot_curves(metrics_path, out_dir / "loss_curve.png")
     return {"state": state, "last": last}

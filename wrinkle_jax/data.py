@@ -254,6 +254,8 @@ class PatchDataset:
       root: data set folder. split: "train" or "heldout".
       entries: index entries of the sequences in this split.
       materials: (N,) int32 material id of every patch.
+      frames: (N,) int32 source frame of every patch.
+      sequence_of: (N,) int32 index into `entries` of every patch's sequence.
     """
 
     def __init__(self, root: str | os.PathLike, split: str = "train"):
@@ -265,8 +267,8 @@ class PatchDataset:
         self.entries = [e for e in (json.loads(p.read_text())
                                     for p in sorted(index_dir.glob("*.json")))
                         if e["split"] == split]
-        self._shards, shard_ids, rows, mats, frames = [], [], [], [], []
-        for e in self.entries:
+        self._shards, shard_ids, rows, mats, frames, seqs = [], [], [], [], [], []
+        for j, e in enumerate(self.entries):
             for s in e["shards"]:
                 arr = np.load(self.root / "shards" / s["file"], mmap_mode="r")
                 if arr.ndim != 4 or arr.shape[-1] != CHANNELS:
@@ -277,11 +279,12 @@ class PatchDataset:
                 rows.append(np.arange(len(arr), dtype=np.int32))
                 mats.append(np.full(len(arr), e["material_id"], np.int32))
                 frames.append(np.asarray(s["frames"], np.int32))
+                seqs.append(np.full(len(arr), j, np.int32))
         def cat(xs):
             return np.concatenate(xs) if xs else np.zeros(0, np.int32)
 
         self._shard_of, self._row_of = cat(shard_ids), cat(rows)
-        self.materials, self.frames = cat(mats), cat(frames)
+        self.materials, self.frames, self.sequence_of = cat(mats), cat(frames), cat(seqs)
 
     def __len__(self) -> int:
         return int(len(self.materials))

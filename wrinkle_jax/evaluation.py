@@ -1,0 +1,148 @@
+"""Scoring enhanced patches against ground truth, and the non-learned baselines.
+
+All functions take patches in the RGB form of normal maps ((n + 1) / 2, in [0, 1]) with a UV
+mask, as stored by `wrinkle_jax.data`:
+
+    inp, out, target: (N, H, W, 3) float32;  mask: (N, H, W, 1) float32 in {0, 1}.
+
+`score_patches` is the paper's improvement score (Sec. 6) on a FIXED set of VGG layers
+(`EVAL_LAYERS`, independent of the layers a model was trained with, so that models trained with
+different losses are compared on one yardstick), plus its signed form (negative when the output
+is further from the target's style than the input is). Baselines (`identity`, `unsharp_mask`,
+`resample`) are NumPy/OpenCV, masked (background never bleeds into the garment) and return unit
+normals inside the mask.
+"""
+
+from __future__ import annotations
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wrinkle_jax import metrics
+from wrinkle_jax.nn import losses, vgg
+
+__all__ = ["EVAL_LAYERS", "identity", "resample", "score_patches", "summarize", "unsharp_mask"]
+
+EVAL_LAYERS = vgg.DEFAULT_LAYERS  # relu1_2, relu2_1, relu3_1, relu4_1, relu5_1 (Gatys)
+
+
+def _normals(rgb):
+    return np.asarray(rgb, np.float64) * 2.0 - 1.0
+
+
+def _to_rgb_masked(n, mask):
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    unit = np.where(norm > 1e-12, n / np.maximum(norm, 1e-12), 0.0)
+    return (((unit + 1.0) * 0.5) * mask).astype(np.float32)
+
+
+def identity(inp, mask):
+    """The input unchanged (improvement score 0 by definition)."""
+    return np.asarray(inp, np.float32) * np.asarray(mask, np.float32)
+
+
+def _masked_blur(n, m, sigma):
+    """Normalized-convolution Gaussian blur of (H, W, 3) normals with (H, W) weights."""
+    k = int(2 * np.ceil(3 * sigma) + 1)
+    num = cv2.GaussianBlur(n * m[..., None], (k, k), sigma, borderType=cv2.BORDER_CONSTANT)
+    den = cv2.GaussianBlur(m, (k, k), sigma, borderType=cv2.BORDER_CONSTANT)
+    return num / np.maximum(den, 1e-8)[..., None]
+
+
+def unsharp_mask(inp, mask, sigma: float = 2.0, amount: float = 1.0):
+    """Unsharp masking of the normal field: n + amount (n - blur_sigma(n)), renormalized.
+
+    Args:
+      sigma: Gaussian blur radius in texels; amount: sharpening gain (0 = identity).
+    """
+    inp, mask = np.asarray(inp), np.asarray(mask, np.float32)
+    out = np.empty(inp.shape, np.float32)
+    for i in range(len(inp)):
+        n, m = _normals(inp[i]), mask[i, ..., 0].astype(np.float64)
+        out[i] = _to_rgb_masked(n + amount * (n - _masked_blur(n, m, sigma)), mask[i])
+    return out
+
+
+def resample(inp, mask, factor: float = 2.0, down=cv2.INTER_AREA, up=cv2.INTER_CUBIC):
+    """Down-sample by `factor` and up-sample back (bicubic by default; `up=cv2.INTER_LANCZOS4`
+    for Lanczos) -- the image-super-resolution baseline applied to the coarse map, masked."""
+    inp, mask = np.asarray(inp), np.asarray(mask, np.float32)
+    n_, h, w, _ = inp.shape
+    sh, sw = max(1, round(h / factor)), max(1, round(w / factor))
+    out = np.empty(inp.shape, np.float32)
+    for i in range(n_):
+        n, m = _normals(inp[i]), mask[i, ..., 0].astype(np.float64)
+        small_n = cv2.resize(n * m[..., None], (sw, sh), interpolation=down)
+        small_m = cv2.resize(m, (sw, sh), interpolation=down)
+        small = small_n / np.maximum(small_m, 1e-8)[..., None] * (small_m > 1e-8)[..., None]
+        big_n = cv2.resize(small, (w, h), interpolation=up)
+        big_m = cv2.resize((small_m > 1e-8).astype(np.float64), (w, h), interpolation=up)
+        out[i] = _to_rgb_masked(big_n / np.maximum(big_m, 1e-8)[..., None], mask[i])
+    return out
+
+
+_SCORE_CACHE: dict = {}
+
+
+def _score_fn(layers, pool):
+    key = (layers, pool)
+    if key not in _SCORE_CACHE:
+        def fn(vgg_params, inp, out, target, mask):
+            n = inp.shape[0]
+            feats = vgg.features(vgg_params, jnp.concatenate([inp, out, target]),
+                                 layers=layers, pool=pool)
+            f_in, f_out, f_tgt = ({k: v[i * n:(i + 1) * n] for k, v in feats.items()}
+                                  for i in range(3))
+            return (losses.style_loss(f_in, f_tgt, mask, layers),
+                    losses.style_loss(f_out, f_tgt, mask, layers))
+        _SCORE_CACHE[key] = jax.jit(fn)
+    return _SCORE_CACHE[key]
+
+
+def score_patches(vgg_params, inp, out, target, mask, layers=EVAL_LAYERS, pool="avg",
+                  batch_size: int = 16) -> dict[str, np.ndarray]:
+    """Per-patch style losses and improvement scores (float32 XLA convolutions: exact).
+
+    Returns:
+      dict of (N,) arrays: loss_input, loss_output, improvement (the paper's |.| form, %),
+      improvement_signed (%), valid (bool: the input's loss is not ~0).
+    """
+    fn = _score_fn(tuple(layers), pool)
+    n = len(inp)
+    parts = []
+    for s in range(0, n, batch_size):
+        sl = slice(s, min(s + batch_size, n))
+        idx = np.resize(np.arange(sl.start, sl.stop), batch_size)  # fixed shape: one compile
+        got = fn(vgg_params, *(jnp.asarray(np.asarray(a)[idx], jnp.float32)
+                               for a in (inp, out, target, mask)))
+        parts.append([np.asarray(g)[:sl.stop - sl.start] for g in got])
+    loss_in = np.concatenate([p[0] for p in parts])
+    loss_out = np.concatenate([p[1] for p in parts])
+    eps = 1e-6 * max(float(loss_in.max(initial=0.0)), 1e-30)
+    sc = metrics.improvement_score_from_losses(jnp.asarray(loss_in), jnp.asarray(loss_out),
+                                               eps=eps)
+    return {"loss_input": loss_in, "loss_output": loss_out,
+            "improvement": np.asarray(sc.score), "improvement_signed": np.asarray(sc.signed_score),
+            "valid": np.asarray(sc.valid)}
+
+
+def summarize(scores: dict[str, np.ndarray], groups: np.ndarray | None = None) -> dict:
+    """Mean and standard deviation of the scores over valid patches, overall and per group."""
+    def stats(sel):
+        v = scores["valid"] & sel
+        if not v.any():
+            return {"n": 0}
+        imp, sgn = scores["improvement"][v], scores["improvement_signed"][v]
+        return {"n": int(v.sum()), "improvement_mean": float(imp.mean()),
+                "improvement_std": float(imp.std()), "signed_mean": float(sgn.mean()),
+                "signed_std": float(sgn.std()),
+                "loss_ratio_median": float(np.median(scores["loss_output"][v]
+                                                     / scores["loss_input"][v]))}
+    out = {"all": stats(np.ones_like(scores["valid"]))}
+    if groups is not None:
+        groups = np.asarray(groups)
+        for g in sorted(set(groups.tolist())):
+            out[str(g)] = stats(groups == g)
+    return out

@@ -148,3 +148,94 @@ def test_writes_are_atomic(sheet, tmp_path, monkeypatch):
         meshio.save_obj(p, sheet, sheet.vertices * 2)
     assert p.read_bytes() == before  # old file intact
     assert sorted(x.name for x in tmp_path.iterdir()) == ["out.obj"]  # no temp left behind
+
+
+# ---------------------------------------------------------------- PC2, PLY, streamed bundles
+
+
+def _moving(sheet, count=3):
+    return np.stack([np.asarray(sheet.vertices) + 0.01 * t for t in range(count)]).astype(
+        np.float32)
+
+
+def test_pc2_round_trip_and_header(sheet, tmp_path):
+    import struct
+
+    frames = _moving(sheet)
+    p = tmp_path / "anim.pc2"
+    meshio.save_pc2(p, frames, start_frame=5.0, sample_rate=0.5)
+    raw = p.read_bytes()
+    assert raw[:12] == b"POINTCACHE2\0"
+    assert struct.unpack("<iiffi", raw[12:32]) == (1, sheet.num_vertices, 5.0, 0.5, 3)
+    assert len(raw) == 32 + frames.size * 4
+    for mmap in (True, False):
+        cache = meshio.read_pc2(p, mmap=mmap)
+        np.testing.assert_array_equal(cache.frames, frames)
+        assert (cache.start_frame, cache.sample_rate) == (5.0, 0.5)
+    meshio.save_obj(tmp_path / "template.obj", sheet)
+    seq = meshio.load_sequence(p, fps=24, template=tmp_path / "template.obj")
+    np.testing.assert_array_equal(seq.frames, frames)
+    np.testing.assert_array_equal(seq.garment.uv_faces, sheet.uv_faces)
+    assert seq.fps == 48.0  # a sample every half frame
+
+
+def test_pc2_errors_name_the_file(sheet, tmp_path):
+    p = tmp_path / "anim.pc2"
+    meshio.save_pc2(p, _moving(sheet))
+    with pytest.raises(GarmentError, match="needs a template"):
+        meshio.load_sequence(p)
+    with pytest.raises(GarmentError, match="anim.pc2: the cache has .* points but"):
+        meshio.load_pc2(p, primitives.grid_sheet(3, 3))
+    p.write_bytes(p.read_bytes()[:-4])
+    with pytest.raises(GarmentError, match="anim.pc2: truncated"):
+        meshio.read_pc2(p)
+    (tmp_path / "x.pc2").write_bytes(b"not a cache at all, really not" * 2)
+    with pytest.raises(GarmentError, match="x.pc2: not a PC2"):
+        meshio.read_pc2(tmp_path / "x.pc2")
+    frames = _moving(sheet)
+    frames[1, 0, 0] = np.nan
+    meshio.save_pc2(tmp_path / "nan.pc2", frames)
+    with pytest.raises(GarmentError, match="frame 1 has non-finite"):
+        meshio.load_pc2(tmp_path / "nan.pc2", sheet)
+
+
+def test_ply_is_readable_by_trimesh(sheet, tmp_path):
+    import trimesh
+
+    p = tmp_path / "m.ply"
+    meshio.save_ply(p, sheet.vertices, sheet.faces)
+    tm = trimesh.load(p, process=False)
+    np.testing.assert_array_equal(np.asarray(tm.vertices, np.float32), sheet.vertices)
+    np.testing.assert_array_equal(np.asarray(tm.faces), sheet.faces)
+    with pytest.raises(GarmentError, match="expected"):
+        meshio.save_ply(p, sheet.vertices[:, :2], sheet.faces)
+
+
+def test_single_obj_is_a_one_frame_sequence(sheet, tmp_path):
+    meshio.save_obj(tmp_path / "a.obj", sheet)
+    seq = meshio.load_sequence(tmp_path / "a.obj")
+    assert seq.frames.shape == (1, sheet.num_vertices, 3)
+
+
+def test_sequence_writer_streams_a_loadable_deterministic_bundle(sheet, tmp_path):
+    frames = _moving(sheet, 4)
+    paths = []
+    for name in ("a.npz", "b.npz"):
+        with meshio.SequenceWriter(tmp_path / name, sheet, 4, fps=12, metadata={"k": 1}) as w:
+            for t in (2, 0, 3, 1):  # any order
+                w.write(t, frames[t])
+        paths.append(tmp_path / name)
+    back = meshio.load_sequence(paths[0])
+    np.testing.assert_array_equal(back.frames, frames)
+    assert back.fps == 12 and back.metadata == {"k": 1}
+    assert paths[0].read_bytes() == paths[1].read_bytes()  # fixed zip timestamps
+    # A failure inside the block, or a missing frame, leaves no bundle and no temporary file.
+    with pytest.raises(RuntimeError):
+        with meshio.SequenceWriter(tmp_path / "c.npz", sheet, 2) as w:
+            w.write(0, frames[0])
+            raise RuntimeError("boom")
+    w = meshio.SequenceWriter(tmp_path / "d.npz", sheet, 2)
+    w.write(0, frames[0])
+    with pytest.raises(GarmentError, match="frame 1 was never written"):
+        w.close()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npz", "b.npz"]

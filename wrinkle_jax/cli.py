@@ -2,7 +2,10 @@
 
 Exit codes: 0 success, 1 failure (bad input file, runtime error), 2 bad usage.
 
-    wrinkle-jax demo [--out DIR]
+    wrinkle-jax demo [--out DIR] [--frames A:B] [--no-lift]
+    wrinkle-jax enhance INPUT --material auto|NAME --out DIR [--no-lift] [--body BODY.obj]
+                        [--model PATH] [--format obj|ply] [--frames A:B] [--stride S]
+                        [--batch B] [--chunk C] [--template T.obj]
     wrinkle-jax bake INPUT --out DIR [--texel-size M] [--frames A:B] [--flat]
     wrinkle-jax assets fetch makehuman [--force]
     wrinkle-jax train-enhancer --data DIR --out DIR [--steps N] [--width W] [--batch B] [--resume]
@@ -14,7 +17,10 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import os
+import shutil
 import sys
+import tempfile
 import time
 from importlib import resources
 from pathlib import Path
@@ -24,6 +30,12 @@ import numpy as np
 
 def _demo_sequence_path() -> Path:
     return Path(str(resources.files("wrinkle_jax") / "assets" / "demo_skirt.npz"))
+
+
+def _shipped_model_path() -> Path:
+    from wrinkle_jax.enhancer import DEFAULT_PATH
+
+    return DEFAULT_PATH
 
 
 def _parse_frames(spec: str | None, n: int) -> range:
@@ -110,15 +122,298 @@ def bake_sequence_to_pngs(input_path: Path, out: Path, texel_size: float, frames
 
 
 def _cmd_demo(args) -> int:
+    model = _shipped_model_path()
+    if model.is_file():
+        # The whole pipeline with the shipped model; "auto" falls back to the sequence's own
+        # material (recorded in its metadata) when no classifier is available.
+        return _run_enhance(_demo_sequence_path(), Path(args.out), args, model=model,
+                            demo=True)
     report = bake_sequence_to_pngs(_demo_sequence_path(), Path(args.out), args.texel_size,
-                                   None, batch=args.batch)
-    report["note"] = ("demo: bakes the bundled coarse skirt sequence to 16-bit normal maps; "
-                      "enhancement and lifting are added by later stages")
+                                   args.frames, batch=args.batch)
+    note = (f"demo: no shipped enhancer model at {model} yet, so only the bake stage ran "
+            f"(16-bit normal maps of the bundled coarse skirt); with the model, `demo` runs "
+            f"the whole pipeline (enhance, merge, lift)")
+    report["note"] = note
     from wrinkle_jax.fileio import atomic_write_text
 
     atomic_write_text(Path(args.out) / "report.json", json.dumps(report, indent=2))
     _print_report(report)
+    print(note, file=sys.stderr)
     return 0
+
+
+# --------------------------------------------------------------------------------------------
+# enhance
+# --------------------------------------------------------------------------------------------
+
+
+class _UsageError(Exception):
+    """Bad usage detected after parsing (exit code 2)."""
+
+
+def _cmd_enhance(args) -> int:
+    model = Path(args.model) if args.model else None
+    template = Path(args.template) if args.template else None
+    return _run_enhance(Path(args.input), Path(args.out), args, model=model, template=template)
+
+
+def _check_out_dir(out: Path) -> None:
+    """The output folder may not exist yet, be empty, or hold a previous wrinkle-jax output."""
+    from wrinkle_jax.mesh import GarmentError
+
+    if out.exists() and not out.is_dir():
+        raise GarmentError(f"{out}: output path exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not (out / "report.json").is_file():
+        raise GarmentError(f"{out}: output folder exists, is not empty and holds no "
+                           f"wrinkle-jax report.json; choose another --out")
+
+
+def _load_body(path: Path):
+    """A closed body mesh (OBJ, PLY, ...; meters, the garment's frame) as a `bodies.MeshBody`."""
+    import trimesh
+
+    from wrinkle_jax import bodies
+
+    try:
+        tm = trimesh.load(path, force="mesh", process=False)
+        v, f = np.asarray(tm.vertices), np.asarray(tm.faces)
+    except Exception as e:  # trimesh raises many kinds of errors for unreadable files
+        raise bodies.BodyError(f"{path}: cannot read the body mesh ({e})") from None
+    try:
+        return bodies.mesh_body(v, f)
+    except bodies.BodyError as e:
+        raise bodies.BodyError(f"{path}: {e}") from None
+
+
+def _run_enhance(input_path: Path, out: Path, args, model: Path | None = None,
+                 template: Path | None = None, demo: bool = False) -> int:
+    """`enhance` (and the full `demo`): load, validate, run the pipeline into a temporary
+    sibling folder, write the report, then rename the folder to `out`."""
+    from types import SimpleNamespace
+
+    from tqdm import tqdm
+
+    from wrinkle_jax import enhancer as enhancer_lib
+    from wrinkle_jax import meshio, pipeline
+    from wrinkle_jax.bodies import BodyError
+
+    cmd = "demo" if demo else "enhance"
+    t_wall = time.perf_counter()
+    try:
+        _check_out_dir(out)
+        t0 = time.perf_counter()
+        seq = meshio.load_sequence(input_path, template=template)
+        load_s = time.perf_counter() - t0
+        enh = enhancer_lib.load_enhancer(model)
+        material = args.material
+        if material != "auto" and material not in enh.config.materials:
+            raise _UsageError(f"unknown material {material!r}; expected auto or one of "
+                              f"{', '.join(enh.config.materials)}")
+        body = _load_body(Path(args.body)) if getattr(args, "body", None) else None
+        sel = list(_parse_frames(args.frames, len(seq)))
+        config = pipeline.PipelineConfig(batch_size=args.batch, chunk_size=args.chunk,
+                                         stride=args.stride, lift=not args.no_lift)
+    except _UsageError as e:
+        print(f"wrinkle-jax {cmd}: error: {e}", file=sys.stderr)
+        return 2
+    except (enhancer_lib.EnhancerError, BodyError, pipeline.PipelineError, ValueError) as e:
+        print(f"wrinkle-jax {cmd}: error: {e}", file=sys.stderr)
+        return 1
+
+    notes = []
+    classify_fn = None
+    if demo and material == "auto" and seq.metadata.get("material") in enh.config.materials:
+        fallback = seq.metadata["material"]
+
+        def classify_fn(frames, garment, key):
+            try:
+                return pipeline.classify_material(frames, garment, key)
+            except ValueError as e:  # no classifier, or it cannot answer on this garment
+                notes.append(f"material: {e}; used the demo sequence's own material "
+                             f"{fallback!r}")
+                return SimpleNamespace(material=fallback, scores={})
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    try:
+        report = _enhance_into(tmp, seq, enh, model, material, body, sel, config, classify_fn,
+                               getattr(args, "format", "obj"), tqdm, notes,
+                               not args.no_previews)
+        report["command"] = cmd
+        report["input"] = str(input_path)
+        report["timings_s"]["load"] = load_s
+        report["timings_s"]["wall"] = time.perf_counter() - t_wall
+        from wrinkle_jax.fileio import atomic_write_text
+
+        atomic_write_text(tmp / "report.json", json.dumps(report, indent=2))
+        _replace_dir(tmp, out)
+    except (pipeline.PipelineError, enhancer_lib.EnhancerError, BodyError, ValueError) as e:
+        shutil.rmtree(tmp, ignore_errors=True)
+        print(f"wrinkle-jax {cmd}: error: {e}", file=sys.stderr)
+        return 1
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    short = {k: v for k, v in report.items() if k not in ("frame_indices",)}
+    print(json.dumps(short, indent=2))
+    for note in notes:
+        print(f"note: {note}", file=sys.stderr)
+    return 0
+
+
+def _replace_dir(tmp: Path, out: Path) -> None:
+    """Move the finished folder into place (replacing a previous output folder)."""
+    old = None
+    if out.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
+        os.replace(out, old / out.name)
+    os.replace(tmp, out)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _enhance_into(folder: Path, seq, enh, model: Path | None, material: str, body, sel: list,
+                  config, classify_fn, fmt: str, tqdm, notes: list, previews: bool) -> dict:
+    """Run the pipeline, writing every frame into `folder` as it comes; returns the report."""
+    import jax
+
+    from wrinkle_jax import meshio, normalmap, pipeline
+
+    pipe = pipeline.make_pipeline(seq.garment, enh, config, body)
+    maps_dir, mesh_dir = folder / "normal_maps", folder / "meshes"
+    maps_dir.mkdir()
+    fine = pipe.fine_garment
+    npz = None
+    if config.lift:
+        mesh_dir.mkdir()
+        fine = jax.tree.map(np.asarray, fine)  # NumPy copies for the writers
+        npz = meshio.SequenceWriter(folder / "detailed.npz", fine, len(sel), seq.fps,
+                                    {"source": "wrinkle-jax enhance", "material": material,
+                                     "frames": [int(t) for t in sel]})
+    position = {t: k for k, t in enumerate(sel)}
+    # At most 64 frames fit the preview camera (bounded reads of a long memmapped input).
+    cam_frames = sel[:: max(1, len(sel) // 64)]
+    preview = {"garment": seq.garment, "fine_garment": fine, "mask": pipe.mask,
+               "layout": pipe.plan.layout, "fps": seq.fps, "paths": [], "note": None,
+               "enabled": previews, "seconds": 0.0,
+               "camera_points": np.asarray(seq.frames[cam_frames])}
+    bar = tqdm(total=len(sel), desc="enhance", unit="frame", disable=None)
+
+    def write(frame: pipeline.EnhancedFrame) -> None:
+        t = frame.index
+        normalmap.save_normal_map_png(maps_dir / f"normal_map_{t:05d}.png", frame.normal_map,
+                                      pipe.mask)
+        if frame.detailed is not None:
+            if fmt == "ply":
+                meshio.save_ply(mesh_dir / f"frame_{t:05d}.ply", frame.detailed, fine.faces)
+            else:
+                meshio.save_obj(mesh_dir / f"frame_{t:05d}.obj", fine, frame.detailed)
+            npz.write(position[t], frame.detailed)
+        t0 = time.perf_counter()
+        _write_previews(folder / "previews", frame, preview)
+        preview["seconds"] += time.perf_counter() - t0
+
+    try:
+        result = pipeline.enhance_sequence(
+            seq, material, enhancer=enh, frames=sel, config=config, classify_fn=classify_fn,
+            writer=write, keep=False, progress=lambda done: bar.update(1), pipeline=pipe)
+        if npz is not None:
+            t0 = time.perf_counter()
+            npz.close()
+            result.timings["write"] += time.perf_counter() - t0
+    except BaseException:
+        if npz is not None:
+            npz.abort()
+        raise
+    finally:
+        bar.close()
+    t0 = time.perf_counter()
+    _finish_previews(folder / "previews", preview)
+    if preview["note"]:
+        notes.append(preview["note"])
+    n = len(sel)
+    timings = {k: float(v) for k, v in result.timings.items()}
+    # Previews are rendered inside the writer callback: report them as their own stage.
+    timings["write"] -= preview["seconds"]
+    timings["previews"] = preview["seconds"] + time.perf_counter() - t0
+    return {
+        "command": "enhance",
+        "model": {"path": str(model) if model else "shipped default",
+                  "config": enh.config.to_json(),
+                  "meta": {k: v for k, v in enh.meta.items() if k != "format"}},
+        "material": result.material,
+        "material_scores": result.scores,
+        "material_source": "given" if material != "auto" else "classified",
+        "frames": n,
+        "frame_indices": list(result.frame_indices),
+        "fps": seq.fps,
+        "vertices": seq.garment.num_vertices,
+        "faces": seq.garment.num_faces,
+        "detailed_vertices": None if fine is None else fine.num_vertices,
+        "detailed_faces": None if fine is None else int(np.asarray(fine.faces).shape[0]),
+        "lift": config.lift,
+        "body": body is not None,
+        "texel_size_m": enh.config.texel_size,
+        "map_shape": list(pipe.shape),
+        "covered_texels": int(pipe.mask.sum()),
+        "patches": result.patches,
+        "timings_s": timings,
+        "ms_per_frame": {k: 1e3 * timings[k] / n for k in
+                         ("bake", "tile", "network", "merge", "lift", "write", "previews")},
+        "outputs": {"normal_maps": "normal_maps/normal_map_#####.png",
+                    "meshes": f"meshes/frame_#####.{fmt}" if config.lift else None,
+                    "npz": "detailed.npz" if config.lift else None,
+                    "previews": [os.path.relpath(p, folder) for p in preview["paths"]]},
+        "notes": notes,
+    }
+
+
+def _write_previews(folder: Path, frame, ctx: dict) -> None:
+    """One preview PNG per frame (coarse | coarse shaded with N* | lifted mesh) with
+    `wrinkle_jax.render.preview_panel`; without that module, note why none is written.
+
+    `ctx` holds the sequence-wide inputs (garment, fine_garment, layout, mask, camera frames)
+    and collects the written paths and a note.
+    """
+    if ctx.get("note") or not ctx.get("enabled", True):
+        return
+    try:
+        from wrinkle_jax import render
+    except ImportError:
+        render = None
+    if render is None or not hasattr(render, "preview_panel"):
+        ctx["note"] = "previews skipped: wrinkle_jax.render (preview_panel) is not available"
+        return
+    g, fine = ctx["garment"], ctx["fine_garment"]
+    try:
+        if "camera" not in ctx:  # one camera for the whole sequence: views do not jump
+            ctx["camera"] = render.fit_camera(ctx["camera_points"])
+        image = render.preview_panel(
+            frame.coarse, g.faces, frame.normal_map, frame.detailed,
+            None if fine is None else fine.faces, g.uvs, g.uv_faces, camera=ctx["camera"],
+            layout=ctx["layout"], mask=ctx["mask"], size=ctx.get("size", 384))
+        path = folder / f"preview_{frame.index:05d}.png"
+        folder.mkdir(exist_ok=True)
+        render.write_png(path, image)
+        ctx["paths"].append(path)
+    except (TypeError, ValueError) as e:  # RenderError is a ValueError
+        ctx["note"] = f"previews skipped: wrinkle_jax.render failed ({e})"
+
+
+def _finish_previews(folder: Path, ctx: dict) -> None:
+    """An MP4 of the preview PNGs (read back one at a time) with `render.write_mp4`."""
+    if ctx.get("note") or not ctx["paths"]:
+        return
+    import cv2
+
+    from wrinkle_jax import render
+
+    frames = (cv2.imread(str(p), cv2.IMREAD_COLOR)[..., ::-1] for p in ctx["paths"])
+    try:
+        render.write_mp4(folder / "preview.mp4", frames, fps=ctx["fps"])
+        ctx["paths"].append(folder / "preview.mp4")
+    except (TypeError, ValueError, OSError, AttributeError) as e:
+        ctx["note"] = f"preview video skipped: wrinkle_jax.render.write_mp4 failed ({e})"
 
 
 def _cmd_bake(args) -> int:
@@ -181,12 +476,54 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("demo", help="run the pipeline on the bundled demo garment",
-                       description="Bake the bundled coarse skirt sequence and print timings.")
+                       description="Enhance the bundled coarse skirt sequence with the shipped "
+                       "model (bake, enhance, merge, lift) and write maps, meshes and a report; "
+                       "without a shipped model, only bake it to normal maps (and say so).")
     p.add_argument("--out", default="outputs/demo", help="output folder (default: %(default)s)")
     p.add_argument("--texel-size", type=float, default=DEFAULT_TEXEL_SIZE,
-                   help="meters of cloth per texel (default: %(default)s)")
-    p.add_argument("--batch", type=int, default=16, help="frames per jitted bake call")
+                   help="meters of cloth per texel of the bake-only demo (the full pipeline "
+                   "uses the model's) (default: %(default)s)")
+    p.add_argument("--material", default="auto",
+                   help="material name or auto (default: %(default)s)")
+    p.add_argument("--frames", default=None, help="frame range A:B (default: all)")
+    p.add_argument("--no-lift", action="store_true", help="stop at the enhanced normal maps")
+    p.add_argument("--batch", type=int, default=16,
+                   help="patches per U-Net call (frames per bake call in the bake-only demo)")
+    p.add_argument("--chunk", type=int, default=4, help="frames per streamed chunk")
+    p.add_argument("--stride", type=int, default=None,
+                   help="patch stride in texels (default: half a patch)")
+    p.add_argument("--no-previews", action="store_true",
+                   help="skip the preview PNGs and MP4 (faster)")
     p.set_defaults(func=_cmd_demo)
+
+    p = sub.add_parser("enhance", help="add wrinkles to a coarse garment animation",
+                       description="Bake the coarse frames to normal maps, enhance them with "
+                       "the material-conditioned U-Net, merge, and lift them to detailed "
+                       "meshes. Writes normal_maps/*.png (16-bit, alpha = mask), meshes/*.obj "
+                       "(or .ply), detailed.npz and report.json into --out.")
+    p.add_argument("input", help="folder of OBJ frames, .npz sequence, .obj, or .pc2 point "
+                   "cache (with --template)")
+    p.add_argument("--out", required=True, help="output folder (replaced if it holds a "
+                   "previous output)")
+    p.add_argument("--material", default="auto",
+                   help="material name, or auto to classify it (default: %(default)s)")
+    p.add_argument("--template", default=None, help="template OBJ (topology, UVs) of a .pc2")
+    p.add_argument("--no-lift", action="store_true", help="stop at the enhanced normal maps")
+    p.add_argument("--body", default=None, help="closed body mesh (OBJ/PLY, meters) the "
+                   "detailed garment must stay outside of")
+    p.add_argument("--model", default=None, help="enhancer .npz (default: the shipped model)")
+    p.add_argument("--format", choices=["obj", "ply"], default="obj",
+                   help="mesh format of the detailed frames (default: %(default)s)")
+    p.add_argument("--frames", default=None, help="frame range A:B (default: all)")
+    p.add_argument("--stride", type=int, default=None,
+                   help="patch stride in texels (default: half a patch)")
+    p.add_argument("--batch", type=int, default=16,
+                   help="patches per U-Net call (default: %(default)s)")
+    p.add_argument("--chunk", type=int, default=4,
+                   help="frames per streamed chunk; bounds memory (default: %(default)s)")
+    p.add_argument("--no-previews", action="store_true",
+                   help="skip the preview PNGs and MP4 (faster)")
+    p.set_defaults(func=_cmd_enhance)
 
     p = sub.add_parser("bake", help="bake a garment or sequence to 16-bit normal-map PNGs",
                        description="Bake an OBJ, a folder of OBJ frames or an .npz sequence.")

@@ -1,5 +1,6 @@
-"""Garment IO: Wavefront OBJ files and garment sequences (a folder of OBJ frames or an `.npz`
-bundle). Every reader validates and raises `GarmentError` naming the file; every writer is
+"""Garment IO: Wavefront OBJ files, garment sequences (a folder of OBJ frames, an `.npz` bundle,
+or a PC2 point cache with a template OBJ), binary PLY meshes, and a frame-by-frame `.npz`
+writer. Every reader validates and raises `GarmentError` naming the file; every writer is
 atomic (temporary file + rename).
 """
 
@@ -198,11 +199,15 @@ def _natural_key(name: str):
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
 
 
-def load_sequence(path: str | os.PathLike, fps: float = 30.0) -> GarmentSequence:
-    """Load a sequence from an `.npz` bundle or a folder of per-frame OBJ files.
+def load_sequence(path: str | os.PathLike, fps: float = 30.0,
+                  template: str | os.PathLike | Garment | None = None) -> GarmentSequence:
+    """Load a sequence from an `.npz` bundle, a folder of per-frame OBJ files, a PC2 point
+    cache (with a `template` OBJ giving topology and UVs, see `load_pc2`) or one OBJ file (a
+    one-frame sequence).
 
     A folder's OBJs are ordered naturally (`f2.obj` before `f10.obj`) and must share topology
-    (faces, UV faces) with the first; `fps` applies to folders only (`.npz` stores its own).
+    (faces, UV faces) with the first; `fps` applies to folders, PC2 caches and OBJ files
+    (`.npz` stores its own).
 
     Raises:
       GarmentError: naming the offending file (unreadable, missing keys, mismatched topology,
@@ -226,8 +231,19 @@ def load_sequence(path: str | os.PathLike, fps: float = 30.0) -> GarmentSequence
             frames.append(np.asarray(g.vertices))
         return make_sequence(np.stack(frames), first, fps,
                              {"source": str(path), "files": [p.name for p in files]}, str(path))
-    if path.suffix.lower() != ".npz":
-        raise GarmentError(f"{path}: expected a folder of OBJ frames or an .npz sequence")
+    suffix = path.suffix.lower()
+    if suffix == ".pc2":
+        if template is None:
+            raise GarmentError(f"{path}: a PC2 point cache needs a template OBJ with the "
+                               f"topology and UVs")
+        return load_pc2(path, template, fps, mmap=True)  # frames read on access
+    if suffix == ".obj":
+        g = load_obj(path)
+        return make_sequence(np.asarray(g.vertices)[None], g, fps, {"source": str(path)},
+                             str(path))
+    if suffix != ".npz":
+        raise GarmentError(f"{path}: expected a folder of OBJ frames, an .npz sequence, a .pc2 "
+                           f"point cache or an .obj file")
     try:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
@@ -293,3 +309,210 @@ def save_obj_sequence(folder: str | os.PathLike, seq: GarmentSequence,
         save_obj(p, seq.garment, seq.frames[t])
         paths.append(p)
     return paths
+
+
+# --------------------------------------------------------------------------------------------
+# PC2 point caches (Blender, Maya, 3ds Max, Houdini) with a template OBJ
+# --------------------------------------------------------------------------------------------
+
+_PC2_SIGNATURE = b"POINTCACHE2\0"
+# Little-endian header: signature, version, points, start frame, sample rate, samples.
+_PC2_HEADER = np.dtype([("signature", "S12"), ("version", "<i4"), ("num_points", "<i4"),
+                        ("start_frame", "<f4"), ("sample_rate", "<f4"),
+                        ("num_samples", "<i4")])
+
+
+@dataclasses.dataclass(frozen=True)
+class PointCache:
+    """A PC2 point cache: per-sample positions and the header's timing fields.
+
+    Attributes:
+      frames: (T, V, 3) float32 positions (a read-only memmap when read with ``mmap=True``).
+      start_frame: frame number of the first sample.
+      sample_rate: frames between samples (1.0: one sample per frame).
+    """
+
+    frames: np.ndarray
+    start_frame: float = 0.0
+    sample_rate: float = 1.0
+
+
+def read_pc2(path: str | os.PathLike, mmap: bool = True) -> PointCache:
+    """Read a PC2 point cache (12-byte "POINTCACHE2\\0" signature, int32 version 1, int32
+    points, float32 start frame, float32 sample rate, int32 samples, then float32 xyz per point
+    per sample, little-endian).
+
+    Args:
+      mmap: map the positions instead of reading them (frames are then read on access, so a
+        long cache costs no memory until used).
+    Raises:
+      GarmentError: naming the file, if it is unreadable, not a PC2 file, or truncated.
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            raw = fh.read(_PC2_HEADER.itemsize)
+        size = path.stat().st_size
+    except OSError as e:
+        raise GarmentError(f"{path}: cannot read PC2 file ({e.strerror})") from None
+    if len(raw) < _PC2_HEADER.itemsize or not raw.startswith(_PC2_SIGNATURE):
+        raise GarmentError(f"{path}: not a PC2 point cache (no POINTCACHE2 signature)")
+    head = np.frombuffer(raw, _PC2_HEADER)[0]
+    version, points, samples = int(head["version"]), int(head["num_points"]), \
+        int(head["num_samples"])
+    if version != 1:
+        raise GarmentError(f"{path}: unsupported PC2 version {version} (expected 1)")
+    if points <= 0 or samples <= 0:
+        raise GarmentError(f"{path}: PC2 cache has {points} points and {samples} samples")
+    need = _PC2_HEADER.itemsize + 12 * points * samples
+    if size < need:
+        raise GarmentError(f"{path}: truncated PC2 cache ({size} bytes, the header announces "
+                           f"{samples} samples of {points} points = {need} bytes)")
+    shape = (samples, points, 3)
+    if mmap:
+        frames = np.memmap(path, np.dtype("<f4"), "r", _PC2_HEADER.itemsize, shape)
+    else:
+        frames = np.fromfile(path, np.dtype("<f4"), samples * points * 3,
+                             offset=_PC2_HEADER.itemsize).reshape(shape)
+    return PointCache(frames, float(head["start_frame"]), float(head["sample_rate"]))
+
+
+def save_pc2(path: str | os.PathLike, frames, start_frame: float = 0.0,
+             sample_rate: float = 1.0) -> None:
+    """Write (T, V, 3) positions as a PC2 point cache (atomically; float32 little-endian)."""
+    f = np.asarray(frames, np.dtype("<f4"))
+    if f.ndim != 3 or f.shape[2] != 3 or f.shape[0] == 0:
+        raise GarmentError(f"{path}: PC2 frames must have shape (T, V, 3), got {f.shape}")
+    head = np.array([(_PC2_SIGNATURE, 1, f.shape[1], start_frame, sample_rate, f.shape[0])],
+                    _PC2_HEADER)
+    atomic_write_bytes(path, head.tobytes() + np.ascontiguousarray(f).tobytes())
+
+
+def load_pc2(path: str | os.PathLike, template: str | os.PathLike | Garment,
+             fps: float = 30.0, mmap: bool = False) -> GarmentSequence:
+    """A sequence from a PC2 point cache and a template OBJ (topology and UVs).
+
+    The cache's points are the template's vertices, in order (how Blender and Maya export
+    them). `fps` is the rate of the frames (PC2 stores none); with a sample rate s the
+    sequence's fps is fps / s.
+
+    Raises:
+      GarmentError: naming the file: unreadable cache or template, a point count that differs
+        from the template's vertex count, non-finite positions.
+    """
+    path = Path(path)
+    garment = template if isinstance(template, Garment) else load_obj(template)
+    cache = read_pc2(path, mmap=mmap)
+    if cache.frames.shape[1] != garment.num_vertices:
+        name = "the template" if isinstance(template, Garment) else Path(template).name
+        raise GarmentError(f"{path}: the cache has {cache.frames.shape[1]} points but {name} "
+                           f"has {garment.num_vertices} vertices (different topology)")
+    rate = cache.sample_rate if cache.sample_rate > 0 else 1.0
+    meta = {"source": str(path), "start_frame": cache.start_frame, "sample_rate": rate}
+    return make_sequence(cache.frames, garment.replace(vertices=np.asarray(cache.frames[0],
+                                                                           np.float32)),
+                         fps / rate, meta, str(path))
+
+
+# --------------------------------------------------------------------------------------------
+# PLY (binary) and streamed sequence bundles
+# --------------------------------------------------------------------------------------------
+
+
+def save_ply(path: str | os.PathLike, vertices, faces) -> None:
+    """Write a triangle mesh as binary little-endian PLY (float32 xyz, int32 faces; atomically).
+
+    PLY keeps one attribute set per vertex, so the UV layout (per face corner, with seams) is
+    not written; use OBJ for that.
+    """
+    v = np.asarray(vertices, np.dtype("<f4"))
+    f = np.asarray(faces, np.int64)
+    if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
+        raise GarmentError(f"{path}: expected (V, 3) vertices and (F, 3) faces, got {v.shape} "
+                           f"and {f.shape}")
+    header = ("ply\nformat binary_little_endian 1.0\ncomment wrinkle-jax\n"
+              f"element vertex {len(v)}\nproperty float x\nproperty float y\nproperty float z\n"
+              f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n")
+    rows = np.zeros(len(f), np.dtype([("n", "u1"), ("idx", "<i4", (3,))]))
+    rows["n"] = 3
+    rows["idx"] = f
+    atomic_write_bytes(path, header.encode("ascii") + v.tobytes() + rows.tobytes())
+
+
+class SequenceWriter:
+    """Write a sequence bundle (`.npz`, readable by `load_sequence`) one frame at a time.
+
+    Frames go to a temporary `.npy` memmap beside `path`; `close` packs it with the topology
+    into the `.npz` (streamed, uncompressed, fixed zip timestamps: the same frames give the
+    same bytes) and renames it into place, so memory stays one frame and no partial bundle is
+    ever visible. Use as a context manager; an exception discards everything.
+    """
+
+    def __init__(self, path: str | os.PathLike, garment: Garment, num_frames: int,
+                 fps: float = 30.0, metadata: dict | None = None):
+        self.path = Path(path)
+        if self.path.suffix.lower() != ".npz":
+            raise GarmentError(f"{self.path}: sequence bundles must end in .npz")
+        self.garment = garment
+        self.num_frames = int(num_frames)
+        self.fps = float(fps)
+        self.metadata = dict(metadata or {})
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp = self.path.with_name(f".{self.path.name}.frames.npy")
+        self._frames = np.lib.format.open_memmap(
+            self._tmp, "w+", np.float32, (self.num_frames, garment.num_vertices, 3))
+        self._written = np.zeros(self.num_frames, bool)
+
+    def write(self, t: int, vertices) -> None:
+        """Store frame `t` (0 <= t < num_frames) of (V, 3) positions, meters."""
+        self._frames[t] = np.asarray(vertices, np.float32)
+        self._written[t] = True
+
+    def close(self) -> Path:
+        """Pack the bundle and rename it into place (every frame must have been written)."""
+        import zipfile
+
+        if not self._written.all():
+            missing = int(np.flatnonzero(~self._written)[0])
+            self.abort()
+            raise GarmentError(f"{self.path}: frame {missing} was never written")
+        self._frames.flush()
+        g = self.garment
+        arrays = dict(frames=self._frames, faces=np.asarray(g.faces, np.int32),
+                      uvs=np.asarray(g.uvs, np.float32),
+                      uv_faces=np.asarray(g.uv_faces, np.int32), fps=np.float64(self.fps),
+                      metadata=np.str_(json.dumps(self.metadata)))
+        if g.panels is not None:
+            arrays["panels"] = np.asarray(g.panels, np.int32)
+        tmp_zip = self.path.with_name(f".{self.path.name}.tmp")
+        try:
+            with zipfile.ZipFile(tmp_zip, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
+                for name, arr in arrays.items():
+                    info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+                    info.external_attr = 0o644 << 16
+                    with zf.open(info, "w", force_zip64=True) as fh:
+                        np.lib.format.write_array(fh, np.asanyarray(arr), allow_pickle=False)
+            os.replace(tmp_zip, self.path)
+        finally:
+            if tmp_zip.exists():
+                tmp_zip.unlink()
+            self._release()
+        return self.path
+
+    def abort(self) -> None:
+        """Discard the frames written so far (no bundle is created)."""
+        self._release()
+
+    def _release(self) -> None:
+        self._frames = None
+        if self._tmp.exists():
+            self._tmp.unlink()
+
+    def __enter__(self) -> SequenceWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            self.abort()
+        elif self._frames is not None:
+            self.close()

@@ -1,0 +1,227 @@
+"""Tests for `wrinkle_jax.pipeline`: end to end on a tiny garment with a tiny random enhancer.
+
+Every test uses the same garment, model and (patch) batch shape, so the stages compile once
+for the module (jit caches are shared by every pipeline in the process).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import tracemalloc
+from types import SimpleNamespace
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from wrinkle_jax import bodies, enhancer, lift, meshio, normalmap, pipeline, primitives
+
+BATCH = 4
+
+
+def _frames(garment, count: int) -> np.ndarray:
+    """(T, V, 3) a sheet with a travelling ripple (meters)."""
+    v = np.asarray(garment.vertices)
+    t = np.arange(count, dtype=np.float32)[:, None]
+    z = 0.01 * np.sin(40.0 * v[None, :, 0] + 0.7 * t)
+    return (v[None] + np.stack([0 * z, 0 * z, z], -1)).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def garment():
+    return primitives.grid_sheet(6, 6, size=(0.16, 0.12))
+
+
+@pytest.fixture(scope="module")
+def model():
+    # Residual, so that zeroing its output layer makes an identity network of the same shapes
+    # (one compile for both).
+    config = enhancer.EnhancerConfig(width=4, patch_size=32, texel_size=0.004, residual=True)
+    return enhancer.init_enhancer(jax.random.key(0, impl="rbg"), config)
+
+
+@pytest.fixture(scope="module")
+def seq(garment):
+    return meshio.make_sequence(_frames(garment, 4), garment)
+
+
+@pytest.fixture(scope="module")
+def result(seq, model):
+    return pipeline.enhance_sequence(seq, "wool_melton", enhancer=model, batch_size=BATCH,
+                                     chunk_size=4)
+
+
+def test_end_to_end_shapes_finite_unit_normals_and_timings(result, seq, model):
+    res = result
+    plan = normalmap.make_plan(seq.garment, texel_size=model.config.texel_size)
+    h, w = plan.shape
+    assert res.material == "wool_melton" and res.scores is None
+    assert res.frame_indices == (0, 1, 2, 3)
+    assert res.normal_maps.shape == (4, h, w, 3) and res.mask.shape == (h, w, 1)
+    fine = res.fine_garment
+    assert res.detailed_frames.shape == (4, fine.num_vertices, 3)
+    assert fine.num_vertices > seq.garment.num_vertices  # upsampled to ~10 mm edges
+    assert np.isfinite(res.normal_maps).all() and np.isfinite(res.detailed_frames).all()
+    inside = res.mask[..., 0] > 0
+    np.testing.assert_allclose(np.linalg.norm(res.normal_maps[:, inside], axis=-1), 1.0,
+                               atol=1e-5)
+    assert not res.normal_maps[:, ~inside & ~(np.asarray(plan.index_map) < plan.texel_pixel.size)
+                               ].any()  # background (outside mask and gutter) is zero
+    # The random network changes the map (the lift then follows random normals).
+    coarse = np.asarray(jax.jit(normalmap.bake_frames)(plan, seq.frames))
+    assert np.abs(res.normal_maps - coarse)[:, inside].max() > 1e-2
+    for stage in pipeline.STAGES + ("total",):
+        assert stage in res.timings and res.timings[stage] >= 0.0
+    for stage in ("bake", "network", "merge", "lift"):
+        assert res.timings[stage] > 0.0
+    p = res.patches
+    assert p["per_frame"] > 0 and p["network"] == 4 * p["per_frame"]
+    nb = -(-p["per_frame"] // BATCH)
+    assert p["batches"] == 4 * nb and p["padding"] == 4 * (nb * BATCH - p["per_frame"])
+    assert p["stride"] == 16 and p["patch_size"] == 32
+    assert res.peak_buffered_frames == 4
+
+
+def test_identity_network_keeps_the_coarse_map_and_mesh(seq, model, result):
+    """A residual U-Net whose output layer is zero returns its input: N* is the coarse map on
+    the garment and the lifted mesh stays at the upsampled coarse mesh."""
+    params = {**model.params, "out": jax.tree.map(jnp.zeros_like, model.params["out"])}
+    ident = model._replace(params=params)
+    config = model.config
+    res = pipeline.enhance_sequence(seq, "silk_chiffon", enhancer=ident, batch_size=BATCH,
+                                    frames=[0, 3])
+    plan = normalmap.make_plan(seq.garment, texel_size=config.texel_size)
+    coarse = np.asarray(jax.jit(normalmap.bake_frames)(plan, seq.frames[[0, 3]]))
+    inside = res.mask[..., 0] > 0
+    np.testing.assert_allclose(res.normal_maps[:, inside], coarse[:, inside], atol=1e-5)
+    _, sub = lift.upsample(seq.garment)
+    p0 = np.asarray(jax.vmap(sub.apply)(seq.frames[[0, 3]]))
+    assert np.abs(res.detailed_frames - p0).max() < 2e-3  # meters
+    assert res.timings["compile"] < 0.5 * result.timings["compile"]  # nothing new to compile
+
+
+def test_streaming_chunk_size_and_repeat_do_not_change_results(result, seq, model):
+    one = pipeline.enhance_sequence(seq, "wool_melton", enhancer=model, batch_size=BATCH,
+                                    chunk_size=1)
+    np.testing.assert_array_equal(one.normal_maps, result.normal_maps)
+    np.testing.assert_array_equal(one.detailed_frames, result.detailed_frames)
+    assert one.peak_buffered_frames == 1
+    # A chunk of 3 over 4 frames pads the last chunk; a frame subset in another order.
+    sub = pipeline.enhance_sequence(seq, "wool_melton", enhancer=model, batch_size=BATCH,
+                                    chunk_size=3, frames=[3, 1], lift=False)
+    assert sub.frame_indices == (3, 1) and sub.detailed_frames is None
+    np.testing.assert_array_equal(sub.normal_maps, result.normal_maps[[3, 1]])
+
+
+def test_batch_padding_gives_the_same_maps(result, seq, model):
+    per_frame = result.patches["per_frame"]
+    batch = next(b for b in (3, 5, 6, 7) if per_frame % b)  # forces zero-padded batches
+    padded = pipeline.enhance_sequence(seq, "wool_melton", enhancer=model, batch_size=batch,
+                                       lift=False)
+    assert padded.patches["padding"] > 0
+    np.testing.assert_allclose(padded.normal_maps, result.normal_maps, atol=2e-6)
+
+
+def test_enhance_frame_matches_the_sequence(result, seq, model):
+    frame = pipeline.enhance_frame(seq.frames[2], seq.garment, "wool_melton", enhancer=model,
+                                   batch_size=BATCH)
+    assert frame.index == 0
+    np.testing.assert_array_equal(frame.normal_map, result.normal_maps[2])
+    np.testing.assert_array_equal(frame.detailed, result.detailed_frames[2])
+    np.testing.assert_array_equal(frame.coarse, seq.frames[2])
+
+
+def test_material_auto_uses_the_injected_classifier(seq, model):
+    calls = []
+
+    def classify(frames, garment, key):
+        calls.append(frames.shape)
+        return SimpleNamespace(material="knit_terry", scores={"knit_terry": 0.7,
+                                                               "silk_chiffon": 0.3})
+
+    res = pipeline.enhance_sequence(seq, "auto", enhancer=model, batch_size=BATCH, lift=False,
+                                    classify_fn=classify, frames=[0, 2])
+    assert calls == [(2, seq.garment.num_vertices, 3)]
+    assert res.material == "knit_terry" and res.scores == {"knit_terry": 0.7,
+                                                           "silk_chiffon": 0.3}
+    assert res.timings["classify"] > 0
+
+    with pytest.raises(pipeline.PipelineError, match="unknown material 'felt'"):
+        pipeline.resolve_material("felt", model.config.materials)
+    with pytest.raises(pipeline.PipelineError, match="does not know"):
+        pipeline.resolve_material("auto", ("silk_charmeuse",), seq.frames, seq.garment,
+                                  lambda f, g, k: SimpleNamespace(material="denim", scores={}))
+
+
+def test_material_auto_without_a_classifier_is_a_clear_error(seq, monkeypatch):
+    monkeypatch.setitem(sys.modules, "wrinkle_jax.nn.classifier", None)  # import fails
+    with pytest.raises(pipeline.PipelineError, match="classifier"):
+        pipeline.resolve_material("auto", ("silk_charmeuse",), seq.frames, seq.garment)
+
+
+def test_memory_does_not_grow_with_the_sequence_length(garment, model):
+    """Live device bytes at every write, and the host peak, for 10 vs 40 frames."""
+
+    def run(count, leak=False):
+        s = meshio.make_sequence(_frames(garment, count), garment)
+        live, kept = [], []
+
+        def writer(frame):
+            live.append(sum(a.nbytes for a in jax.live_arrays()))
+            if leak:
+                kept.append(frame)
+
+        tracemalloc.start()
+        res = pipeline.enhance_sequence(s, "silk_charmeuse", enhancer=model, batch_size=BATCH,
+                                        lift=False, keep=False, writer=writer)
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        assert res.normal_maps is None and len(live) == count
+        return max(live), peak, res
+
+    run(4)  # warm up: the first run also allocates compile-time and cache objects
+    live10, host10, res10 = run(10)
+    live40, host40, res40 = run(40)
+    one_map = int(np.prod(res10.mask.shape[:2])) * 3 * 4
+    assert live40 <= live10 + one_map, (live10, live40)
+    assert host40 <= host10 + 4 * one_map + (1 << 16), (host10, host40)
+    assert res10.peak_buffered_frames == res40.peak_buffered_frames == 4
+    # Control: a writer that keeps every frame does show up in the host measurement.
+    _, host40_leak, _ = run(40, leak=True)
+    assert host40_leak > host10 + 30 * one_map, (host10, host40_leak)
+
+
+def test_no_lift_and_body(seq, model, result):
+    fine = result.fine_garment
+    # A ball pushed up into the middle of the sheet: the lifted garment must end outside.
+    center = np.asarray(seq.frames[0]).mean(0) - np.array([0.0, 0.0, 0.02], np.float32)
+    body = bodies.primitive_body(spheres=(center[None], np.array([0.03], np.float32)))
+    res = pipeline.enhance_sequence(seq, "wool_melton", enhancer=model, batch_size=BATCH,
+                                    body=body, frames=[0])
+    assert res.detailed_frames.shape == (1, fine.num_vertices, 3)
+    before = bodies.query(body, result.detailed_frames[0]).distance
+    after = bodies.query(body, res.detailed_frames[0]).distance
+    assert float(before.min()) < -1e-3 and float(after.min()) >= -1e-4
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match="batch_size"):
+        pipeline.PipelineConfig(batch_size=0)
+    with pytest.raises(ValueError, match="window"):
+        pipeline.PipelineConfig(window="gauss")
+    assert dataclasses.replace(pipeline.PipelineConfig(), stride=8).stride == 8
+
+
+def test_map_smaller_than_a_patch_is_padded(model):
+    g = primitives.grid_sheet(3, 3, size=(0.06, 0.05))
+    s = meshio.make_sequence(_frames(g, 2), g)
+    res = pipeline.enhance_sequence(s, "denim_light", enhancer=model, batch_size=BATCH,
+                                    lift=False)
+    h, w = res.mask.shape[:2]
+    assert h < 32 and w < 32 and res.normal_maps.shape == (2, h, w, 3)
+    assert res.patches["per_frame"] == 1
+    inside = res.mask[..., 0] > 0
+    np.testing.assert_allclose(np.linalg.norm(res.normal_maps[:, inside], axis=-1), 1.0,
+                               atol=1e-5)

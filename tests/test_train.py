@@ -164,3 +164,15 @@ def test_sharded_step_matches_single_device():
     assert got["grad_diff_rel"] < 1e-5, got
     np.testing.assert_allclose(got["loss"][0], got["loss"][1], rtol=1e-5)
     assert jnp.isfinite(got["loss"][0])
+
+
+def test_residual_network_starts_as_identity():
+    cfg = dataclasses.replace(CONFIG, width=4, residual=True)
+    state = train.create_train_state(cfg, jax.random.key(2, impl="rbg"), patch_size=32)
+    x = jnp.asarray(np.random.default_rng(0).uniform(size=(2, 32, 32, 3)), jnp.float32)
+    out = cfg.model().apply({"params": state.params}, x, jnp.array([0, 1]))
+    np.testing.assert_allclose(np.asarray(out), np.asarray(x), atol=1e-7)
+    plain = dataclasses.replace(cfg, zero_init_output=False)
+    state = train.create_train_state(plain, jax.random.key(2, impl="rbg"), patch_size=32)
+    out = plain.model().apply({"params": state.params}, x, jnp.array([0, 1]))
+    assert np.abs(np.asarray(out) - np.asarray(x)).max() > 1e-3

@@ -1,0 +1,94 @@
+"""Train the default enhancer and export it into the package (resumable, background-friendly).
+
+    nohup nice -n 2 python -m experiments.train_default [--minutes 40] [--width 32] \
+        [--run outputs/default_run] [--warm-start] > /dev/null 2>&1 &
+    python -m experiments.train_default --export-only
+
+Trains `train.TrainConfig` with the chosen width / residual / style layers on `data/patches`
+(built by `experiments.make_dataset`), checkpointing to `--run` every 100 steps; running the
+command again resumes from the last checkpoint (`--resume` semantics) until `--steps` or the
+wall-clock budget `--minutes` is used up. `--warm-start` starts a fresh run from the shipped
+weights (`wrinkle_jax/assets/enhancer.npz`) -- for a later session on a new machine. At the end
+(or with `--export-only`) the last checkpoint's parameters are written, float16, to
+`wrinkle_jax/assets/enhancer.npz` with the training facts in its metadata.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from wrinkle_jax import MATERIALS, data, enhancer, train
+from wrinkle_jax.nn import vgg
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def config_from_args(args) -> train.TrainConfig:
+    return train.TrainConfig(width=args.width, residual=bool(args.residual),
+                             style_layers=tuple(args.style_layers.split(",")),
+                             steps=args.steps, eval_every=100, checkpoint_every=100,
+                             eval_batches=8)
+
+
+def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None) -> Path:
+    cfg = train.TrainConfig.from_json(json.loads((run / "config.json").read_text()))
+    manager = train._manager(run / "checkpoints", cfg)
+    template = train.create_train_state(cfg, jax.random.key(0, impl="rbg"))
+    state, _ = train.restore_checkpoint(manager, template, cfg)
+    ds = data.PatchDataset(data_root, "train")
+    entry = ds.entries[0]
+    econf = enhancer.EnhancerConfig(width=cfg.width, residual=cfg.residual,
+                                    input_norm=cfg.input_norm, materials=MATERIALS,
+                                    patch_size=ds.patch_size, texel_size=entry["texel_size"],
+                                    coarse_pd=entry["config"]["coarse_pd"])
+    rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if x]
+    train_s = float(sum(r.get("step_s", 0.0) for r in rows if r["kind"] == "train"))
+    evals = [r for r in rows if r["kind"] == "eval"]
+    meta = {"train_config": cfg.to_json(), "steps": int(state.step),
+            "train_step_seconds": round(train_s, 1), "wall_seconds_this_call": wall_s,
+            "train_patches": len(ds), "train_sequences": [e["sequence"] for e in ds.entries],
+            "last_eval": evals[-1] if evals else None,
+            "exported": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())}
+    return enhancer.save_enhancer(out, jax.device_get(state.params), econf, meta)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=str(ROOT / "data" / "patches"))
+    ap.add_argument("--run", default=str(ROOT / "outputs" / "default_run"))
+    ap.add_argument("--out", default=str(enhancer.DEFAULT_PATH))
+    ap.add_argument("--width", type=int, default=32)
+    ap.add_argument("--residual", type=int, default=1)
+    ap.add_argument("--style-layers", default=",".join(train.TrainConfig.style_layers))
+    ap.add_argument("--steps", type=int, default=20_000)
+    ap.add_argument("--minutes", type=float, default=40.0)
+    ap.add_argument("--warm-start", action="store_true")
+    ap.add_argument("--export-only", action="store_true")
+    args = ap.parse_args(argv)
+    run, data_root = Path(args.run), Path(args.data)
+    t0 = time.time()
+    if not args.export_only:
+        cfg = config_from_args(args)
+        init = None
+        if args.warm_start and not (run / "checkpoints").exists():
+            shipped = enhancer.load_enhancer()
+            if (shipped.config.width, shipped.config.residual) != (cfg.width, cfg.residual):
+                raise SystemExit("--warm-start: the shipped model's width/residual differ")
+            init = shipped.params
+        train.train(cfg, data_root, run, resume=True, vgg_params=vgg.load_vgg19(),
+                    progress=False, time_limit_s=60 * args.minutes, init_params=init)
+    path = export(run, Path(args.out), data_root, round(time.time() - t0, 1))
+    size = path.stat().st_size
+    print(json.dumps({"exported": str(path), "bytes": size,
+                      "params": int(sum(np.size(x) for x in jax.tree.leaves(
+                          enhancer.load_enhancer(path).params)))}))
+
+
+if __name__ == "__main__":
+    main()

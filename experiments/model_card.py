@@ -33,7 +33,7 @@ from wrinkle_jax.nn import vgg
 
 ROOT = Path(__file__).resolve().parents[1]
 UNSEEN_GARMENT = {"dress_dance", "cape_walk"}
-SWEEP = [(s, a) for s in (1.0, 2.0, 4.0) for a in (0.5, 1.0, 2.0)]
+SWEEP = [(s, a) for s in (1.0, 2.0, 4.0, 8.0) for a in (0.5, 1.0, 2.0, 4.0)]
 
 
 def take(ds: data.PatchDataset, n: int) -> dict:

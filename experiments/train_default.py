@@ -33,7 +33,9 @@ def config_from_args(args) -> train.TrainConfig:
     return train.TrainConfig(width=args.width, residual=bool(args.residual),
                              style_layers=tuple(args.style_layers.split(",")),
                              steps=args.steps, eval_every=100, checkpoint_every=100,
-                             eval_batches=8)
+                             eval_batches=8, learning_rate=args.lr, w_s=args.w_s,
+                             relative_floor=(args.relative_floor if args.relative_floor > 0
+                                             else None))
 
 
 def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None) -> Path:
@@ -67,6 +69,10 @@ def main(argv=None) -> None:
     ap.add_argument("--residual", type=int, default=1)
     ap.add_argument("--style-layers", default=",".join(train.TrainConfig.style_layers))
     ap.add_argument("--steps", type=int, default=20_000)
+    ap.add_argument("--lr", type=float, default=2e-4)
+    ap.add_argument("--w-s", type=float, default=10.0)
+    ap.add_argument("--relative-floor", type=float, default=0.01,
+                    help="per-patch relative style loss floor; <= 0 for the paper's absolute loss")
     ap.add_argument("--minutes", type=float, default=40.0)
     ap.add_argument("--warm-start", action="store_true")
     ap.add_argument("--export-only", action="store_true")

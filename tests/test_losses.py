@@ -236,3 +236,21 @@ def test_enhancer_loss(tiny_vgg):
     assert np.all(np.asarray(g_empty) == 0.0)
     g = grad_fn(out, mask)
     assert np.all(np.isfinite(np.asarray(g))) and np.any(np.asarray(g) != 0.0)
+
+
+def test_relative_style_loss_divides_by_the_input_loss(tiny_vgg):
+    rng = np.random.default_rng(13)
+    out, inp, tgt = (jnp.asarray(rng.uniform(size=(3, 16, 16, 3)), jnp.float32) for _ in range(3))
+    mask = jnp.asarray(_block_mask(rng, 3, 16, 16))
+    layers = ("relu1_2", "relu2_1")
+    loss_fn = jax.jit(losses.enhancer_loss,
+                      static_argnames=("style_layers", "content_layer", "relative_floor"))
+    _, absolute = loss_fn(tiny_vgg, out, inp, tgt, mask, style_layers=layers)
+    _, rel = loss_fn(tiny_vgg, out, inp, tgt, mask, style_layers=layers, relative_floor=1e-3)
+    feats = {k: vgg.features(tiny_vgg, x, layers=layers) for k, x in (("i", inp), ("t", tgt))}
+    style_in = losses.style_loss(feats["i"], feats["t"], mask, layers)
+    np.testing.assert_allclose(rel["style"], absolute["style"] / (style_in + 1e-3), rtol=1e-5)
+    np.testing.assert_allclose(rel["content"], absolute["content"], rtol=1e-6)
+    # The input itself scores a ratio of ~1 (exactly style_in / (style_in + floor)).
+    _, ident = loss_fn(tiny_vgg, inp, inp, tgt, mask, style_layers=layers, relative_floor=1e-3)
+    np.testing.assert_allclose(ident["style"], style_in / (style_in + 1e-3), rtol=1e-4)

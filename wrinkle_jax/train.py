@@ -56,6 +56,8 @@ class TrainConfig:
       conv_impl: convolution form of the U-Net and of the loss's VGG ("xla", "im2col_f32" --
         U-Net only, exact -- or "im2col_bf16"; see `nn.unet`). Parameters are the same for all
         forms, so a run may resume with another one.
+      relative_floor: None for the paper's absolute style loss, or the floor of the per-patch
+        relative style loss (`nn.losses.enhancer_loss`); the "style" metric is then a ratio.
       zero_init_output: with `residual`, start the output conv at zero so the untrained
         network is the identity (improvement 0) instead of input + random noise, whose style
         loss starts ~40x above the input's.
@@ -82,6 +84,7 @@ class TrainConfig:
     pool: str = "avg"
     conv_impl: str = "im2col_bf16"
     zero_init_output: bool = True
+    relative_floor: float | None = None
     seed: int = 0
     eval_every: int = 50
     eval_batches: int = 4
@@ -145,7 +148,8 @@ def loss_fn(params, batch, vgg_params, config: TrainConfig):
         vgg_params, out, batch["input"], batch["target"], batch["mask"],
         style_layers=config.style_layers, content_layer=config.content_layer,
         w_c=config.w_c, w_s=config.w_s, pool=config.pool,
-        normalize_channels=config.normalize_channels, conv_impl=config.vgg_conv_impl)
+        normalize_channels=config.normalize_channels, conv_impl=config.vgg_conv_impl,
+        relative_floor=config.relative_floor)
 
 
 def data_mesh(devices=None) -> jax.sharding.Mesh:

@@ -172,8 +172,14 @@ def content_loss(out_feats, inp_feats, mask, layer=DEFAULT_CONTENT_LAYER):
 def enhancer_loss(vgg_params, out_images, inp_images, target_images, mask,
                   style_layers=DEFAULT_STYLE_LAYERS, content_layer=DEFAULT_CONTENT_LAYER,
                   w_c=1.0, w_s=1e4, layer_weights=None, pool="avg", normalize_channels=False,
-                  conv_impl="xla"):
+                  conv_impl="xla", relative_floor=None):
     """Training objective of the enhancer: ``w_c content(out, inp) + w_s style(out, target)``.
+
+    With `relative_floor` set, the style term of each patch is divided by the input's own style
+    loss: ``style(out, tgt) / (style(inp, tgt) + relative_floor)`` -- the quantity the paper's
+    improvement score measures per patch. The absolute form lets a patch that is already right
+    (tiny input loss) take on detail it does not need, which costs little in the batch mean
+    but ruins that patch's score; the relative form weighs every patch's improvement equally.
 
     VGG runs once per image set and only as deep as needed: the output to the deepest of the
     style and content layers, the input to the content layer, the target to the deepest style
@@ -188,6 +194,8 @@ def enhancer_loss(vgg_params, out_images, inp_images, target_images, mask,
       style_layers, content_layer, layer_weights, pool, normalize_channels, conv_impl: see
         :func:`style_loss`, :func:`content_loss`, ``vgg.features`` (all static under jit).
       w_c, w_s: content and style weights (paper: 1 and 1e4).
+      relative_floor: None (the paper's absolute style loss) or a float > 0 (see above; the
+        input's features then run to the deepest style layer too).
 
     Returns:
       (total, parts): total is the batch mean of the per-sample objective (scalar float32);
@@ -197,11 +205,16 @@ def enhancer_loss(vgg_params, out_images, inp_images, target_images, mask,
     out_layers = tuple(sorted(set(style_layers) | {content_layer}))
     out_f = vgg.features(vgg_params, out_images, layers=out_layers, pool=pool,
                          conv_impl=conv_impl)
-    inp_f = vgg.features(vgg_params, jax.lax.stop_gradient(inp_images), layers=(content_layer,),
+    inp_layers = out_layers if relative_floor is not None else (content_layer,)
+    inp_f = vgg.features(vgg_params, jax.lax.stop_gradient(inp_images), layers=inp_layers,
                          pool=pool, conv_impl=conv_impl)
     tgt_f = vgg.features(vgg_params, jax.lax.stop_gradient(target_images), layers=style_layers,
                          pool=pool, conv_impl=conv_impl)
     content = content_loss(out_f, inp_f, mask, content_layer)
     style = style_loss(out_f, tgt_f, mask, style_layers, layer_weights, normalize_channels)
+    if relative_floor is not None:
+        style_in = style_loss(inp_f, tgt_f, mask, style_layers, layer_weights,
+                              normalize_channels)
+        style = style / (jax.lax.stop_gradient(style_in) + relative_floor)
     per_sample = w_c * content + w_s * style
     return jnp.mean(per_sample), {"content": content, "style": style, "total": per_sample}

@@ -10,6 +10,7 @@ Exit codes: 0 success, 1 failure (bad input file, runtime error), 2 bad usage.
     wrinkle-jax assets fetch makehuman [--force]
     wrinkle-jax train-enhancer --data DIR --out DIR [--steps N] [--width W] [--batch B] [--resume]
     wrinkle-jax simulate SCENE --material NAME --resolution fine|coarse --frames N --out PATH
+    wrinkle-jax train-classifier --data DIR --out PATH;  wrinkle-jax classify INPUT [--json]
 """
 
 from __future__ import annotations
@@ -566,6 +567,9 @@ def build_parser() -> argparse.ArgumentParser:
     from wrinkle_jax.sim.command import add_simulate_parser
 
     add_simulate_parser(sub)
+    from wrinkle_jax import classify_cli
+
+    classify_cli.register(sub)
     return parser
 
 

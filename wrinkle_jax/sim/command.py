@@ -17,7 +17,8 @@ import time
 from pathlib import Path
 
 
-def _positive_int(text: str) -> int:
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1 (shared by the CLI modules)."""
     try:
         value = int(text)
     except ValueError:
@@ -105,10 +106,10 @@ def add_simulate_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--material", required=True, choices=list(MATERIALS), help="fabric")
     p.add_argument("--resolution", default="fine", choices=list(RESOLUTIONS),
                    help="fine = PD 10 mm, coarse = PD 30 mm (default: %(default)s)")
-    p.add_argument("--frames", type=_positive_int, default=None,
+    p.add_argument("--frames", type=positive_int, default=None,
                    help="frames at 30 fps after the pre-roll (default: the scene's)")
     p.add_argument("--seed", type=int, default=0, help="motion/ball/wind seed (default: 0)")
-    p.add_argument("--substeps", type=_positive_int, default=None,
+    p.add_argument("--substeps", type=positive_int, default=None,
                    help="solver substeps per frame (default: the scene's)")
     p.add_argument("--out", required=True, help="output .npz path")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -23,10 +23,7 @@ Example:
 from __future__ import annotations
 
 import dataclasses
-import io
-import json
 import os
-import zipfile
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -34,8 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax import MATERIALS, normalmap
-from wrinkle_jax.fileio import atomic_write_bytes
+from wrinkle_jax import MATERIALS, modelfile, normalmap
 from wrinkle_jax.nn import unet
 
 __all__ = ["DEFAULT_PATH", "Enhancer", "EnhancerConfig", "EnhancerError", "init_enhancer",
@@ -113,25 +109,6 @@ def init_enhancer(key, config: EnhancerConfig = EnhancerConfig(), conv_impl: str
     return Enhancer(model, params, config, dict(meta or {}))
 
 
-def _flatten(params, leaf_fn=np.asarray) -> dict[str, Any]:
-    flat = {}
-    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
-        keys = "/".join(str(getattr(p, "key", p)) for p in path)
-        flat[keys] = leaf_fn(leaf)
-    return flat
-
-
-def _unflatten(flat: dict[str, np.ndarray]) -> dict:
-    tree: dict = {}
-    for keys, value in flat.items():
-        node = tree
-        parts = keys.split("/")
-        for part in parts[:-1]:
-            node = node.setdefault(part, {})
-        node[parts[-1]] = value
-    return tree
-
-
 def save_enhancer(path: str | os.PathLike, params, config: EnhancerConfig,
                   meta: dict | None = None, dtype=np.float16) -> Path:
     """Write `params` (a CINUNet pytree), `config` and `meta` to `path` atomically.
@@ -140,20 +117,8 @@ def save_enhancer(path: str | os.PathLike, params, config: EnhancerConfig,
       EnhancerError: if a parameter does not fit `dtype` (non-finite after the cast).
     """
     path = Path(path)
-    arrays = {}
-    for k, v in _flatten(params).items():
-        with np.errstate(over="ignore"):
-            cast = v.astype(dtype)
-        if not np.all(np.isfinite(cast)):
-            raise EnhancerError(f"{path}: parameter {k} does not fit {np.dtype(dtype).name}")
-        arrays[f"params/{k}"] = cast
-    arrays["config.json"] = np.frombuffer(json.dumps(config.to_json()).encode(), np.uint8)
-    meta = {"format": _FORMAT, **(meta or {})}
-    arrays["meta.json"] = np.frombuffer(json.dumps(meta, indent=1).encode(), np.uint8)
-    buf = io.BytesIO()
-    np.savez_compressed(buf, **arrays)
-    atomic_write_bytes(path, buf.getvalue())
-    return path
+    arrays = modelfile.cast_params(params, dtype, path, EnhancerError)
+    return modelfile.write(path, arrays, config.to_json(), meta or {}, _FORMAT)
 
 
 def load_enhancer(path: str | os.PathLike | None = None,
@@ -174,22 +139,17 @@ def load_enhancer(path: str | os.PathLike | None = None,
         hint = (" (the shipped model is built by `python -m experiments.train_default`)"
                 if path == DEFAULT_PATH else "")
         raise EnhancerError(f"{path}: no such enhancer file{hint}")
+    files, config, meta = modelfile.read(path, "enhancer", _FORMAT, EnhancerError)
     try:
-        with np.load(path, allow_pickle=False) as z:
-            files = {k: z[k] for k in z.files}
-        config = EnhancerConfig.from_json(json.loads(bytes(files.pop("config.json")).decode()))
-        meta = json.loads(bytes(files.pop("meta.json")).decode())
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, UnicodeDecodeError) as e:
+        config = EnhancerConfig.from_json(config)
+    except (TypeError, ValueError, KeyError) as e:
         raise EnhancerError(f"{path}: not a readable enhancer file ({e})") from None
-    if meta.get("format") != _FORMAT:
-        raise EnhancerError(f"{path}: unknown format {meta.get('format')!r}")
-    flat = {k[len("params/"):]: v.astype(np.float32) for k, v in files.items()
-            if k.startswith("params/")}
-    params = jax.tree.map(jnp.asarray, _unflatten(flat))
+    flat = modelfile.float32_params(files)
+    params = jax.tree.map(jnp.asarray, modelfile.unflatten(flat))
     model = config.model(conv_impl)
     want = jax.eval_shape(lambda: unet.init_params(model, jax.random.key(0, impl="rbg"),
                                                    config.patch_size))
-    want_shapes = _flatten(want, lambda s: tuple(s.shape))
+    want_shapes = modelfile.flatten(want, lambda s: tuple(s.shape))
     got_shapes = {k: v.shape for k, v in flat.items()}
     if want_shapes != got_shapes:
         missing = sorted(set(want_shapes) - set(got_shapes))[:3]

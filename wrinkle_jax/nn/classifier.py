@@ -49,10 +49,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import io
-import json
 import os
-import zipfile
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -62,8 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from wrinkle_jax import MATERIALS, normalmap, patches
-from wrinkle_jax.fileio import atomic_write_bytes
+from wrinkle_jax import MATERIALS, modelfile, normalmap, patches
 from wrinkle_jax.mesh import Garment
 from wrinkle_jax.nn import vgg
 from wrinkle_jax.numerics import normalize, safe_div
@@ -711,24 +707,6 @@ def train_classifier(features, labels, config: ClassifierConfig, key, vgg_params
 # Files
 
 
-def _flatten(params) -> dict[str, np.ndarray]:
-    flat = {}
-    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
-        flat["/".join(str(getattr(p, "key", p)) for p in path)] = np.asarray(leaf)
-    return flat
-
-
-def _unflatten(flat: dict[str, np.ndarray]) -> dict:
-    tree: dict = {}
-    for keys, value in flat.items():
-        node = tree
-        *parents, leaf = keys.split("/")
-        for part in parents:
-            node = node.setdefault(part, {})
-        node[leaf] = value
-    return tree
-
-
 def save_classifier(path: str | os.PathLike, classifier: Classifier, meta: dict | None = None,
                     dtype=np.float16) -> Path:
     """Write the MLP parameters (float16), standardization and config to `path` atomically.
@@ -736,23 +714,11 @@ def save_classifier(path: str | os.PathLike, classifier: Classifier, meta: dict 
     The VGG weights are not written (``meta["vgg"]`` should say which were used).
     """
     path = Path(path)
-    arrays = {}
-    for k, v in _flatten(classifier.params).items():
-        with np.errstate(over="ignore"):
-            cast = v.astype(dtype)
-        if not np.all(np.isfinite(cast)):
-            raise ClassifierError(f"{path}: parameter {k} does not fit {np.dtype(dtype).name}")
-        arrays[f"params/{k}"] = cast
+    arrays = modelfile.cast_params(classifier.params, dtype, path, ClassifierError)
     for k, v in classifier.norm.items():
         arrays[f"norm/{k}"] = np.asarray(v, np.float32)
-    arrays["config.json"] = np.frombuffer(json.dumps(classifier.config.to_json()).encode(),
-                                          np.uint8)
-    full_meta = {"format": _FORMAT, **classifier.meta, **(meta or {})}
-    arrays["meta.json"] = np.frombuffer(json.dumps(full_meta, indent=1).encode(), np.uint8)
-    buf = io.BytesIO()
-    np.savez_compressed(buf, **arrays)
-    atomic_write_bytes(path, buf.getvalue())
-    return path
+    return modelfile.write(path, arrays, classifier.config.to_json(),
+                           {**classifier.meta, **(meta or {})}, _FORMAT)
 
 
 def load_classifier(path: str | os.PathLike | None = None, vgg_params=None) -> Classifier:
@@ -772,18 +738,13 @@ def load_classifier(path: str | os.PathLike | None = None, vgg_params=None) -> C
                 "`python -m experiments.classifier_report --ship`)" if path == DEFAULT_PATH
                 else "")
         raise ClassifierError(f"{path}: no such classifier file{hint}")
+    files, config, meta = modelfile.read(path, "classifier", _FORMAT, ClassifierError)
     try:
-        with np.load(path, allow_pickle=False) as z:
-            files = {k: z[k] for k in z.files}
-        config = ClassifierConfig.from_json(json.loads(bytes(files.pop("config.json")).decode()))
-        meta = json.loads(bytes(files.pop("meta.json")).decode())
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, UnicodeDecodeError) as e:
+        config = ClassifierConfig.from_json(config)
+    except (TypeError, ValueError, KeyError) as e:
         raise ClassifierError(f"{path}: not a readable classifier file ({e})") from None
-    if meta.get("format") != _FORMAT:
-        raise ClassifierError(f"{path}: unknown format {meta.get('format')!r}")
     vgg_params = vgg.load_vgg19() if vgg_params is None else vgg_params
-    flat = {k[len("params/"):]: v.astype(np.float32) for k, v in files.items()
-            if k.startswith("params/")}
+    flat = modelfile.float32_params(files)
     norm = {k[len("norm/"):]: jnp.asarray(v, jnp.float32) for k, v in files.items()
             if k.startswith("norm/")}
     try:
@@ -792,8 +753,7 @@ def load_classifier(path: str | os.PathLike | None = None, vgg_params=None) -> C
         raise ClassifierError(f"{path}: {e}") from None
     want = jax.eval_shape(lambda: _model(config).init(jax.random.key(0, impl="rbg"),
                                                       jnp.zeros((1, d)))["params"])
-    want_shapes = {k: tuple(v.shape) for k, v in _flatten(jax.tree.map(
-        lambda s: np.empty(s.shape, np.uint8), want)).items()}
+    want_shapes = modelfile.flatten(want, lambda s: tuple(s.shape))
     got_shapes = {k: v.shape for k, v in flat.items()}
     if want_shapes != got_shapes or set(norm) != {"mean", "std"} or any(
             v.shape != (d,) for v in norm.values()):
@@ -801,6 +761,6 @@ def load_classifier(path: str | os.PathLike | None = None, vgg_params=None) -> C
                               f"hidden {config.hidden}, {d} features with this VGG)")
     if not all(np.all(np.isfinite(v)) for v in flat.values()):
         raise ClassifierError(f"{path}: non-finite parameters")
-    params = jax.tree.map(jnp.asarray, _unflatten(flat))
+    params = jax.tree.map(jnp.asarray, modelfile.unflatten(flat))
     return Classifier(config, params, norm, vgg_params, meta)
 

@@ -2,6 +2,7 @@
 
     python -m experiments.short_runs residual [--minutes 6]   # width 32, residual vs plain
     python -m experiments.short_runs width [--minutes 6] [--residual 1|0]   # widths 16, 32, 64
+        [--residual-base unsharp --unsharp-sigma S --unsharp-amount A --tag unsharp]
 
 Every variant trains from scratch on `data/patches` (train split, `experiments.make_dataset`)
 for the same wall-clock budget with the same seed, data order, loss and optimizer
@@ -33,12 +34,13 @@ from wrinkle_jax.nn import vgg
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def variants(study: str, residual: bool) -> dict[str, train.TrainConfig]:
+def variants(study: str, residual: bool, **recipe) -> dict[str, train.TrainConfig]:
     # The default model's recipe (experiments.train_default): selected style layers and the
-    # per-patch relative style loss.
+    # per-patch relative style loss; `recipe` overrides TrainConfig fields (e.g. the base).
     base = train.TrainConfig(steps=100_000, eval_every=100, checkpoint_every=100,
                              style_layers=("relu2_2", "relu3_1", "relu3_2"), w_s=10.0,
                              relative_floor=0.01, learning_rate=2e-4)
+    base = dataclasses.replace(base, **recipe)
     if study == "residual":
         return {"residual": dataclasses.replace(base, width=32, residual=True),
                 "plain": dataclasses.replace(base, width=32, residual=False)}
@@ -89,15 +91,22 @@ def main(argv=None) -> None:
     ap.add_argument("--residual", type=int, default=1)
     ap.add_argument("--data", default=str(ROOT / "data" / "patches"))
     ap.add_argument("--only", default=None, help="comma-separated variant names")
+    ap.add_argument("--residual-base", default="input", choices=("input", "unsharp"))
+    ap.add_argument("--unsharp-sigma", type=float, default=8.0)
+    ap.add_argument("--unsharp-amount", type=float, default=1.0)
+    ap.add_argument("--tag", default="", help="suffix of the run and results folders")
     args = ap.parse_args(argv)
-    runs_dir = ROOT / "outputs" / "short_runs" / args.study
-    res_dir = ROOT / "experiments" / "results" / f"{args.study}_study"
+    study = args.study + (f"_{args.tag}" if args.tag else "")
+    runs_dir = ROOT / "outputs" / "short_runs" / study
+    res_dir = ROOT / "experiments" / "results" / f"{study}_study"
     res_dir.mkdir(parents=True, exist_ok=True)
     results_path = res_dir / "results.json"
     results = json.loads(results_path.read_text()) if results_path.exists() else {}
     vgg_params = vgg.load_vgg19()
     held = heldout_eval_set(args.data)
-    for name, cfg in variants(args.study, bool(args.residual)).items():
+    recipe = {"residual_base": args.residual_base, "unsharp_sigma": args.unsharp_sigma,
+              "unsharp_amount": args.unsharp_amount}
+    for name, cfg in variants(args.study, bool(args.residual), **recipe).items():
         if args.only and name not in args.only.split(","):
             continue
         t0 = time.time()
@@ -128,7 +137,7 @@ def main(argv=None) -> None:
                     fontsize=8, xytext=(4, 4), textcoords="offset points")
     ax.set_xlabel("inference ms / 128^2 patch (2 cores, bf16)")
     ax.set_ylabel("held-out improvement (signed %, higher better)")
-    ax.set_title(f"{args.study} study, {args.minutes:g} min each")
+    ax.set_title(f"{study} study, {args.minutes:g} min each")
     fig.tight_layout()
     fig.savefig(res_dir / "pareto.png", dpi=100)
 

@@ -35,7 +35,9 @@ def config_from_args(args) -> train.TrainConfig:
                              steps=args.steps, eval_every=100, checkpoint_every=100,
                              eval_batches=8, learning_rate=args.lr, w_s=args.w_s,
                              relative_floor=(args.relative_floor if args.relative_floor > 0
-                                             else None))
+                                             else None),
+                             residual_base=args.residual_base, unsharp_sigma=args.unsharp_sigma,
+                             unsharp_amount=args.unsharp_amount)
 
 
 def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None) -> Path:
@@ -48,7 +50,10 @@ def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None) -
     econf = enhancer.EnhancerConfig(width=cfg.width, residual=cfg.residual,
                                     input_norm=cfg.input_norm, materials=MATERIALS,
                                     patch_size=ds.patch_size, texel_size=entry["texel_size"],
-                                    coarse_pd=entry["config"]["coarse_pd"])
+                                    coarse_pd=entry["config"]["coarse_pd"],
+                                    residual_base=cfg.residual_base,
+                                    unsharp_sigma=cfg.unsharp_sigma,
+                                    unsharp_amount=cfg.unsharp_amount)
     rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if x]
     train_s = float(sum(r.get("step_s", 0.0) for r in rows if r["kind"] == "train"))
     evals = [r for r in rows if r["kind"] == "eval"]
@@ -73,6 +78,11 @@ def main(argv=None) -> None:
     ap.add_argument("--w-s", type=float, default=10.0)
     ap.add_argument("--relative-floor", type=float, default=0.01,
                     help="per-patch relative style loss floor; <= 0 for the paper's absolute loss")
+    ap.add_argument("--residual-base", default="unsharp", choices=("input", "unsharp"))
+    ap.add_argument("--unsharp-sigma", type=float, default=8.0,
+                    help="texels; the best sigma of the unsharp-mask sweep on training patches")
+    ap.add_argument("--unsharp-amount", type=float, default=1.0,
+                    help="initial per-material gain (learned)")
     ap.add_argument("--minutes", type=float, default=40.0)
     ap.add_argument("--warm-start", action="store_true")
     ap.add_argument("--export-only", action="store_true")
@@ -84,8 +94,9 @@ def main(argv=None) -> None:
         init = None
         if args.warm_start and not (run / "checkpoints").exists():
             shipped = enhancer.load_enhancer()
-            if (shipped.config.width, shipped.config.residual) != (cfg.width, cfg.residual):
-                raise SystemExit("--warm-start: the shipped model's width/residual differ")
+            if ((shipped.config.width, shipped.config.residual, shipped.config.residual_base)
+                    != (cfg.width, cfg.residual, cfg.residual_base)):
+                raise SystemExit("--warm-start: the shipped model's width/residual/base differ")
             init = shipped.params
         train.train(cfg, data_root, run, resume=True, vgg_params=vgg.load_vgg19(),
                     progress=False, time_limit_s=60 * args.minutes, init_params=init)

@@ -79,3 +79,22 @@ def test_non_finite_after_cast_is_refused(small, tmp_path):
     params["out"]["bias"] = params["out"]["bias"] + 1e6
     with pytest.raises(enhancer.EnhancerError, match="float16"):
         enhancer.save_enhancer(tmp_path / "big.npz", params, SMALL)
+
+
+def test_unsharp_base_round_trips_with_its_gains(tmp_path):
+    conf = enhancer.EnhancerConfig(width=4, patch_size=32, residual=True,
+                                   residual_base="unsharp", unsharp_sigma=2.0,
+                                   unsharp_amount=1.5)
+    enh = enhancer.init_enhancer(KEY, conf, conv_impl="im2col_f32")
+    params = {**enh.params, "unsharp_amount": enh.params["unsharp_amount"].at[1].set(0.25)}
+    path = enhancer.save_enhancer(tmp_path / "m.npz", params, conf, dtype=np.float32)
+    got = enhancer.load_enhancer(path, conv_impl="im2col_f32")
+    assert got.config == conf
+    np.testing.assert_array_equal(np.asarray(got.params["unsharp_amount"]),
+                                  [1.5, 0.25, 1.5, 1.5, 1.5])
+    # A file whose config says "input" base but carries gains (or vice versa) is refused.
+    bad = enhancer.save_enhancer(tmp_path / "bad.npz", params,
+                                 enhancer.EnhancerConfig(width=4, patch_size=32, residual=True),
+                                 dtype=np.float32)
+    with pytest.raises(enhancer.EnhancerError, match="do not match"):
+        enhancer.load_enhancer(bad)

@@ -57,6 +57,7 @@ class EnhancerConfig:
       patch_size: patch side in texels the model was trained on.
       texel_size: meters of cloth per texel of the normal maps it was trained on.
       coarse_pd: particle distance (m) of the coarse inputs it was trained for.
+      residual_base, unsharp_sigma, unsharp_amount: the residual's base (`nn.unet.CINUNet`).
     """
 
     width: int = 32
@@ -66,11 +67,16 @@ class EnhancerConfig:
     patch_size: int = 128
     texel_size: float = normalmap.DEFAULT_TEXEL_SIZE
     coarse_pd: float = 0.03
+    residual_base: str = "input"
+    unsharp_sigma: float = 8.0
+    unsharp_amount: float = 1.0
 
     def model(self, conv_impl: str = "im2col_bf16") -> unet.CINUNet:
         return unet.CINUNet(num_materials=len(self.materials), width=self.width,
                             residual=self.residual, input_norm=self.input_norm,
-                            conv_impl=conv_impl)
+                            residual_base=self.residual_base,
+                            unsharp_sigma=self.unsharp_sigma,
+                            unsharp_amount=self.unsharp_amount, conv_impl=conv_impl)
 
     def material_id(self, name: str) -> int:
         if name not in self.materials:

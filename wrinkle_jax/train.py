@@ -58,6 +58,8 @@ class TrainConfig:
         forms, so a run may resume with another one.
       relative_floor: None for the paper's absolute style loss, or the floor of the per-patch
         relative style loss (`nn.losses.enhancer_loss`); the "style" metric is then a ratio.
+      residual_base, unsharp_sigma, unsharp_amount: the residual's base (`nn.unet.CINUNet`:
+        "input", or "unsharp" to start from unsharp masking with a learnable per-material gain).
       zero_init_output: with `residual`, start the output conv at zero so the untrained
         network is the identity (improvement 0) instead of input + random noise, whose style
         loss starts ~40x above the input's.
@@ -83,6 +85,9 @@ class TrainConfig:
     normalize_channels: bool = True
     pool: str = "avg"
     conv_impl: str = "im2col_bf16"
+    residual_base: str = "input"
+    unsharp_sigma: float = 8.0
+    unsharp_amount: float = 1.0
     zero_init_output: bool = True
     relative_floor: float | None = None
     seed: int = 0
@@ -94,7 +99,9 @@ class TrainConfig:
     def model(self) -> unet.CINUNet:
         return unet.CINUNet(num_materials=self.num_materials, width=self.width,
                             residual=self.residual, input_norm=self.input_norm,
-                            conv_impl=self.conv_impl)
+                            residual_base=self.residual_base,
+                            unsharp_sigma=self.unsharp_sigma,
+                            unsharp_amount=self.unsharp_amount, conv_impl=self.conv_impl)
 
     @property
     def vgg_conv_impl(self) -> str:

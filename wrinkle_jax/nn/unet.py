@@ -10,7 +10,9 @@ Architecture (paper, "Network architecture", and the authors' published network)
       (the post-ReLU, pre-pool activations are the skips s1..s4)
     decoder, 4 x: 4x4 stride-2 transposed conv -> add skip -> CIN(material) -> ReLU
       channels 8w, 4w, 2w, w (skips s4, s3, s2, s1); sizes 8 -> 16 -> 32 -> 64 -> 128
-    3x3 conv to 3 channels  [+ input, with `residual=True`]
+    3x3 conv to 3 channels  [+ base, with `residual=True`: the input itself, or with
+                             residual_base="unsharp" the unsharp-masked input with a learnable
+                             per-material gain (`wrinkle_jax.sharpen`)]
 
 With width=64 and 5 materials the network has 8,510,083 parameters.
 
@@ -51,6 +53,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wrinkle_jax import sharpen
 from wrinkle_jax.nn import fastconv
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -97,7 +100,12 @@ class CINUNet(nn.Module):
     Attributes:
       num_materials: number of materials the CIN tables hold.
       width: channels of the first level (w); the levels use w, 2w, 4w, 8w.
-      residual: return input + network output (a global residual) instead of the output.
+      residual: return base + network output (a global residual) instead of the output.
+      residual_base: "input" (base = the input) or "unsharp" (base = the unsharp-masked input,
+        `sharpen.unsharp_rgb` with `unsharp_sigma` texels and a per-material gain, parameter
+        ``unsharp_amount`` (num_materials,), initialized to `unsharp_amount`). With a
+        zero-initialized output conv the untrained network then IS the best non-learned
+        baseline, and training learns what sharpening misses.
       input_norm: "imagenet" (normalize RGB by ImageNet mean/std, as the authors do) or "none".
       norm: the conditional normalization layer factory (called with num_materials).
       dtype: computation dtype of the "xla" convolutions (parameters stay float32).
@@ -108,6 +116,9 @@ class CINUNet(nn.Module):
     width: int = 64
     residual: bool = False
     input_norm: str = "imagenet"
+    residual_base: str = "input"
+    unsharp_sigma: float = 8.0
+    unsharp_amount: float = 1.0
     norm: Callable[..., nn.Module] = CIN
     dtype: jnp.dtype = jnp.float32
     conv_impl: str = "xla"
@@ -168,7 +179,16 @@ class CINUNet(nn.Module):
         if compute is not None:  # 1% of the FLOPs: keep the output's last rounding float32
             conv = functools.partial(conv, compute_dtype=jnp.float32)
         out = conv(3, name="out")(h).astype(jnp.float32)
-        return x.astype(jnp.float32) + out if self.residual else out
+        if not self.residual:
+            return out
+        base = x.astype(jnp.float32)
+        if self.residual_base == "unsharp":
+            gain = self.param("unsharp_amount", nn.initializers.constant(self.unsharp_amount),
+                              (self.num_materials,), jnp.float32)
+            base = sharpen.unsharp_rgb(base, self.unsharp_sigma, gain[material])
+        elif self.residual_base != "input":
+            raise ValueError(f"unknown residual_base {self.residual_base!r}")
+        return base + out
 
 
 def _max_pool2(x):

@@ -1,0 +1,116 @@
+"""Tests for wrinkle_jax.sharpen: the JAX unsharp mask against the OpenCV baseline, its
+invariants and gradients, and the U-Net's unsharp residual base."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from wrinkle_jax import evaluation, sharpen
+from wrinkle_jax.nn import unet
+
+
+def _folds(n=3, size=32, seed=0):
+    """Random folds with ripples as RGB-form unit normals, inside a disc mask (so the mask's
+    border crosses rows and columns at every angle)."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:size, 0:size] / size
+    out = []
+    for _ in range(n):
+        a, b, c = rng.uniform(1, 4, 3)
+        gx = 0.6 * np.sin(2 * np.pi * a * x + rng.uniform(0, 6)) + 0.2 * np.sin(2 * np.pi * 7 * y)
+        gy = 0.6 * np.cos(2 * np.pi * b * y) + 0.2 * np.sin(2 * np.pi * c * (x + y))
+        nrm = np.stack([-gx, -gy, np.ones_like(gx)], -1)
+        out.append((nrm / np.linalg.norm(nrm, axis=-1, keepdims=True) + 1) / 2)
+    disc = ((x - 0.45) ** 2 + (y - 0.5) ** 2 < 0.4**2).astype(np.float32)
+    mask = np.broadcast_to(disc[None, ..., None], (n, size, size, 1)).copy()
+    return (np.asarray(out, np.float32) * mask).astype(np.float32), mask
+
+
+def test_gaussian_kernel_normalized_and_symmetric():
+    for sigma in (0.7, 2.0, 8.0):
+        g = sharpen.gaussian_kernel(sigma)
+        assert len(g) == 2 * np.ceil(3 * sigma) + 1
+        np.testing.assert_allclose(g.sum(), 1.0, rtol=1e-6)
+        np.testing.assert_array_equal(g, g[::-1])
+
+
+@pytest.mark.parametrize("sigma,amount", [(1.0, 0.5), (2.0, 1.0), (8.0, 2.0)])
+def test_matches_opencv_baseline(sigma, amount):
+    x, m = _folds()
+    want = evaluation.unsharp_mask(x, m, sigma, amount)
+    got = np.asarray(sharpen.unsharp_rgb(x, sigma, amount, m))
+    np.testing.assert_allclose(got, want, atol=2e-5)
+    # The inferred mask is the true one (background 0, normals never all-zero in RGB form).
+    got_inferred = np.asarray(sharpen.unsharp_rgb(x, sigma, amount))
+    np.testing.assert_allclose(got_inferred, want, atol=2e-5)
+
+
+def test_per_patch_amount_and_identity_at_zero():
+    x, m = _folds(n=2)
+    both = np.asarray(sharpen.unsharp_rgb(x, 2.0, jnp.array([0.0, 1.5]), m))
+    np.testing.assert_allclose(both[0], x[0], atol=1e-6)  # amount 0: unchanged
+    np.testing.assert_allclose(both[1], np.asarray(sharpen.unsharp_rgb(x[1:], 2.0, 1.5, m[1:]))[0],
+                               atol=1e-6)
+
+
+def test_constant_field_is_fixed_and_background_stays_zero():
+    m = np.zeros((1, 24, 24, 1), np.float32)
+    m[:, 3:17, 5:20] = 1
+    n = np.array([0.3, -0.2, 0.9])
+    x = ((n / np.linalg.norm(n) + 1) / 2 * m).astype(np.float32)
+    out = np.asarray(sharpen.unsharp_rgb(x, 4.0, 3.0, m))
+    # The normalized-convolution blur of a constant is that constant up to the mask's border:
+    # the background never bleeds in, so sharpening changes nothing.
+    np.testing.assert_allclose(out, x, atol=1e-5)
+    assert np.all(out[m[..., 0] == 0] == 0)
+
+
+def test_sharpening_adds_detail():
+    x, m = _folds()
+    out = np.asarray(sharpen.unsharp_rgb(x, 2.0, 1.0, m))
+    inside = m[..., 0] > 0
+
+    def grad_energy(a):
+        d = np.abs(np.diff(a, axis=2)).sum(-1)
+        return d[inside[:, :, 1:] & inside[:, :, :-1]].mean()
+
+    assert grad_energy(out) > 1.2 * grad_energy(x)
+
+
+def test_gradient_matches_finite_differences():
+    x, m = _folds(n=1, size=24)
+    w = jnp.asarray(np.random.default_rng(1).normal(size=x.shape), jnp.float32)
+
+    def f(amount, xx):
+        return jnp.sum(w * sharpen.unsharp_rgb(xx, 2.0, amount, m))
+
+    g_a, g_x = jax.grad(f, argnums=(0, 1))(jnp.float32(0.8), jnp.asarray(x))
+    h = 1e-2
+    fd = (f(jnp.float32(0.8 + h), x) - f(jnp.float32(0.8 - h), x)) / (2 * h)
+    np.testing.assert_allclose(float(g_a), float(fd), rtol=2e-2)
+    assert np.all(np.isfinite(np.asarray(g_x)))
+    # A directional derivative with respect to the input, inside the mask.
+    d = jnp.asarray(np.random.default_rng(2).normal(size=x.shape) * m * 1e-3, jnp.float32)
+    fd_x = (f(0.8, x + d) - f(0.8, x - d)) / 2
+    np.testing.assert_allclose(float(jnp.sum(g_x * d)), float(fd_x), rtol=5e-2)
+
+
+def test_unet_unsharp_base_starts_as_unsharp_mask():
+    x, m = _folds(n=2)
+    model = unet.CINUNet(num_materials=3, width=4, residual=True, residual_base="unsharp",
+                         unsharp_sigma=2.0, unsharp_amount=1.5)
+    params = unet.init_params(model, jax.random.key(0, impl="rbg"), 32)
+    assert params["unsharp_amount"].shape == (3,)
+    params = {**params, "out": jax.tree.map(jnp.zeros_like, params["out"])}
+    got = np.asarray(model.apply({"params": params}, x, jnp.array([0, 2])))
+    np.testing.assert_allclose(got, np.asarray(sharpen.unsharp_rgb(x, 2.0, 1.5)), atol=1e-6)
+    # The per-material gain is a live parameter: material 2's gain to 0 gives back its input.
+    params["unsharp_amount"] = params["unsharp_amount"].at[2].set(0.0)
+    got = np.asarray(model.apply({"params": params}, x, jnp.array([0, 2])))
+    np.testing.assert_allclose(got[1], x[1], atol=1e-6)
+    with pytest.raises(ValueError, match="residual_base"):
+        unet.CINUNet(width=4, residual=True, residual_base="blur").init(
+            jax.random.key(0, impl="rbg"), x, jnp.array([0, 0]))

@@ -90,10 +90,15 @@ def main(argv=None) -> None:
     ap.add_argument("--minutes", type=float, default=6.0)
     ap.add_argument("--residual", type=int, default=1)
     ap.add_argument("--data", default=str(ROOT / "data" / "patches"))
-    ap.add_argument("--only", default=None, help="comma-separated variant names")
+    ap.add_argument("--only", default=None,
+                    help="comma-separated variant names, in run order ('none': no training)")
     ap.add_argument("--residual-base", default="input", choices=("input", "unsharp"))
     ap.add_argument("--unsharp-sigma", type=float, default=8.0)
     ap.add_argument("--unsharp-amount", type=float, default=1.0)
+    ap.add_argument("--style-layers", default="relu2_2,relu3_1,relu3_2")
+    ap.add_argument("--normalize-channels", type=int, default=1)
+    ap.add_argument("--w-c", type=float, default=1.0, help="content weight")
+    ap.add_argument("--relative-floor", type=float, default=0.01)
     ap.add_argument("--tag", default="", help="suffix of the run and results folders")
     args = ap.parse_args(argv)
     study = args.study + (f"_{args.tag}" if args.tag else "")
@@ -104,11 +109,26 @@ def main(argv=None) -> None:
     results = json.loads(results_path.read_text()) if results_path.exists() else {}
     vgg_params = vgg.load_vgg19()
     held = heldout_eval_set(args.data)
+    if args.residual_base == "unsharp" and "unsharp base (untrained)" not in results:
+        # The starting point every variant must beat: the base alone, on the same patches.
+        out = evaluation.unsharp_mask(held["input"], held["mask"], args.unsharp_sigma,
+                                      args.unsharp_amount)
+        sc = evaluation.score_patches(vgg_params, held["input"], out, held["target"],
+                                      held["mask"])
+        results["unsharp base (untrained)"] = {
+            "steps": 0, "infer_ms_per_patch": 0.0,
+            "heldout": evaluation.summarize(sc, held["scene"])}
+        results_path.write_text(json.dumps(results, indent=1) + "\n")
     recipe = {"residual_base": args.residual_base, "unsharp_sigma": args.unsharp_sigma,
-              "unsharp_amount": args.unsharp_amount}
-    for name, cfg in variants(args.study, bool(args.residual), **recipe).items():
-        if args.only and name not in args.only.split(","):
+              "unsharp_amount": args.unsharp_amount,
+              "style_layers": tuple(args.style_layers.split(",")),
+              "normalize_channels": bool(args.normalize_channels), "w_c": args.w_c,
+              "relative_floor": args.relative_floor}
+    configs = variants(args.study, bool(args.residual), **recipe)
+    for name in (args.only.split(",") if args.only else configs):  # --only also sets the order
+        if name == "none":  # --only none: just the untrained base on the eval patches
             continue
+        cfg = configs[name]
         t0 = time.time()
         got = train.train(cfg, args.data, runs_dir / name, vgg_params=vgg_params,
                           progress=False, time_limit_s=60 * args.minutes)

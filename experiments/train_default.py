@@ -34,6 +34,7 @@ def config_from_args(args) -> train.TrainConfig:
                              style_layers=tuple(args.style_layers.split(",")),
                              steps=args.steps, eval_every=100, checkpoint_every=100,
                              eval_batches=8, learning_rate=args.lr, w_s=args.w_s,
+                             w_c=args.w_c, normalize_channels=bool(args.normalize_channels),
                              relative_floor=(args.relative_floor if args.relative_floor > 0
                                              else None),
                              residual_base=args.residual_base, unsharp_sigma=args.unsharp_sigma,
@@ -72,11 +73,16 @@ def main(argv=None) -> None:
     ap.add_argument("--out", default=str(enhancer.DEFAULT_PATH))
     ap.add_argument("--width", type=int, default=32)
     ap.add_argument("--residual", type=int, default=1)
-    ap.add_argument("--style-layers", default=",".join(train.TrainConfig.style_layers))
+    ap.add_argument("--style-layers", default="relu1_2,relu2_1,relu2_2,relu3_1,relu3_2",
+                    help="layer_selection's relu2_2,relu3_1,relu3_2 plus relu1_2,relu2_1, where "
+                         "the content term otherwise undoes the sharpening "
+                         "(experiments.per_layer_ratios)")
+    ap.add_argument("--normalize-channels", type=int, default=0)
+    ap.add_argument("--w-c", type=float, default=0.1, help="content weight")
     ap.add_argument("--steps", type=int, default=20_000)
     ap.add_argument("--lr", type=float, default=2e-4)
     ap.add_argument("--w-s", type=float, default=10.0)
-    ap.add_argument("--relative-floor", type=float, default=0.01,
+    ap.add_argument("--relative-floor", type=float, default=100.0,
                     help="per-patch relative style loss floor; <= 0 for the paper's absolute loss")
     ap.add_argument("--residual-base", default="unsharp", choices=("input", "unsharp"))
     ap.add_argument("--unsharp-sigma", type=float, default=8.0,

@@ -1,0 +1,562 @@
+"""Shared pieces of the evaluation scripts (`experiments.table1`, `.temporal`, `.timing`).
+
+    sequences   which scene config a (garment, motion) cell uses, where its simulated sequences
+                live, and simulating the missing ones (resumable, atomic writes)
+    alignment   baking a coarse and a fine simulation of the same pattern onto ONE pixel grid,
+                so that a patch origin means the same cloth in both maps
+    scoring     the improvement score of several methods on the same patches, with the VGG
+                Gram matrices of the input and the target computed once and reused by every
+                method (`method_losses` + `scores_from_losses` == `evaluation.score_patches`)
+    flicker     mean angular change of a normal map between consecutive frames
+    results     machine information and atomic JSON writing
+
+Conventions (as in the library): normal maps are float32 (H, W, 3) unit vectors in [-1, 1];
+patches are in the RGB form (n + 1) / 2 in [0, 1], NHWC, with a (N, S, S, 1) float32 {0, 1}
+mask; vertices are meters; times are seconds unless a name says ms.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import math
+import os
+import platform
+import sys
+import time
+import zipfile
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wrinkle_jax import enhancer as enhancer_lib
+from wrinkle_jax import evaluation, meshio, metrics, normalmap, patches
+from wrinkle_jax.fileio import atomic_write_text
+from wrinkle_jax.mesh import Garment, global_uv_scale
+from wrinkle_jax.nn import losses, vgg
+from wrinkle_jax.sim import scenes
+
+ROOT = Path(__file__).resolve().parents[1]
+SEQUENCES = ROOT / "data" / "sequences"  # experiments.make_sequences output
+TABLE1_SEQUENCES = ROOT / "data" / "table1_sequences"  # sequences simulated for the suite
+RESULTS = ROOT / "experiments" / "results"
+MODEL_CARD_RESULTS = RESULTS / "model_card" / "results.json"
+
+# The scene each garment's cells are derived from (its pins, attachment and pre-roll).
+GARMENT_BASE_SCENE = {"flared_skirt": "skirt_dance", "dress": "dress_dance", "cape": "cape_walk"}
+GARMENT_SHORT = {"flared_skirt": "skirt", "dress": "dress", "cape": "cape"}
+# Unsharp masking when no sweep result exists (the model card's sweep best on training patches).
+DEFAULT_UNSHARP = (8.0, 1.0)
+
+
+# --------------------------------------------------------------------------------------------
+# Results
+# --------------------------------------------------------------------------------------------
+
+
+def machine_info() -> dict:
+    """Platform, CPU count, 1-minute load average and library versions (JSON-ready)."""
+    try:
+        load = round(os.getloadavg()[0], 2)
+    except OSError:
+        load = None
+    return {"platform": platform.platform(), "processor": platform.processor() or None,
+            "cpu_count": os.cpu_count(), "load_avg_1min": load,
+            "python": sys.version.split()[0], "jax": jax.__version__,
+            "jax_backend": jax.default_backend(), "numpy": np.__version__,
+            "opencv": cv2.__version__}
+
+
+def write_json(path: str | os.PathLike, obj) -> None:
+    """Write `obj` as indented JSON, atomically (NaN written as null)."""
+    atomic_write_text(path, json.dumps(_jsonable(obj), indent=1) + "\n")
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, np.generic):
+        return _jsonable(x.item())
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def eta_text(done: float, total: float, elapsed_s: float) -> str:
+    """'ETA 12.3 min' from the work done so far (any unit) and the seconds it took."""
+    if done <= 0:
+        return "ETA ?"
+    return f"ETA {elapsed_s / done * max(total - done, 0.0) / 60:.1f} min"
+
+
+# --------------------------------------------------------------------------------------------
+# Sequences
+# --------------------------------------------------------------------------------------------
+
+
+def scene_for(garment: str, motion: str) -> scenes.SceneConfig:
+    """The scene of a (garment, motion) cell: an existing `scenes.SCENES` entry when one has
+    exactly this garment and motion (so its files are reused), else the garment's base scene
+    (`GARMENT_BASE_SCENE`: pins, attachment, pre-roll) with the motion replaced, named
+    "<short garment>_<motion>" (e.g. dress_walk, cape_dance)."""
+    for sc in scenes.SCENES.values():
+        if sc.garment == garment and sc.motion == motion:
+            return sc
+    if garment not in GARMENT_BASE_SCENE:
+        raise scenes.SceneError(f"no base scene for garment {garment!r}; expected one of "
+                                f"{', '.join(GARMENT_BASE_SCENE)}")
+    base = scenes.get_scene(GARMENT_BASE_SCENE[garment])
+    return dataclasses.replace(base, name=f"{GARMENT_SHORT[garment]}_{motion}", motion=motion,
+                               test_only=True, description=f"{garment}, {motion} "
+                               f"(derived from {base.name} for the evaluation suite)")
+
+
+def sequence_file(root: Path, scene: str, material: str, resolution: str, seed: int) -> Path:
+    """`<root>/<scene>/<material>_<resolution>_s<seed>.npz` (experiments.make_sequences)."""
+    return Path(root) / scene / f"{material}_{resolution}_s{seed}.npz"
+
+
+def stored_frames(path: Path) -> int:
+    """Number of frames in a sequence `.npz` (read from the array header, not decompressed)."""
+    with zipfile.ZipFile(path) as zf, zf.open("frames.npy") as fh:
+        version = np.lib.format.read_magic(fh)
+        read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                else np.lib.format.read_array_header_2_0)
+        shape, _, _ = read(fh)
+    return int(shape[0])
+
+
+def stored_matches(path: Path, config: scenes.SceneConfig, material: str, seed: int,
+                   frames: int) -> bool:
+    """Whether a stored simulation is this scene config, material and seed with >= frames."""
+    try:
+        if stored_frames(path) < frames:
+            return False
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["metadata"]))
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile):
+        return False
+    return (meta.get("scene_config") == config.to_json() and meta.get("material") == material
+            and int(meta.get("seed", -1)) == seed)
+
+
+def find_or_simulate(config: scenes.SceneConfig, material: str, resolution: str, seed: int,
+                     frames: int, reuse_roots: Iterable[Path], out_root: Path,
+                     log: Callable[[str], None] = print) -> tuple[Path, dict]:
+    """The path of a stored simulation of (config, material, resolution, seed) with at least
+    `frames` frames: the first match under `reuse_roots`, else `out_root`, else a new
+    simulation written to `out_root` (atomically, so an interrupted run leaves no partial
+    file and a rerun resumes).
+
+    Returns:
+      (path, info): info = {"source": "reused" | "simulated", "sim_s": wall seconds or 0}.
+    """
+    for root in (*reuse_roots, out_root):
+        p = sequence_file(root, config.name, material, resolution, seed)
+        if p.exists() and stored_matches(p, config, material, seed, frames):
+            return p, {"source": "reused", "sim_s": 0.0}
+    p = sequence_file(out_root, config.name, material, resolution, seed)
+    log(f"simulating {config.name} {material} {resolution} seed {seed}, {frames} frames -> {p}")
+    t0 = time.perf_counter()
+    seq = scenes.simulate(config, material, resolution, frames=frames, seed=seed)
+    scenes.save_simulation(p, seq)
+    wall = time.perf_counter() - t0
+    log(f"  done in {wall:.0f} s ({seq.metadata['ms_per_frame']:.0f} ms/frame)")
+    return p, {"source": "simulated", "sim_s": wall}
+
+
+# Table 1's cells (paper Table 1: Dress A seen, Dress B and C unseen; Motion 1 seen, 2 unseen).
+GARMENTS = ("flared_skirt", "dress", "cape")  # the first is seen in training
+TABLE_MATERIALS = ("silk_charmeuse", "denim_light")
+MOTIONS = ("dance", "walk")  # the first is seen in training
+SEEN_GARMENT, SEEN_MOTION = GARMENTS[0], MOTIONS[0]
+TEST_SEED = 1  # training scenes use seed 0: seed 1 is an unseen performance of every motion
+
+
+@dataclasses.dataclass(frozen=True)
+class Cell:
+    """One sequence pair of Table 1: a garment in a material doing a motion."""
+
+    garment: str
+    motion: str
+    material: str
+
+    @property
+    def scene(self) -> scenes.SceneConfig:
+        return scene_for(self.garment, self.motion)
+
+    @property
+    def key(self) -> str:
+        return f"{self.scene.name}/{self.material}"
+
+    @property
+    def kind(self) -> str:
+        """'seen garment, seen motion' | 'seen garment, unseen motion' | 'unseen garment'."""
+        if self.garment != SEEN_GARMENT:
+            return "unseen garment"
+        return "seen garment, " + ("seen motion" if self.motion == SEEN_MOTION
+                                   else "unseen motion")
+
+
+def table_cells(garments=GARMENTS, materials=TABLE_MATERIALS, motions=MOTIONS) -> list[Cell]:
+    """Cells in table order: material, then motion, then garment."""
+    return [Cell(g, mo, ma) for ma in materials for mo in motions for g in garments]
+
+
+def cell_sequences(cell: Cell, frames: int, seed: int = TEST_SEED,
+                   reuse_roots: Iterable[Path] = (SEQUENCES,), out_root: Path = TABLE1_SEQUENCES,
+                   log: Callable[[str], None] = print) -> dict:
+    """Paths of the fine and the coarse simulation of a cell (simulated if missing).
+
+    Returns:
+      {"fine": Path, "coarse": Path, "fine_info": {...}, "coarse_info": {...}} (see
+      `find_or_simulate`).
+    """
+    out = {}
+    for res in ("fine", "coarse"):
+        p, info = find_or_simulate(cell.scene, cell.material, res, seed, frames, reuse_roots,
+                                   out_root, log)
+        out[res], out[f"{res}_info"] = p, info
+    return out
+
+
+def load_first_frames(path: Path, frames: int) -> meshio.GarmentSequence:
+    """Load a sequence and keep its first `frames` frames (error if it has fewer)."""
+    seq = meshio.load_sequence(path)
+    if len(seq) < frames:
+        raise ValueError(f"{path}: {len(seq)} frames, {frames} needed")
+    return dataclasses.replace(seq, frames=np.ascontiguousarray(seq.frames[:frames]))
+
+
+# --------------------------------------------------------------------------------------------
+# Alignment: coarse and fine maps on one pixel grid
+# --------------------------------------------------------------------------------------------
+
+
+def shared_layout(reference: Garment, other: Garment, texel_size: float,
+                  margin: int = 8) -> normalmap.UVLayout:
+    """One UV layout for two meshes of the same pattern (UVs in the same units).
+
+    The scale is `reference`'s meters per UV unit (`mesh.global_uv_scale`, the scale the
+    library bakes `reference` at); the UV bounds are the union of both meshes' (their outlines
+    differ by the coarse mesh's coarser polyline). Texel (r, c) then covers the same UV square,
+    i.e. the same cloth, in both maps. (Baking each mesh with its own `layout_for` would not:
+    their scales differ by ~1e-3, a drift of ~2 texels across a 2 m skirt.)
+    """
+    ppu = global_uv_scale(reference) / float(texel_size)
+
+    def used(g):
+        return np.asarray(g.uvs, np.float64)[np.unique(np.asarray(g.uv_faces))]
+
+    uv = np.concatenate([used(reference), used(other)])
+    u_min, v_min = uv.min(0)
+    u_max, v_max = uv.max(0)
+    width = int(math.ceil((u_max - u_min) * ppu)) + 2 * margin
+    height = int(math.ceil((v_max - v_min) * ppu)) + 2 * margin
+    return normalmap.UVLayout(float(ppu), float(u_min), float(v_max), int(margin), height, width,
+                              float(texel_size))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class AlignedPair:
+    """Raster plans of a fine and a coarse mesh on one layout.
+
+    Attributes:
+      fine, coarse: `normalmap.RasterPlan`s sharing `layout`.
+      mask: (H, W, 1) float32, 1 where BOTH meshes cover the texel (the scored texels).
+    """
+
+    fine: normalmap.RasterPlan
+    coarse: normalmap.RasterPlan
+    mask: np.ndarray
+
+    @property
+    def layout(self) -> normalmap.UVLayout:
+        return self.fine.layout
+
+
+def aligned_pair(fine: Garment, coarse: Garment, texel_size: float) -> AlignedPair:
+    """Plans of `fine` and `coarse` on `shared_layout(fine, coarse, texel_size)`."""
+    layout = shared_layout(fine, coarse, texel_size)
+    pf = normalmap.make_plan(fine, layout=layout)
+    pc = normalmap.make_plan(coarse, layout=layout)
+    mask = (np.asarray(pf.mask) * np.asarray(pc.mask)).astype(np.float32)
+    return AlignedPair(pf, pc, mask)
+
+
+_bake = jax.jit(normalmap.bake)
+
+
+def bake_map(plan: normalmap.RasterPlan, vertices) -> np.ndarray:
+    """One frame (V, 3) meters -> (H, W, 3) float32 normal map (jitted bake, NumPy out)."""
+    return np.asarray(_bake(plan, jnp.asarray(vertices, jnp.float32)))
+
+
+def candidate_origins(mask: np.ndarray, size: int, stride: int, min_coverage: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Grid patch origins whose patch has at least `min_coverage` of mask texels.
+
+    Args:
+      mask: (H, W, 1) float32 {0, 1} with H, W >= size (pad first).
+      size, stride: patch side and grid step, texels.
+      min_coverage: minimum fraction of mask texels in a patch, in [0, 1].
+    Returns:
+      origins (K, 2) int32 (row, col), row-major; coverage (K,) float32 fractions.
+    """
+    origins = patches.tile(mask, size=size, stride=stride)
+    m = np.asarray(mask[..., 0] > 0, np.int64)
+    sat = np.zeros((m.shape[0] + 1, m.shape[1] + 1), np.int64)
+    sat[1:, 1:] = m.cumsum(0).cumsum(1)
+    r, c = origins[:, 0].astype(np.int64), origins[:, 1].astype(np.int64)
+    count = sat[r + size, c + size] - sat[r, c + size] - sat[r + size, c] + sat[r, c]
+    cov = (count / float(size * size)).astype(np.float32)
+    keep = cov >= min_coverage
+    return origins[keep].astype(np.int32).reshape(-1, 2), cov[keep]
+
+
+def choose_origins(origins: np.ndarray, count: int, seed: Iterable[int]) -> np.ndarray:
+    """`count` of `origins` without replacement (all if fewer), seeded, in row-major order."""
+    if len(origins) <= count:
+        return origins
+    rng = np.random.default_rng(list(seed))
+    return origins[np.sort(rng.choice(len(origins), count, replace=False))]
+
+
+def cut(image: np.ndarray, origins: np.ndarray, size: int) -> np.ndarray:
+    """(H, W, C) -> (K, size, size, C) float32 patches at `origins` (NumPy)."""
+    rows = origins[:, 0, None, None] + np.arange(size)[None, :, None]
+    cols = origins[:, 1, None, None] + np.arange(size)[None, None, :]
+    return np.asarray(image, np.float32)[rows, cols]
+
+
+@dataclasses.dataclass(frozen=True)
+class PatchSet:
+    """Aligned patches of one frame.
+
+    Attributes:
+      input: (K, S, S, 3) coarse map, RGB form, zero off the mask.
+      target: (K, S, S, 3) fine map, RGB form, zero off the mask.
+      mask: (K, S, S, 1) float32, texels covered by both meshes.
+      origins: (K, 2) int32 (row, col) in the shared layout.
+      material_id: index into `wrinkle_jax.MATERIALS`.
+    """
+
+    input: np.ndarray
+    target: np.ndarray
+    mask: np.ndarray
+    origins: np.ndarray
+    material_id: int
+
+
+def aligned_patches(pair: AlignedPair, fine_vertices, coarse_vertices, origins: np.ndarray,
+                    size: int, material_id: int) -> PatchSet:
+    """Bake one fine and one coarse frame on the shared grid and cut the same patches."""
+    mask = np.asarray(patches.pad_to_patch(pair.mask, size)[0])
+    fine = normalmap.to_rgb(patches.pad_to_patch(bake_map(pair.fine, fine_vertices), size)[0])
+    coarse = normalmap.to_rgb(
+        patches.pad_to_patch(bake_map(pair.coarse, coarse_vertices), size)[0])
+    m = cut(mask, origins, size)
+    return PatchSet(cut(coarse, origins, size) * m, cut(fine, origins, size) * m, m,
+                    np.asarray(origins, np.int32), int(material_id))
+
+
+# --------------------------------------------------------------------------------------------
+# Methods
+# --------------------------------------------------------------------------------------------
+
+
+def unsharp_setting(path: Path = MODEL_CARD_RESULTS) -> tuple[float, float, str]:
+    """(sigma texels, amount, source) of the unsharp-mask baseline: the best entry of the
+    model card's "unsharp_sweep" (mean signed improvement on training patches) if that file
+    exists, else `DEFAULT_UNSHARP`."""
+    try:
+        sweep = json.loads(Path(path).read_text())["unsharp_sweep"]
+        best = max(sweep, key=sweep.get)
+        kv = dict(part.split("=") for part in best.split(","))
+        return float(kv["sigma"]), float(kv["amount"]), f"{path}: unsharp_sweep best {best}"
+    except (OSError, KeyError, ValueError, json.JSONDecodeError):
+        s, a = DEFAULT_UNSHARP
+        return s, a, f"default sigma={s:g},amount={a:g} (no sweep in {path})"
+
+
+def enhancer_method(enh: enhancer_lib.Enhancer, batch_size: int = 16,
+                    timings: dict | None = None) -> Callable[[PatchSet], np.ndarray]:
+    """The model as a method: (PatchSet) -> (K, S, S, 3) RGB-form outputs, unit normals inside
+    the mask and zero outside (as the baselines).
+
+    One jitted apply with a fixed batch shape (the last batch padded), compiled here (seconds
+    in `timings["compile_s"]`), so calls time the network only; `timings` accumulates
+    "network_s" and "network_patches".
+    """
+    apply = enhancer_lib.make_apply(enh)
+    timings = {} if timings is None else timings
+    size = enh.config.patch_size
+    t0 = time.perf_counter()
+    apply(enh.params, jnp.zeros((batch_size, size, size, 3), jnp.float32),
+          jnp.zeros((batch_size,), jnp.int32)).block_until_ready()
+    timings["compile_s"] = time.perf_counter() - t0
+
+    def run(p: PatchSet) -> np.ndarray:
+        n = len(p.input)
+        outs = []
+        t0 = time.perf_counter()
+        for s in range(0, n, batch_size):
+            idx = np.resize(np.arange(s, min(s + batch_size, n)), batch_size)
+            o = apply(enh.params, jnp.asarray(p.input[idx]),
+                      jnp.full((batch_size,), p.material_id, jnp.int32))
+            outs.append(np.asarray(o)[:min(batch_size, n - s)])
+        timings["network_s"] = timings.get("network_s", 0.0) + time.perf_counter() - t0
+        timings["network_patches"] = timings.get("network_patches", 0) + n
+        nrm = np.concatenate(outs) * 2.0 - 1.0
+        nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=-1, keepdims=True), 1e-8)
+        return ((nrm + 1.0) * 0.5 * p.mask).astype(np.float32)
+
+    return run
+
+
+def baseline_methods(sigma: float, amount: float) -> dict[str, Callable[[PatchSet], np.ndarray]]:
+    """The non-learned methods, each (PatchSet) -> (K, S, S, 3) outputs (RGB form, masked)."""
+    return {
+        "identity": lambda p: evaluation.identity(p.input, p.mask),
+        f"unsharp (sigma={sigma:g},amount={amount:g})":
+            lambda p: evaluation.unsharp_mask(p.input, p.mask, sigma, amount),
+        "bicubic x2 down/up": lambda p: evaluation.resample(p.input, p.mask, 2.0),
+        "lanczos x2 down/up": lambda p: evaluation.resample(p.input, p.mask, 2.0,
+                                                            up=cv2.INTER_LANCZOS4),
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# Scoring with shared Gram matrices
+# --------------------------------------------------------------------------------------------
+
+
+@functools.lru_cache(maxsize=8)
+def _gram_fn(layers: tuple[str, ...], pool: str):
+    def fn(vgg_params, images, mask):
+        feats = vgg.features(vgg_params, images, layers=layers, pool=pool)
+        levels = losses.mask_pyramid(mask, max(vgg.layer_level(n) for n in layers) + 1)
+        return {n: losses.gram(feats[n], levels[vgg.layer_level(n)], normalize=True)
+                for n in layers}
+    return jax.jit(fn)
+
+
+@jax.jit
+def _gram_loss(grams_a: dict, grams_b: dict):
+    """sum_l ||G_l(a)/R_l - G_l(b)/R_l||_F^2 / 4, per sample (N,): `losses.style_loss` with unit
+    layer weights, from precomputed normalized Gram matrices."""
+    total = 0.0
+    for name in sorted(grams_a):
+        d = grams_a[name] - grams_b[name]
+        total = total + jnp.sum(d * d, axis=(1, 2)) / 4.0
+    return total
+
+
+def gram_matrices(vgg_params, images, mask, layers=evaluation.EVAL_LAYERS, pool: str = "avg"):
+    """Normalized masked Gram matrices G_l / R_l of a batch: dict layer -> (N, C_l, C_l).
+
+    images: (N, S, S, 3) RGB form; mask: (N, S, S, 1). One jitted VGG pass (compiled per
+    batch shape: pass fixed-size batches).
+    """
+    return _gram_fn(tuple(layers), pool)(vgg_params, jnp.asarray(images, jnp.float32),
+                                         jnp.asarray(mask, jnp.float32))
+
+
+def method_losses(vgg_params, inp, target, mask, outputs: dict[str, np.ndarray],
+                  layers=evaluation.EVAL_LAYERS, pool: str = "avg", batch_size: int = 16,
+                  counter: dict | None = None) -> dict[str, np.ndarray]:
+    """Style losses against the target of the input and of every method's output.
+
+    The target's and the input's Gram matrices are computed once per batch and shared by all
+    methods; an output equal to the input (identity) reuses the input's. VGG passes per patch:
+    2 + (number of outputs that differ from the input), against 3 per method for
+    `evaluation.score_patches`.
+
+    Args:
+      inp, target: (N, S, S, 3) RGB form; mask: (N, S, S, 1); outputs: name -> (N, S, S, 3).
+      counter: optional dict; "vgg_passes" accumulates image-batches run through VGG.
+    Returns:
+      {"input": L(N) (N,), <name>: L(N*) (N,) for every output} float32.
+    """
+    n = len(inp)
+    counter = {} if counter is None else counter
+    parts: dict[str, list] = {"input": [], **{k: [] for k in outputs}}
+
+    def grams(x, idx):
+        counter["vgg_passes"] = counter.get("vgg_passes", 0) + 1
+        return gram_matrices(vgg_params, np.asarray(x)[idx], np.asarray(mask)[idx], layers, pool)
+
+    for s in range(0, n, batch_size):
+        k = min(batch_size, n - s)
+        idx = np.resize(np.arange(s, s + k), batch_size)  # fixed shape: one compile
+        g_t = grams(target, idx)
+        g_i = grams(inp, idx)
+        loss_in = _gram_loss(g_i, g_t)
+        parts["input"].append(np.asarray(loss_in)[:k])
+        for name, out in outputs.items():
+            if np.array_equal(np.asarray(out)[s:s + k], np.asarray(inp)[s:s + k]):
+                loss = loss_in
+            else:
+                loss = _gram_loss(grams(out, idx), g_t)
+            parts[name].append(np.asarray(loss)[:k])
+    return {k: (np.concatenate(v) if v else np.zeros(0, np.float32)).astype(np.float32)
+            for k, v in parts.items()}
+
+
+def scores_from_losses(loss_input, loss_output) -> dict[str, np.ndarray]:
+    """Improvement scores from per-patch losses, exactly as `evaluation.score_patches` makes
+    them (eps = 1e-6 of the largest input loss of the set): dict of (N,) arrays loss_input,
+    loss_output, improvement (paper |.| form, %), improvement_signed (%), valid (bool)."""
+    loss_input = np.asarray(loss_input, np.float32)
+    loss_output = np.asarray(loss_output, np.float32)
+    eps = 1e-6 * max(float(loss_input.max(initial=0.0)), 1e-30)
+    sc = metrics.improvement_score_from_losses(jnp.asarray(loss_input), jnp.asarray(loss_output),
+                                               eps=eps)
+    return {"loss_input": loss_input, "loss_output": loss_output,
+            "improvement": np.asarray(sc.score), "improvement_signed": np.asarray(sc.signed_score),
+            "valid": np.asarray(sc.valid)}
+
+
+# --------------------------------------------------------------------------------------------
+# Flicker
+# --------------------------------------------------------------------------------------------
+
+
+def angular_change(a, b, mask) -> float:
+    """Mean angle in degrees between two normal maps over the mask texels.
+
+    a, b: (H, W, 3) normals in [-1, 1] (renormalized here; zero vectors count as 0 degrees);
+    mask: (H, W, 1) or (H, W), > 0 on the texels to average. 0.0 for an empty mask.
+    """
+    m = np.asarray(mask).reshape(np.asarray(a).shape[:2]) > 0
+    if not m.any():
+        return 0.0
+    x, y = np.asarray(a, np.float64)[m], np.asarray(b, np.float64)[m]
+    nx, ny = np.linalg.norm(x, axis=-1), np.linalg.norm(y, axis=-1)
+    ok = (nx > 1e-12) & (ny > 1e-12)
+    cos = np.where(ok, (x * y).sum(-1) / np.maximum(nx * ny, 1e-24), 1.0)
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).mean())
+
+
+def flicker_series(maps, mask) -> np.ndarray:
+    """(T, H, W, 3) normal maps -> (T - 1,) float64 mean angular change (degrees) per pair."""
+    return np.array([angular_change(maps[t], maps[t + 1], mask) for t in range(len(maps) - 1)])
+
+
+def series_stats(x: np.ndarray) -> dict:
+    """mean, std, median, p95, max of a 1-D series (JSON-ready floats)."""
+    x = np.asarray(x, np.float64)
+    if not len(x):
+        return {"n": 0}
+    return {"n": int(len(x)), "mean": float(x.mean()), "std": float(x.std()),
+            "median": float(np.median(x)), "p95": float(np.percentile(x, 95)),
+            "max": float(x.max())}

@@ -1,0 +1,477 @@
+"""Paper Table 1: improvement score of the enhancer on COARSE SIMULATIONS, fine simulations as
+ground truth, against the non-learned baselines on the same patches.
+
+    python -m experiments.table1 [--model wrinkle_jax/assets/enhancer.npz] [--frames 200]
+        [--frame-stride 10] [--patches-per-frame 8] [--out experiments/results/table1]
+
+Cells (12): garment {flared_skirt (seen in training), dress, cape (unseen)} x material
+{silk_charmeuse, denim_light} x motion {dance (seen), walk (unseen)}, seed 1 (training used
+seed 0, so even the seen cell is an unseen performance). Scenes: skirt_dance, skirt_walk,
+dress_dance, cape_walk from `wrinkle_jax.sim.scenes`; dress_walk and cape_dance are the dress
+and cape scenes with the motion replaced (`eval_common.scene_for`). Each cell uses the first
+`--frames` frames of a fine (PD 10 mm) and a coarse (PD 30 mm) simulation: files of
+`data/sequences` (the 300-frame test sequences) are reused when their scene config, material
+and seed match; missing ones (skirt_dance seed 1, dress_walk, cape_dance) are simulated into
+`data/table1_sequences/` first (resumable, atomic writes; ~6 min of fine simulation on an idle
+machine).
+
+Patches (paper: patch level): both meshes are baked on ONE pixel grid at the model's texel
+size (`eval_common.shared_layout`: the fine mesh's meters-per-UV, the union of the UV bounds),
+so a patch origin is the same cloth in both maps. Candidate patches are the model-size patches
+of a grid (stride half a patch) in which the texels covered by BOTH meshes make up at least
+`--min-coverage` (0.5); in every `--frame-stride`-th frame, `--patches-per-frame` of them are
+drawn at random (seeded by cell and frame). Input N = the coarse map, target N_hat = the fine
+map of the same frame, both cut to that mask.
+
+Methods, on the same patches: identity (score 0 by definition); unsharp masking with the best
+(sigma, amount) of the model card's sweep on training patches
+(`experiments/results/model_card/results.json`, else sigma 8 amount 1); bicubic and Lanczos x2
+down/up-sampling; the model (run on the patch itself, material given).
+
+Score: `wrinkle_jax.evaluation`'s improvement score on EVAL_LAYERS (relu1_2 ... relu5_1), the
+paper's |.| form and the signed form (negative = further from the target's style than the
+input). The Gram matrices of the input and the target are computed once per patch and shared
+by the methods (`eval_common.method_losses`, equal to `evaluation.score_patches`).
+
+Cost (2 CPU cores): a VGG19 pass to relu5_1 costs ~0.15-0.2 s per 128x128 patch on an idle
+machine and ~0.4-0.5 s with another job on the cores; a patch needs 2 + 4 passes (input,
+target, and every method except identity), so the defaults (12 cells x 20 frames x 8 patches
+= 1920 patches) take ~30-40 min idle. The ETA is printed as it goes. Each finished cell is
+stored under `<out>/cells/` and reused by a rerun with the same settings (`--fresh` ignores it).
+
+Writes `<out>/results.json` (per cell and per cell kind: n, mean and std of both scores and
+medians, per method; sampling, timings, machine), `<out>/table.md` (laid out like the paper's
+Table 1, plus the method comparison) and `<out>/scores.npz` (per-patch losses and scores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import io
+import json
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from experiments import eval_common as ec
+from wrinkle_jax import MATERIALS, evaluation, material_index, patches
+from wrinkle_jax import enhancer as enhancer_lib
+from wrinkle_jax.fileio import atomic_write_bytes
+from wrinkle_jax.nn import vgg
+
+MODEL = "model"
+SUMMARY_KINDS = ("seen garment, seen motion", "seen garment, unseen motion", "unseen garment")
+
+
+@dataclasses.dataclass(frozen=True)
+class Sampling:
+    """Which patches are scored (static).
+
+    Attributes:
+      frames: frames used per sequence (the first `frames`).
+      frame_stride: score every k-th of them (frame 0, k, 2k, ...).
+      patches_per_frame: patches drawn per scored frame (all candidates if fewer).
+      patch_size, texel_size: from the model (texels; meters per texel).
+      grid_stride: candidate grid step, texels (None: half a patch).
+      min_coverage: minimum fraction of texels covered by both meshes in a candidate patch.
+      seed: seeds the patch draw (with the cell and the frame index).
+      score_batch: patches per VGG call.
+    """
+
+    frames: int = 200
+    frame_stride: int = 10
+    patches_per_frame: int = 8
+    patch_size: int = 128
+    texel_size: float = 0.002
+    grid_stride: int | None = None
+    min_coverage: float = 0.5
+    seed: int = 0
+    score_batch: int = 8
+
+    @property
+    def frame_indices(self) -> list[int]:
+        return list(range(0, self.frames, self.frame_stride))
+
+
+def _cell_seed(cell: ec.Cell) -> list[int]:
+    """A stable integer seed list for a cell (Python's hash() is salted per process)."""
+    return [int.from_bytes(cell.key.encode(), "little") % (2**32)]
+
+
+def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg_params,
+                  sampling: Sampling, cell_seed=(0,),
+                  progress: Callable[[int], None] | None = None) -> dict:
+    """Score every method on the same aligned patches of one fine/coarse sequence pair.
+
+    Args:
+      fine, coarse: `GarmentSequence`s of the same pattern, scene, material and seed (frames
+        (T, V, 3) meters; T >= max(sampling.frame_indices) + 1).
+      material: material name (passed to the model method through `PatchSet.material_id`).
+      methods: name -> (PatchSet) -> (K, S, S, 3) RGB-form outputs.
+      vgg_params: `vgg.load_vgg19()` (or a small VGG in tests).
+      sampling: `Sampling`.
+      cell_seed: extra seed entropy for the patch draw (e.g. the cell).
+      progress: called with 1 after each scored frame.
+    Returns:
+      {"frame": (N,) int32 frame of every patch, "origin": (N, 2) int32, "coverage": (N,),
+       "loss_input": (N,), "loss": {name: (N,)}, "n_candidates": int,
+       "timings": {"bake_s", "methods_s": {name: s}, "score_s", "vgg_passes"}}.
+    """
+    size = sampling.patch_size
+    stride = size // 2 if sampling.grid_stride is None else sampling.grid_stride
+    pair = ec.aligned_pair(fine.garment, coarse.garment, sampling.texel_size)
+    mask = np.asarray(patches.pad_to_patch(pair.mask, size)[0])
+    cand, cov = ec.candidate_origins(mask, size, stride, sampling.min_coverage)
+    if not len(cand):
+        raise ValueError(f"no {size}x{size} patch reaches {sampling.min_coverage:.0%} coverage "
+                         "by both meshes")
+    cov_of = {tuple(o): c for o, c in zip(cand.tolist(), cov.tolist(), strict=True)}
+    mid = material_index(material)
+    frames, origins, covs = [], [], []
+    loss_in, loss = [], {k: [] for k in methods}
+    timings = {"bake_s": 0.0, "methods_s": {k: 0.0 for k in methods}, "score_s": 0.0}
+    counter: dict = {}
+    for t in sampling.frame_indices:
+        sel = ec.choose_origins(cand, sampling.patches_per_frame, (sampling.seed, *cell_seed, t))
+        t0 = time.perf_counter()
+        ps = ec.aligned_patches(pair, fine.frames[t], coarse.frames[t], sel, size, mid)
+        timings["bake_s"] += time.perf_counter() - t0
+        outs = {}
+        for name, fn in methods.items():
+            t0 = time.perf_counter()
+            outs[name] = fn(ps)
+            timings["methods_s"][name] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        got = ec.method_losses(vgg_params, ps.input, ps.target, ps.mask, outs,
+                               batch_size=sampling.score_batch, counter=counter)
+        timings["score_s"] += time.perf_counter() - t0
+        loss_in.append(got["input"])
+        for k in methods:
+            loss[k].append(got[k])
+        frames += [t] * len(sel)
+        origins.append(sel)
+        covs += [cov_of[tuple(o)] for o in sel.tolist()]
+        if progress is not None:
+            progress(1)
+    timings["vgg_passes"] = counter.get("vgg_passes", 0)
+    return {"frame": np.asarray(frames, np.int32), "origin": np.concatenate(origins),
+            "coverage": np.asarray(covs, np.float32), "loss_input": np.concatenate(loss_in),
+            "loss": {k: np.concatenate(v) for k, v in loss.items()},
+            "n_candidates": int(len(cand)), "timings": timings}
+
+
+def summary(scores: dict) -> dict:
+    """`evaluation.summarize(scores)["all"]` plus the medians of both scores."""
+    out = evaluation.summarize(scores)["all"]
+    v = scores["valid"]
+    if v.any():
+        out["improvement_median"] = float(np.median(scores["improvement"][v]))
+        out["signed_median"] = float(np.median(scores["improvement_signed"][v]))
+    return out
+
+
+def cell_scores(cell_result: dict) -> dict[str, dict]:
+    """Per-method score dicts (`eval_common.scores_from_losses`) of one evaluated cell."""
+    return {k: ec.scores_from_losses(cell_result["loss_input"], v)
+            for k, v in cell_result["loss"].items()}
+
+
+def pooled_scores(results: list[dict]) -> dict[str, dict]:
+    """Scores of several cells pooled patch by patch (each cell's eps kept)."""
+    per = [cell_scores(r) for r in results]
+    return {k: {f: np.concatenate([p[k][f] for p in per]) for f in per[0][k]} for k in per[0]}
+
+
+# --------------------------------------------------------------------------------------------
+# Cell files (resume)
+# --------------------------------------------------------------------------------------------
+
+
+def _cell_path(out: Path, cell: ec.Cell) -> Path:
+    return out / "cells" / f"{cell.scene.name}__{cell.material}.npz"
+
+
+def save_cell(path: Path, result: dict, fingerprint: dict) -> None:
+    """Store one evaluated cell (arrays + JSON fingerprint of the settings), atomically."""
+    arrays = {"frame": result["frame"], "origin": result["origin"],
+              "coverage": result["coverage"], "loss_input": result["loss_input"],
+              "methods": np.array(list(result["loss"])),
+              "losses": np.stack([result["loss"][k] for k in result["loss"]]),
+              "meta": np.str_(json.dumps({"fingerprint": fingerprint,
+                                          "n_candidates": result["n_candidates"],
+                                          "timings": result["timings"]}))}
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def load_cell(path: Path, fingerprint: dict) -> dict | None:
+    """A stored cell if it exists and was made with the same settings, else None."""
+    if not path.exists():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+            if meta["fingerprint"] != json.loads(json.dumps(fingerprint)):
+                return None
+            return {"frame": z["frame"], "origin": z["origin"], "coverage": z["coverage"],
+                    "loss_input": z["loss_input"],
+                    "loss": dict(zip(z["methods"].tolist(), z["losses"], strict=True)),
+                    "n_candidates": meta["n_candidates"], "timings": meta["timings"]}
+    except (OSError, KeyError, ValueError):
+        return None
+
+
+# --------------------------------------------------------------------------------------------
+# Table
+# --------------------------------------------------------------------------------------------
+
+
+def _frames_text(idx: list[int]) -> str:
+    """'0, 10, 20, ..., 190' (or the whole list when short)."""
+    if len(idx) <= 4:
+        return ", ".join(map(str, idx))
+    return f"{idx[0]}, {idx[1]}, {idx[2]}, ..., {idx[-1]}"
+
+
+def _fmt(d: dict, signed: bool = False) -> str:
+    if not d.get("n"):
+        return "-"
+    if signed:
+        return f"{d['signed_mean']:+.1f} ± {d['signed_std']:.1f}"
+    return f"{d['improvement_mean']:.1f} ± {d['improvement_std']:.1f}"
+
+
+def table_markdown(results: dict) -> str:
+    """table.md: the paper's layout (rows material x motion, columns garments) for the model,
+    in the paper's |.| form and signed; then every method by cell kind."""
+    cells = results["cells"]
+    garments = results["config"]["garments"]
+    lines = [f"# Table 1: improvement score on coarse simulations (model `{results['model']}`)",
+             "",
+             f"{results['sampling_text']}", ""]
+    for signed in (False, True):
+        title = ("signed score (100 = target style, 0 = input unchanged, < 0 = worse)" if signed
+                 else "paper's |.| form, mean ± std over patches")
+        lines += [f"## Model, {title}", "",
+                  "| material | motion | " + " | ".join(
+                      f"{g} ({'seen' if g == ec.SEEN_GARMENT else 'unseen'})"
+                      for g in garments) + " |",
+                  "|---|---|" + "---|" * len(garments)]
+        for ma in results["config"]["materials"]:
+            for mo in results["config"]["motions"]:
+                row = [ma, f"{mo} ({'seen' if mo == ec.SEEN_MOTION else 'unseen'})"]
+                for g in garments:
+                    key = ec.Cell(g, mo, ma).key
+                    row.append(_fmt(cells[key]["methods"][MODEL], signed) if key in cells
+                               else "-")
+                lines.append("| " + " | ".join(row) + " |")
+        lines.append("")
+    lines += ["## All methods by cell kind: |.| mean ± std (signed mean ± std), n patches", "",
+              "| method | " + " | ".join(results["by_kind"]) + " | all |",
+              "|---|" + "---|" * (len(results["by_kind"]) + 1)]
+    for name in results["methods"]:
+        row = [name]
+        for d in [*results["by_kind"].values(), results["all"]]:
+            s = d[name]
+            row.append(f"{_fmt(s)} ({_fmt(s, True)}), n={s.get('n', 0)}" if s.get("n")
+                       else "-")
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n"
+
+
+# --------------------------------------------------------------------------------------------
+# Main
+# --------------------------------------------------------------------------------------------
+
+
+def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params, sampling: Sampling,
+        out: Path, fingerprint_of: Callable[[ec.Cell], dict], fresh: bool = False,
+        log: Callable[[str], None] = print) -> dict[str, dict]:
+    """Evaluate (or reload from `<out>/cells/`) every cell, printing progress and an ETA.
+
+    Returns:
+      cell key -> `evaluate_cell` result (timings also hold "cell_s", the cell's wall time).
+    """
+    n_frames = len(sampling.frame_indices)
+    cached = {c.key: None if fresh else load_cell(_cell_path(out, c), fingerprint_of(c))
+              for c in cells}
+    total = n_frames * sum(v is None for v in cached.values())
+    done = [0]
+    t_start = time.perf_counter()
+    results = {}
+    for i, cell in enumerate(cells):
+        tag = f"[{i + 1}/{len(cells)}] {cell.key}"
+        if cached[cell.key] is not None:
+            log(f"{tag}: reusing {_cell_path(out, cell)}")
+            results[cell.key] = cached[cell.key]
+            continue
+        fine = ec.load_first_frames(sequences[cell.key]["fine"], sampling.frames)
+        coarse = ec.load_first_frames(sequences[cell.key]["coarse"], sampling.frames)
+        first = done[0]
+
+        def progress(k, tag=tag, first=first):
+            done[0] += k
+            elapsed = time.perf_counter() - t_start
+            log(f"{tag}: frame {done[0] - first}/{n_frames}, {elapsed / 60:.1f} min, "
+                f"{ec.eta_text(done[0], total, elapsed)}")
+
+        t0 = time.perf_counter()
+        res = evaluate_cell(fine, coarse, cell.material, methods, vgg_params, sampling,
+                            _cell_seed(cell), progress)
+        res["timings"]["cell_s"] = time.perf_counter() - t0
+        save_cell(_cell_path(out, cell), res, fingerprint_of(cell))
+        results[cell.key] = res
+        sig = {k: round(float(np.mean(s["improvement_signed"][s["valid"]])), 1)
+               for k, s in cell_scores(res).items() if s["valid"].any()}
+        log(f"{tag}: signed means {sig}")
+    return results
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()),
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog="\n".join(__doc__.splitlines()[1:]))
+    ap.add_argument("--model", default=str(enhancer_lib.DEFAULT_PATH),
+                    help="enhancer .npz (default: the shipped model)")
+    ap.add_argument("--frames", type=int, default=200, help="frames per sequence")
+    ap.add_argument("--frame-stride", type=int, default=10, help="score every k-th frame")
+    ap.add_argument("--patches-per-frame", type=int, default=8)
+    ap.add_argument("--min-coverage", type=float, default=0.5,
+                    help="minimum fraction of patch texels covered by both meshes")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the patch draw")
+    ap.add_argument("--garments", default=",".join(ec.GARMENTS))
+    ap.add_argument("--materials", default=",".join(ec.TABLE_MATERIALS))
+    ap.add_argument("--motions", default=",".join(ec.MOTIONS))
+    ap.add_argument("--sequences", default=str(ec.SEQUENCES),
+                    help="folder of existing simulations to reuse")
+    ap.add_argument("--sim-out", default=str(ec.TABLE1_SEQUENCES),
+                    help="folder for the simulations this script makes")
+    ap.add_argument("--out", default=str(ec.RESULTS / "table1"))
+    ap.add_argument("--fresh", action="store_true", help="ignore stored cells and rescore")
+    args = ap.parse_args(argv)
+    if args.frames < 1 or args.frame_stride < 1 or args.patches_per_frame < 1:
+        ap.error("--frames, --frame-stride and --patches-per-frame must be >= 1")
+    for name in args.materials.split(","):
+        if name not in MATERIALS:
+            ap.error(f"unknown material {name!r}")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_all = time.perf_counter()
+    try:
+        enh = enhancer_lib.load_enhancer(args.model)
+    except enhancer_lib.EnhancerError as e:
+        ap.error(f"{e}; pass --model PATH (e.g. outputs/candidates/enhancer_w32_relative.npz)")
+    sampling = Sampling(frames=args.frames, frame_stride=args.frame_stride,
+                        patches_per_frame=args.patches_per_frame,
+                        patch_size=enh.config.patch_size, texel_size=enh.config.texel_size,
+                        min_coverage=args.min_coverage, seed=args.seed,
+                        score_batch=min(args.patches_per_frame, 16))
+    cells = ec.table_cells(args.garments.split(","), args.materials.split(","),
+                           args.motions.split(","))
+
+    # 1. Sequences (simulate what is missing; resumable).
+    t0 = time.perf_counter()
+    sequences = {c.key: ec.cell_sequences(c, args.frames, ec.TEST_SEED, (Path(args.sequences),),
+                                          Path(args.sim_out)) for c in cells}
+    sim_s = time.perf_counter() - t0
+
+    # 2. Methods and scoring.
+    sigma, amount, unsharp_src = ec.unsharp_setting()
+    methods = ec.baseline_methods(sigma, amount)
+    net_timings: dict = {}
+    methods[MODEL] = ec.enhancer_method(enh, batch_size=sampling.score_batch, timings=net_timings)
+    vgg_params = vgg.load_vgg19()
+    fingerprint = {"model": str(Path(args.model).resolve()),
+                   "model_mtime": Path(args.model).stat().st_mtime,
+                   "sampling": dataclasses.asdict(sampling), "methods": list(methods)}
+    n_patches_max = len(cells) * len(sampling.frame_indices) * sampling.patches_per_frame
+    print(f"{len(cells)} cells x {len(sampling.frame_indices)} frames x "
+          f"<= {sampling.patches_per_frame} patches = <= {n_patches_max} patches, "
+          f"{len(methods)} methods", flush=True)
+    def fingerprint_of(cell):
+        return dict(fingerprint, sequences={r: str(sequences[cell.key][r])
+                                            for r in ("fine", "coarse")})
+
+    results_by_cell = run(cells, sequences, methods, vgg_params, sampling, out, fingerprint_of,
+                          args.fresh, log=lambda m: print(m, flush=True))
+    # 3. Summaries.
+    cells_out, kinds = {}, {k: [] for k in SUMMARY_KINDS}
+    for cell in cells:
+        r = results_by_cell[cell.key]
+        sc = cell_scores(r)
+        kinds[cell.kind].append(r)
+        cells_out[cell.key] = {
+            "scene": cell.scene.name, "garment": cell.garment, "motion": cell.motion,
+            "material": cell.material, "kind": cell.kind, "n_patches": int(len(r["frame"])),
+            "n_candidates_per_frame": r["n_candidates"],
+            "frames_scored": sorted(set(r["frame"].tolist())),
+            "fine": str(sequences[cell.key]["fine"]),
+            "coarse": str(sequences[cell.key]["coarse"]),
+            "sequence_source": {res: sequences[cell.key][f"{res}_info"]["source"]
+                                for res in ("fine", "coarse")},
+            "methods": {k: summary(v) for k, v in sc.items()}, "timings": r["timings"]}
+    by_kind = {k: {m: summary(s) for m, s in pooled_scores(v).items()}
+               for k, v in kinds.items() if v}
+    everything = {m: summary(s) for m, s in pooled_scores(list(results_by_cell.values())).items()}
+    cell_t = [c["timings"] for c in cells_out.values()]
+    n_all = sum(c["n_patches"] for c in cells_out.values())
+    score_s = sum(t["score_s"] for t in cell_t)
+    passes = sum(t["vgg_passes"] for t in cell_t) * sampling.score_batch
+    sampling_text = (
+        f"Sampling: first {sampling.frames} frames of each sequence (seed {ec.TEST_SEED}); frames "
+        f"{_frames_text(sampling.frame_indices)} ({len(sampling.frame_indices)} frames); "
+        f"{sampling.patches_per_frame} random {sampling.patch_size}x{sampling.patch_size} "
+        f"patches per frame ({sampling.texel_size * 1e3:g} mm texels) among the grid patches "
+        f"with >= {sampling.min_coverage:.0%} of texels covered by both the coarse and the fine "
+        f"mesh. Input: coarse simulation (PD 30 mm); target: fine simulation (PD 10 mm) of the "
+        f"same frame. Unsharp: {unsharp_src}.")
+    results = {
+        "model": str(args.model), "model_config": enh.config.to_json(),
+        "model_meta": {k: v for k, v in enh.meta.items() if not isinstance(v, dict | list)},
+        "methods": list(methods),
+        "unsharp": {"sigma": sigma, "amount": amount, "source": unsharp_src},
+        "score": "evaluation.score_patches equivalent on " + ", ".join(evaluation.EVAL_LAYERS),
+        "sampling": dataclasses.asdict(sampling), "sampling_text": sampling_text,
+        "config": {"garments": args.garments.split(","), "materials": args.materials.split(","),
+                   "motions": args.motions.split(","), "seed": ec.TEST_SEED,
+                   "scenes": {c.key: json.loads(c.scene.to_json()) for c in cells}},
+        "cells": cells_out, "by_kind": by_kind, "all": everything,
+        "timings": {
+            "note": "per-cell timings are from the run that scored the cell (see cells.*.timings)",
+            "cells_s": sum(t.get("cell_s", 0.0) for t in cell_t),
+            "score_s": score_s, "vgg_patch_passes": passes,
+            "vgg_s_per_patch_pass": score_s / passes if passes else None,
+            "network_ms_per_patch": (1e3 * sum(t["methods_s"].get(MODEL, 0.0) for t in cell_t)
+                                     / n_all if n_all else None),
+            "network_compile_s": net_timings.get("compile_s"),
+            "sequences_s": sim_s, "this_run_s": time.perf_counter() - t_all},
+        "machine": ec.machine_info(),
+        "command": "python -m experiments.table1 " + " ".join(
+            sys.argv[1:] if argv is None else argv),
+    }
+    ec.write_json(out / "results.json", results)
+    (out / "table.md").write_text(table_markdown(results))
+    flat = {}
+    for key, r in results_by_cell.items():
+        tag = key.replace("/", "__")
+        flat[f"{tag}/frame"], flat[f"{tag}/origin"] = r["frame"], r["origin"]
+        for m, s in cell_scores(r).items():
+            for f in ("loss_output", "improvement_signed", "valid"):
+                flat[f"{tag}/{m}/{f}"] = s[f]
+        flat[f"{tag}/loss_input"] = r["loss_input"]
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **flat)
+    atomic_write_bytes(out / "scores.npz", buf.getvalue())
+    print(table_markdown(results))
+    print(f"wrote {out / 'results.json'}, {out / 'table.md'}, {out / 'scores.npz'} "
+          f"in {(time.perf_counter() - t_all) / 60:.1f} min")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,419 @@
+"""Tests for the evaluation scripts (`experiments.eval_common`, `.table1`, `.temporal`, `.timing`)
+on tiny analytic sheets, a tiny VGG and a tiny random enhancer (no simulation, no real VGG).
+
+Every garment here is a flat-UV grid sheet (UVs = rest (x, y) in meters), displaced by known
+height fields, so normals and UV positions are known in closed form.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from types import SimpleNamespace
+
+import jax
+import numpy as np
+import pytest
+
+from experiments import eval_common as ec
+from experiments import table1, temporal, timing
+from wrinkle_jax import enhancer, evaluation, meshio, normalmap, patches, primitives
+from wrinkle_jax.nn import vgg
+
+SIZE = (0.3, 0.2)  # sheet, meters
+TEXEL = 0.004
+PATCH = 32
+FOLD = 0.3  # wavelength of the fold, meters
+
+
+@pytest.fixture(scope="module")
+def tiny_vgg():
+    return vgg.init_vgg19(jax.random.key(0, impl="rbg"), widths=(4, 8, 8, 8, 8), num_convs=16,
+                          spec=vgg.VGGSpec("custom", "REFLECT"))
+
+
+@pytest.fixture(scope="module")
+def model():
+    config = enhancer.EnhancerConfig(width=4, patch_size=PATCH, texel_size=TEXEL, residual=True)
+    return enhancer.init_enhancer(jax.random.key(0, impl="rbg"), config)
+
+
+def _height(x, y, t, ripple):
+    """Travelling fold (2 cm amplitude, 30 cm wavelength) plus optional fine ripples (m)."""
+    return (0.02 * np.sin(2 * np.pi * x / FOLD + 0.5 * t)
+            + ripple * np.sin(2 * np.pi * y / 0.02))
+
+
+def _sheet_sequence(nx, ny, frames, ripple=0.0, metadata=None):
+    g = primitives.grid_sheet(nx, ny, size=SIZE)
+    v = np.asarray(g.vertices)
+    out = np.stack([np.c_[v[:, :2], _height(v[:, 0], v[:, 1], t, ripple)]
+                    for t in range(frames)]).astype(np.float32)
+    return meshio.make_sequence(out, g, metadata=metadata)
+
+
+def _pair(frames=3):
+    """(fine 5 mm grid with ripples, coarse 30 mm grid) of the same sheet and fold."""
+    return (_sheet_sequence(60, 40, frames, ripple=0.002), _sheet_sequence(10, 7, frames))
+
+
+def _rgb_patches(n=3, size=PATCH, seed=0, detail=0.3):
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:size, 0:size] / size
+    out = []
+    for _ in range(n):
+        a, b = rng.uniform(1, 3, 2)
+        gx = 0.5 * np.sin(2 * np.pi * a * x) + detail * np.sin(2 * np.pi * 7 * y + rng.uniform())
+        gy = 0.5 * np.cos(2 * np.pi * b * y)
+        nrm = np.stack([-gx, -gy, np.ones_like(gx)], -1)
+        out.append((nrm / np.linalg.norm(nrm, axis=-1, keepdims=True) + 1) / 2)
+    mask = np.zeros((n, size, size, 1), np.float32)
+    mask[:, :, : size * 3 // 4] = 1
+    return np.asarray(out, np.float32) * mask, mask
+
+
+# --------------------------------------------------------------------------------------------
+# Scoring with shared Gram matrices
+# --------------------------------------------------------------------------------------------
+
+
+def test_method_losses_equal_score_patches_and_share_the_input_and_target_passes(tiny_vgg):
+    inp, mask = _rgb_patches(5, detail=0.0)
+    target, _ = _rgb_patches(5, seed=1, detail=0.4)
+    noisy = np.clip(inp + 0.2 * np.random.default_rng(2).standard_normal(inp.shape), 0, 1)
+    outputs = {"identity": evaluation.identity(inp, mask),
+               "noisy": (noisy * mask).astype(np.float32),
+               "unsharp": evaluation.unsharp_mask(inp, mask, 2.0, 1.0),
+               "oracle": target}
+    counter = {}
+    got = ec.method_losses(tiny_vgg, inp, target, mask, outputs, batch_size=2, counter=counter)
+    # 3 batches (2 + 2 + 1 padded): target and input once each, identity reuses the input.
+    assert counter["vgg_passes"] == 3 * (2 + 3)
+    for name, out in outputs.items():
+        ref = evaluation.score_patches(tiny_vgg, inp, out, target, mask, batch_size=2)
+        sc = ec.scores_from_losses(got["input"], got[name])
+        np.testing.assert_allclose(sc["loss_input"], ref["loss_input"], rtol=1e-5)
+        np.testing.assert_allclose(sc["loss_output"], ref["loss_output"], rtol=1e-5, atol=1e-12)
+        np.testing.assert_allclose(sc["improvement_signed"], ref["improvement_signed"],
+                                   rtol=1e-4, atol=1e-3)
+        np.testing.assert_array_equal(sc["valid"], ref["valid"])
+    ident = ec.scores_from_losses(got["input"], got["identity"])
+    oracle = ec.scores_from_losses(got["input"], got["oracle"])
+    assert ident["valid"].all()
+    np.testing.assert_array_equal(ident["improvement"], 0.0)
+    np.testing.assert_allclose(oracle["improvement_signed"], 100.0, atol=1e-3)
+
+
+def test_unsharp_setting_reads_the_sweep_best_or_falls_back(tmp_path):
+    p = tmp_path / "results.json"
+    p.write_text(json.dumps({"unsharp_sweep": {"sigma=2,amount=1": 3.0,
+                                               "sigma=12,amount=1.5": 7.5,
+                                               "sigma=8,amount=4": -60.0}}))
+    assert ec.unsharp_setting(p)[:2] == (12.0, 1.5)
+    assert ec.unsharp_setting(tmp_path / "missing.json")[:2] == ec.DEFAULT_UNSHARP
+
+
+# --------------------------------------------------------------------------------------------
+# Alignment
+# --------------------------------------------------------------------------------------------
+
+
+def _analytic_normals(layout, t=0):
+    """Normals of the fold (no ripple) at every texel center of `layout`: (H, W, 3)."""
+    h, w = layout.shape
+    col, row = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    u = (col - layout.margin) / layout.pixels_per_uv + layout.u_min
+    dzdx = 0.02 * 2 * np.pi / FOLD * np.cos(2 * np.pi * u / FOLD + 0.5 * t)
+    n = np.stack([-dzdx, np.zeros_like(dzdx), np.ones_like(dzdx)], -1)
+    return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def test_coarse_and_fine_maps_share_one_grid_and_their_patches_align_in_uv():
+    fine, coarse = _sheet_sequence(60, 40, 1), _sheet_sequence(10, 7, 1)
+    # Stretch the coarse rest mesh by 1 %: its own layout_for scale would differ.
+    coarse = dataclasses.replace(coarse, garment=coarse.garment.replace(
+        vertices=np.asarray(coarse.garment.vertices) * 1.01))
+    pair = ec.aligned_pair(fine.garment, coarse.garment, TEXEL)
+    assert pair.fine.layout == pair.coarse.layout == pair.layout
+    assert pair.layout.pixels_per_uv == pytest.approx(1.0 / TEXEL)  # the fine (reference) scale
+    fm, cm = np.asarray(pair.fine.mask), np.asarray(pair.coarse.mask)
+    assert (pair.mask <= fm).all() and (pair.mask <= cm).all() and pair.mask.sum() > 0.9 * fm.sum()
+    truth = _analytic_normals(pair.layout)
+    inside = pair.mask[..., 0] > 0
+    for plan, tol in ((pair.fine, 0.5), (pair.coarse, 4.0)):
+        baked = ec.bake_map(plan, fine.frames[0] if plan is pair.fine else coarse.frames[0])
+        assert ec.angular_change(baked, truth, pair.mask) < tol
+    # The coarse mesh's own layout (scale from its stretched 3D areas) drifts off the grid.
+    own = normalmap.make_plan(coarse.garment, texel_size=TEXEL)
+    assert own.layout.pixels_per_uv != pytest.approx(pair.layout.pixels_per_uv)
+    # Patches cut at the same origins show the same cloth: input and target agree everywhere
+    # on the fold (the fine map's ripples tilt normals by < 33 degrees).
+    size = PATCH
+    mask = np.asarray(patches.pad_to_patch(pair.mask, size)[0])
+    origins, cov = ec.candidate_origins(mask, size, size // 2, 0.5)
+    ps = ec.aligned_patches(pair, fine.frames[0], coarse.frames[0], origins, size, 0)
+    assert ps.input.shape == ps.target.shape == (len(origins), size, size, 3)
+    truth_p = ec.cut(np.asarray(patches.pad_to_patch(truth, size)[0]), origins, size)
+    for k in range(len(origins)):
+        assert ec.angular_change(ps.input[k] * 2 - 1, truth_p[k], ps.mask[k]) < 4.0
+        # The fine map resolves the fold: a patch one texel off would be > 1 degree away.
+        assert ec.angular_change(ps.target[k] * 2 - 1, truth_p[k], ps.mask[k]) < 0.5
+    fine_rgb = np.asarray(patches.pad_to_patch(
+        normalmap.to_rgb(ec.bake_map(pair.fine, fine.frames[0])), size)[0]) * mask
+    np.testing.assert_array_equal(ps.target, np.asarray(patches.extract(fine_rgb, origins, size)))
+    np.testing.assert_array_equal(ps.mask, ec.cut(mask, origins, size))
+    assert inside.any() and not ps.input[ps.mask[..., 0] == 0].any()
+
+
+def test_candidate_origins_are_exactly_the_grid_patches_with_enough_coverage():
+    mask = np.zeros((100, 130, 1), np.float32)
+    mask[10:70, 20:110] = 1
+    origins, cov = ec.candidate_origins(mask, 32, 16, 0.5)
+    all_origins = patches.tile(mask, 32, 16)
+    brute = np.array([mask[r:r + 32, c:c + 32].mean() for r, c in all_origins])
+    np.testing.assert_array_equal(origins, all_origins[brute >= 0.5])
+    np.testing.assert_allclose(cov, brute[brute >= 0.5], rtol=1e-6)
+    chosen = ec.choose_origins(origins, 3, (1, 2))
+    assert len(chosen) == 3 and {tuple(o) for o in chosen} <= {tuple(o) for o in origins}
+    np.testing.assert_array_equal(chosen, ec.choose_origins(origins, 3, (1, 2)))  # seeded
+
+
+# --------------------------------------------------------------------------------------------
+# Table 1
+# --------------------------------------------------------------------------------------------
+
+
+SAMPLING = table1.Sampling(frames=3, frame_stride=2, patches_per_frame=2, patch_size=PATCH,
+                           texel_size=TEXEL, min_coverage=0.5, score_batch=2)
+
+
+def test_evaluate_cell_identity_scores_zero_and_the_target_scores_100(tiny_vgg, model):
+    fine, coarse = _pair()
+    methods = {"identity": lambda p: evaluation.identity(p.input, p.mask),
+               "oracle": lambda p: p.target,
+               table1.MODEL: ec.enhancer_method(model, batch_size=2)}
+    res = table1.evaluate_cell(fine, coarse, "denim_light", methods, tiny_vgg, SAMPLING)
+    np.testing.assert_array_equal(res["frame"], [0, 0, 2, 2])
+    assert res["origin"].shape == (4, 2) and (res["coverage"] >= 0.5).all()
+    assert res["timings"]["vgg_passes"] == 2 * (2 + 2)  # 2 frames x (input, target, 2 outputs)
+    sc = table1.cell_scores(res)
+    assert sc["identity"]["valid"].all()
+    np.testing.assert_array_equal(sc["identity"]["improvement"], 0.0)
+    np.testing.assert_allclose(sc["oracle"]["improvement_signed"], 100.0, atol=1e-3)
+    assert np.isfinite(sc[table1.MODEL]["improvement_signed"]).all()
+    assert np.abs(sc[table1.MODEL]["improvement_signed"]).max() > 0  # the random net acts
+    s = table1.summary(sc["oracle"])
+    assert s["n"] == 4 and s["signed_mean"] == pytest.approx(100.0, abs=1e-3)
+
+
+def test_model_method_outputs_unit_normals_inside_the_mask_only(model):
+    fine, coarse = _pair(1)
+    pair = ec.aligned_pair(fine.garment, coarse.garment, TEXEL)
+    mask = np.asarray(patches.pad_to_patch(pair.mask, PATCH)[0])
+    origins, _ = ec.candidate_origins(mask, PATCH, PATCH // 2, 0.1)
+    ps = ec.aligned_patches(pair, fine.frames[0], coarse.frames[0], origins[:3], PATCH, 4)
+    timings = {}
+    out = ec.enhancer_method(model, batch_size=2, timings=timings)(ps)
+    inside = ps.mask[..., 0] > 0
+    np.testing.assert_allclose(np.linalg.norm(out[inside] * 2 - 1, axis=-1), 1.0, atol=1e-5)
+    assert not out[~inside].any()
+    assert timings["network_patches"] == 3 and timings["compile_s"] > 0
+
+
+def _write_cell_files(root, garment, motion, material, frames=3):
+    """Tiny fine/coarse sheet files that `eval_common.cell_sequences` accepts for a cell."""
+    sc = ec.scene_for(garment, motion)
+    meta = {"scene_config": sc.to_json(), "material": material, "seed": ec.TEST_SEED}
+    fine, coarse = _pair(frames)
+    for res, seq in (("fine", fine), ("coarse", coarse)):
+        seq = meshio.make_sequence(seq.frames, seq.garment, metadata=meta)
+        meshio.save_sequence(ec.sequence_file(root, sc.name, material, res, ec.TEST_SEED), seq)
+
+
+def test_table1_main_writes_results_and_resumes_from_stored_cells(tmp_path, monkeypatch,
+                                                                  tiny_vgg, model):
+    seqs = tmp_path / "seqs"
+    _write_cell_files(seqs, "dress", "dance", "silk_charmeuse")
+    _write_cell_files(seqs, "dress", "walk", "silk_charmeuse")
+    model_path = tmp_path / "tiny.npz"
+    enhancer.save_enhancer(model_path, model.params, model.config)
+    monkeypatch.setattr(table1.vgg, "load_vgg19", lambda *a, **k: tiny_vgg)
+    out = tmp_path / "out"
+    argv = ["--model", str(model_path), "--garments", "dress", "--motions", "dance,walk",
+            "--materials", "silk_charmeuse", "--frames", "3", "--frame-stride", "2",
+            "--patches-per-frame", "2", "--sequences", str(seqs),
+            "--sim-out", str(tmp_path / "sim"), "--out", str(out)]
+    assert table1.main(argv) == 0
+    assert not (tmp_path / "sim").exists()  # everything reused, nothing simulated
+    res = json.loads((out / "results.json").read_text())
+    for key in ("model", "methods", "unsharp", "sampling", "cells", "by_kind", "all", "timings",
+                "machine"):
+        assert key in res
+    assert set(res["machine"]) >= {"platform", "cpu_count", "jax"}
+    assert res["methods"][0] == "identity" and res["methods"][-1] == table1.MODEL
+    assert set(res["cells"]) == {"dress_dance/silk_charmeuse", "dress_walk/silk_charmeuse"}
+    cell = res["cells"]["dress_walk/silk_charmeuse"]
+    assert cell["scene"] == "dress_walk" and cell["kind"] == "unseen garment"
+    assert cell["n_patches"] == 4 and cell["frames_scored"] == [0, 2]
+    assert cell["methods"]["identity"]["improvement_mean"] == 0.0
+    for name in res["methods"]:
+        assert res["all"][name]["n"] == 8
+        assert {"improvement_mean", "improvement_std", "signed_mean", "signed_std"} <= set(
+            res["all"][name])
+    table = (out / "table.md").read_text()
+    assert "| silk_charmeuse | walk (unseen) |" in table and "dress (unseen)" in table
+    with np.load(out / "scores.npz") as z:
+        assert z["dress_walk__silk_charmeuse/identity/improvement_signed"].shape == (4,)
+    # A rerun with the same settings reuses the stored cells; other settings rescore.
+    monkeypatch.setattr(table1, "evaluate_cell", lambda *a, **k: pytest.fail("rescored"))
+    assert table1.main(argv) == 0
+    assert json.loads((out / "results.json").read_text())["all"] == res["all"]
+    with pytest.raises(pytest.fail.Exception):
+        table1.main(argv + ["--seed", "3"])
+
+
+def test_scene_for_reuses_existing_scenes_and_derives_new_ones():
+    assert ec.scene_for("dress", "dance") is ec.scenes.SCENES["dress_dance"]
+    assert ec.scene_for("flared_skirt", "walk") is ec.scenes.SCENES["skirt_walk"]
+    cape = ec.scene_for("cape", "dance")
+    base = ec.scenes.SCENES["cape_walk"]
+    assert cape.name == "cape_dance" and cape.motion == "dance"
+    assert (cape.pins, cape.attach_to, cape.preroll_s) == (base.pins, base.attach_to, 2.0)
+    kinds = {c.key: c.kind for c in ec.table_cells()}
+    assert len(kinds) == 12
+    assert kinds["skirt_dance/denim_light"] == "seen garment, seen motion"
+    assert kinds["skirt_walk/denim_light"] == "seen garment, unseen motion"
+    assert kinds["cape_dance/silk_charmeuse"] == "unseen garment"
+
+
+# --------------------------------------------------------------------------------------------
+# Temporal coherence
+# --------------------------------------------------------------------------------------------
+
+
+def _rotating_sheet(frames, degrees_per_frame, nx=12, ny=8):
+    """A flat sheet turning rigidly about the x axis: every normal turns by the same angle."""
+    g = primitives.grid_sheet(nx, ny, size=SIZE)
+    v = np.asarray(g.vertices)
+    out = []
+    for t in range(frames):
+        a = np.radians(degrees_per_frame * t)
+        rot = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+        out.append(v @ rot.T)
+    return meshio.make_sequence(np.asarray(out, np.float32), g)
+
+
+def test_flicker_of_a_rigid_rotation_is_its_angle_and_of_a_static_map_zero():
+    seq = _rotating_sheet(4, 3.0)
+    plan = normalmap.make_plan(seq.garment, texel_size=TEXEL)
+    maps = np.stack([ec.bake_map(plan, f) for f in seq.frames])
+    np.testing.assert_allclose(ec.flicker_series(maps, plan.mask), 3.0, atol=1e-3)
+    np.testing.assert_allclose(ec.flicker_series(maps[[1, 1, 1]], plan.mask), 0.0, atol=1e-4)
+    assert ec.angular_change(maps[0], maps[1], np.zeros_like(plan.mask)) == 0.0
+
+
+def test_sequence_flicker_static_is_zero_and_rotation_moves_coarse_and_fine(model):
+    static = _sheet_sequence(10, 7, 1)
+    static = meshio.make_sequence(np.repeat(static.frames, 3, 0), static.garment)
+    res = temporal.sequence_flicker(static, static, model, "wool_melton", [0, 1, 2],
+                                    batch_size=4)
+    for k in temporal.SERIES:
+        np.testing.assert_allclose(res[k], 0.0, atol=1e-3)
+    assert res["patches_per_frame"] > 0 and res["timings"]["network"] > 0
+    coarse, fine = _rotating_sheet(3, 2.0), _rotating_sheet(3, 2.0, nx=40, ny=30)
+    res = temporal.sequence_flicker(coarse, fine, model, "wool_melton", [0, 1, 2], batch_size=4)
+    np.testing.assert_allclose(res["coarse"], 2.0, atol=1e-3)
+    np.testing.assert_allclose(res["fine"], 2.0, atol=1e-3)
+    assert res["output"].shape == (2,) and np.isfinite(res["output"]).all()
+    s = temporal.summarize(res)
+    assert s["output_over_fine"] == pytest.approx(res["output"].mean() / 2.0, rel=1e-3)
+    with pytest.raises(ValueError, match="consecutive"):
+        temporal.sequence_flicker(coarse, fine, model, "wool_melton", [0, 2])
+
+
+def test_temporal_main_writes_results_and_plot(tmp_path, model):
+    seqs = tmp_path / "seqs"
+    _write_cell_files(seqs, "cape", "dance", "denim_light", frames=3)
+    model_path = tmp_path / "tiny.npz"
+    enhancer.save_enhancer(model_path, model.params, model.config)
+    out = tmp_path / "out"
+    assert temporal.main(["--model", str(model_path), "--garments", "cape", "--motions",
+                          "dance", "--materials", "denim_light", "--frames", "3",
+                          "--table-frames", "3", "--sequences", str(seqs),
+                          "--sim-out", str(tmp_path / "sim"), "--out", str(out),
+                          "--batch-size", "4"]) == 0
+    res = json.loads((out / "results.json").read_text())
+    seq = res["sequences"]["cape_dance/denim_light"]
+    assert res["frames"] == [0, 1, 2] and set(seq["series"]) == {"coarse", "output", "fine"}
+    assert all(len(v) == 2 for v in seq["series"].values())
+    assert seq["summary"]["fine"]["mean"] > 0  # the fold travels
+    assert {"platform", "cpu_count", "jax"} <= set(res["machine"])
+    assert (out / "flicker.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+# --------------------------------------------------------------------------------------------
+# Timing
+# --------------------------------------------------------------------------------------------
+
+
+def test_time_pipeline_reports_every_stage_per_frame_and_compile_separately(model):
+    seq = _sheet_sequence(10, 7, 3)
+    info = timing.time_pipeline(seq, model, "silk_chiffon", body=None, lift=True, batch_size=4,
+                                chunk_size=2)
+    assert info["frames"] == 3 and info["warmup_frames"] == 2
+    assert set(info["ms_per_frame"]) == set(timing.STAGES)
+    for stage in ("bake", "network", "merge", "lift"):
+        assert info["ms_per_frame"][stage] > 0
+    assert info["ms_per_frame_total"] == pytest.approx(sum(info["ms_per_frame"].values()))
+    assert info["compile_s"] > 0 and info["detailed_vertices"] > seq.garment.num_vertices
+
+
+def test_time_simulation_counts_simulated_frames_and_separates_the_first_call(monkeypatch):
+    calls = []
+
+    def fake_simulate(config, material, resolution, frames, seed, setup=None, progress=None):
+        calls.append(frames)
+        pre = 5
+        total = pre + frames - 1
+        if frames == 1:
+            time.sleep(0.2)  # the first call compiles
+            return SimpleNamespace(metadata={"preroll_frames": pre})
+        done = 0
+        for n in (30, 30, total - 60):  # chunks of simulated frames, 1 ms each
+            time.sleep(0.001 * n)
+            done += n
+            progress(done, total)
+        return SimpleNamespace(metadata={"preroll_frames": pre},
+                               garment=SimpleNamespace(num_vertices=123))
+
+    monkeypatch.setattr(timing.scenes, "simulate", fake_simulate)
+    monkeypatch.setattr(timing.scenes, "setup_scene", lambda *a, **k: None)
+    _, info = timing.time_simulation(ec.scenes.SCENES["dress_dance"], "silk_charmeuse",
+                                     "coarse", frames=70)
+    assert calls == [1, 70]
+    assert info["simulated_frames"] == 5 + 70 - 1 and len(info["chunk_ms_per_frame"]) == 3
+    assert info["ms_per_frame"] == pytest.approx(1e3 * info["wall_s"] / 74)
+    assert 0.15 < info["compile_s"] <= info["first_call_s"]
+    assert info["vertices"] == 123
+
+
+def test_timing_ratios_body_and_plot(tmp_path):
+    r = timing.ratios(10.0, 200.0, {"bake": 5.0, "tile": 0.0, "network": 60.0, "merge": 5.0,
+                                    "lift": 20.0})
+    assert r["ours_ms_per_frame"] == 100.0 and r["speedup"] == 2.0
+    assert r["speedup_no_lift"] == 2.5
+    ends = np.zeros((2, 1, 2, 3), np.float32)
+    ends[:, 0, 1, 2] = 1.0  # a vertical capsule from the origin to z = 1 m
+    body = timing.capsule_body_fn({"capsule_ends": ends,
+                                   "capsule_radii": np.array([0.1], np.float32)})(1)
+    from wrinkle_jax import bodies
+
+    q = bodies.query(body, np.array([[0.0, 0.0, 0.5], [0.5, 0.0, 0.5]], np.float32))
+    np.testing.assert_allclose(np.asarray(q.distance), [-0.1, 0.4], atol=1e-5)
+    assert timing.capsule_body_fn({}) is None
+    results = {"scene": "s", "material": "m", "frames": 3,
+               "coarse_sim": {"ms_per_frame": 10.0}, "fine_sim": {"ms_per_frame": 200.0},
+               "pipeline": {"ms_per_frame": {k: 10.0 for k in timing.STAGES}}, "ratio": r}
+    timing.plot(tmp_path / "t.png", results)
+    assert (tmp_path / "t.png").read_bytes()[:4] == b"\x89PNG"

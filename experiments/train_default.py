@@ -38,7 +38,8 @@ def config_from_args(args) -> train.TrainConfig:
                              relative_floor=(args.relative_floor if args.relative_floor > 0
                                              else None),
                              residual_base=args.residual_base, unsharp_sigma=args.unsharp_sigma,
-                             unsharp_amount=args.unsharp_amount)
+                             unsharp_amount=args.unsharp_amount,
+                             residual_highpass=args.residual_highpass)
 
 
 def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None) -> Path:
@@ -54,7 +55,8 @@ def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None) -
                                     coarse_pd=entry["config"]["coarse_pd"],
                                     residual_base=cfg.residual_base,
                                     unsharp_sigma=cfg.unsharp_sigma,
-                                    unsharp_amount=cfg.unsharp_amount)
+                                    unsharp_amount=cfg.unsharp_amount,
+                                    residual_highpass=cfg.residual_highpass)
     rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if x]
     train_s = float(sum(r.get("step_s", 0.0) for r in rows if r["kind"] == "train"))
     evals = [r for r in rows if r["kind"] == "eval"]
@@ -89,6 +91,10 @@ def main(argv=None) -> None:
                     help="texels; the best sigma of the unsharp-mask sweep on training patches")
     ap.add_argument("--unsharp-amount", type=float, default=1.0,
                     help="initial per-material gain (learned)")
+    ap.add_argument("--residual-highpass", type=float, default=8.0,
+                    help="texels; the residual can add detail but not shift orientation")
+    ap.add_argument("--init-from", default=None,
+                    help="start a fresh run from another run's last checkpoint (warm start)")
     ap.add_argument("--minutes", type=float, default=40.0)
     ap.add_argument("--warm-start", action="store_true")
     ap.add_argument("--export-only", action="store_true")
@@ -104,6 +110,9 @@ def main(argv=None) -> None:
                     != (cfg.width, cfg.residual, cfg.residual_base)):
                 raise SystemExit("--warm-start: the shipped model's width/residual/base differ")
             init = shipped.params
+        if args.init_from and not (run / "checkpoints").exists():
+            from experiments.per_layer_ratios import restore_params
+            init = restore_params(Path(args.init_from))[1].params
         train.train(cfg, data_root, run, resume=True, vgg_params=vgg.load_vgg19(),
                     progress=False, time_limit_s=60 * args.minutes, init_params=init)
     path = export(run, Path(args.out), data_root, round(time.time() - t0, 1))

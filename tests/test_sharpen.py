@@ -114,3 +114,30 @@ def test_unet_unsharp_base_starts_as_unsharp_mask():
     with pytest.raises(ValueError, match="residual_base"):
         unet.CINUNet(width=4, residual=True, residual_base="blur").init(
             jax.random.key(0, impl="rbg"), x, jnp.array([0, 0]))
+
+
+def test_highpassed_residual_cannot_shift_orientation():
+    """A constant residual (the output conv's bias alone) tilts every normal of a patch; the
+    high-passed residual removes it exactly, while detail still passes."""
+    x, _ = _folds(n=2)
+    kw = dict(num_materials=2, width=4, residual=True, residual_base="unsharp",
+              unsharp_sigma=2.0)
+    plain, hp = unet.CINUNet(**kw), unet.CINUNet(**kw, residual_highpass=4.0)
+    params = unet.init_params(plain, jax.random.key(0, impl="rbg"), 32)
+    bias = jnp.array([0.3, -0.2, 0.1])
+    params = {**params, "out": {"kernel": jnp.zeros_like(params["out"]["kernel"]),
+                                "bias": bias}}
+    base = np.asarray(sharpen.unsharp_rgb(x, 2.0, 1.0))
+    m = np.asarray(sharpen.mask_from_rgb(x))
+    got_plain = np.asarray(plain.apply({"params": params}, x, jnp.array([0, 1])))
+    got_hp = np.asarray(hp.apply({"params": params}, x, jnp.array([0, 1])))
+    np.testing.assert_allclose(got_plain, base + np.asarray(bias), atol=1e-6)
+    np.testing.assert_allclose(got_hp * m, base, atol=1e-5)
+    # Random weights: the residual is not zero, and its masked mean is far below the plain one.
+    params = unet.init_params(plain, jax.random.key(1, impl="rbg"), 32)
+    r_plain = np.asarray(plain.apply({"params": params}, x, jnp.array([0, 1]))) - base
+    r_hp = (np.asarray(hp.apply({"params": params}, x, jnp.array([0, 1]))) - base) * m
+    assert np.abs(r_hp).mean() > 1e-3
+    mean_hp = np.abs(r_hp.sum((1, 2)) / m.sum((1, 2))).max()
+    mean_plain = np.abs((r_plain * m).sum((1, 2)) / m.sum((1, 2))).max()
+    assert mean_hp < 0.1 * mean_plain

@@ -57,7 +57,8 @@ class EnhancerConfig:
       patch_size: patch side in texels the model was trained on.
       texel_size: meters of cloth per texel of the normal maps it was trained on.
       coarse_pd: particle distance (m) of the coarse inputs it was trained for.
-      residual_base, unsharp_sigma, unsharp_amount: the residual's base (`nn.unet.CINUNet`).
+      residual_base, unsharp_sigma, unsharp_amount, residual_highpass: the residual's base
+        and its high-pass (`nn.unet.CINUNet`).
     """
 
     width: int = 32
@@ -70,13 +71,15 @@ class EnhancerConfig:
     residual_base: str = "input"
     unsharp_sigma: float = 8.0
     unsharp_amount: float = 1.0
+    residual_highpass: float = 0.0
 
     def model(self, conv_impl: str = "im2col_bf16") -> unet.CINUNet:
         return unet.CINUNet(num_materials=len(self.materials), width=self.width,
                             residual=self.residual, input_norm=self.input_norm,
                             residual_base=self.residual_base,
                             unsharp_sigma=self.unsharp_sigma,
-                            unsharp_amount=self.unsharp_amount, conv_impl=conv_impl)
+                            unsharp_amount=self.unsharp_amount,
+                            residual_highpass=self.residual_highpass, conv_impl=conv_impl)
 
     def material_id(self, name: str) -> int:
         if name not in self.materials:

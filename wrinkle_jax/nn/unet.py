@@ -106,6 +106,10 @@ class CINUNet(nn.Module):
         ``unsharp_amount`` (num_materials,), initialized to `unsharp_amount`). With a
         zero-initialized output conv the untrained network then IS the best non-learned
         baseline, and training learns what sharpening misses.
+      residual_highpass: 0, or a Gaussian radius in texels: the network's residual is
+        high-passed (minus its masked blur, `sharpen.masked_blur`) so it can add detail but not
+        shift the patch's low-frequency orientation -- which the style loss's early layers
+        (relu1_2, relu2_1) punish hard on patches already close to their target.
       input_norm: "imagenet" (normalize RGB by ImageNet mean/std, as the authors do) or "none".
       norm: the conditional normalization layer factory (called with num_materials).
       dtype: computation dtype of the "xla" convolutions (parameters stay float32).
@@ -119,6 +123,7 @@ class CINUNet(nn.Module):
     residual_base: str = "input"
     unsharp_sigma: float = 8.0
     unsharp_amount: float = 1.0
+    residual_highpass: float = 0.0
     norm: Callable[..., nn.Module] = CIN
     dtype: jnp.dtype = jnp.float32
     conv_impl: str = "xla"
@@ -182,6 +187,9 @@ class CINUNet(nn.Module):
         if not self.residual:
             return out
         base = x.astype(jnp.float32)
+        if self.residual_highpass > 0:
+            m = sharpen.mask_from_rgb(base)
+            out = out - sharpen.masked_blur(out, m, self.residual_highpass)
         if self.residual_base == "unsharp":
             gain = self.param("unsharp_amount", nn.initializers.constant(self.unsharp_amount),
                               (self.num_materials,), jnp.float32)

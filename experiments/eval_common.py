@@ -17,8 +17,10 @@ mask; vertices are meters; times are seconds unless a name says ms.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import functools
+import io
 import json
 import math
 import os
@@ -35,8 +37,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax import enhancer as enhancer_lib
-from wrinkle_jax import evaluation, meshio, metrics, normalmap, patches
-from wrinkle_jax.fileio import atomic_write_text
+from wrinkle_jax import evaluation, meshio, normalmap, patches
+from wrinkle_jax.fileio import atomic_write_bytes, atomic_write_text
 from wrinkle_jax.mesh import Garment, global_uv_scale
 from wrinkle_jax.nn import losses, vgg
 from wrinkle_jax.sim import scenes
@@ -512,18 +514,26 @@ def method_losses(vgg_params, inp, target, mask, outputs: dict[str, np.ndarray],
             for k, v in parts.items()}
 
 
-def scores_from_losses(loss_input, loss_output) -> dict[str, np.ndarray]:
-    """Improvement scores from per-patch losses, exactly as `evaluation.score_patches` makes
-    them (eps = 1e-6 of the largest input loss of the set): dict of (N,) arrays loss_input,
-    loss_output, improvement (paper |.| form, %), improvement_signed (%), valid (bool)."""
-    loss_input = np.asarray(loss_input, np.float32)
-    loss_output = np.asarray(loss_output, np.float32)
-    eps = 1e-6 * max(float(loss_input.max(initial=0.0)), 1e-30)
-    sc = metrics.improvement_score_from_losses(jnp.asarray(loss_input), jnp.asarray(loss_output),
-                                               eps=eps)
-    return {"loss_input": loss_input, "loss_output": loss_output,
-            "improvement": np.asarray(sc.score), "improvement_signed": np.asarray(sc.signed_score),
-            "valid": np.asarray(sc.valid)}
+# The same computation as `evaluation.score_patches` uses (one implementation).
+scores_from_losses = evaluation.scores_from_losses
+
+
+def script_parser(doc: str) -> argparse.ArgumentParser:
+    """An argument parser whose description is the docstring's first paragraph and whose
+    epilog is the rest of it (the scripts' usage and method notes)."""
+    return argparse.ArgumentParser(description=" ".join(doc.split("\n\n")[0].split()),
+                                   formatter_class=argparse.RawDescriptionHelpFormatter,
+                                   epilog="\n".join(doc.splitlines()[1:]))
+
+
+def save_figure(fig, path, dpi: int) -> None:
+    """Write a matplotlib figure as PNG atomically and close it."""
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
 
 
 # --------------------------------------------------------------------------------------------

@@ -72,8 +72,10 @@ def report(per: dict, scene, material, worst: int = 6) -> dict:
             "yardstick_ratio": float(ratio[w]),
             "layer_ratios": {name: float(per[name][1][w] / max(per[name][0][w], 1e-12))
                              for name in LAYERS}} for w in np.argsort(-ratio)[:worst]]
+    by_scene = evaluation.summarize(evaluation.scores_from_losses(li, lo), np.asarray(scene))
     return {"signed_mean": float(100 * (1 - ratio).mean()),
-            "median_ratio": float(np.median(ratio)), "layers": rows, "worst": bad}
+            "median_ratio": float(np.median(ratio)), "by_scene": by_scene, "layers": rows,
+            "worst": bad}
 
 
 def main(argv=None) -> None:
@@ -97,7 +99,8 @@ def main(argv=None) -> None:
         result["methods"][name] = report(per, held["scene"], held["material"])
         r = result["methods"][name]
         print(f"{name}: yardstick signed mean {r['signed_mean']:+.1f}, median ratio "
-              f"{r['median_ratio']:.3f}")
+              f"{r['median_ratio']:.3f}; by scene "
+              + ", ".join(f"{k} {v['signed_mean']:+.1f}" for k, v in r["by_scene"].items()))
         for layer, row in r["layers"].items():
             print(f"  {layer}: share {row['share_of_yardstick']:.2f}, mean ratio "
                   f"{row['mean_ratio']:.2f}, median {row['median_ratio']:.3f}")

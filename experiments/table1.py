@@ -46,7 +46,6 @@ Table 1, plus the method comparison) and `<out>/scores.npz` (per-patch losses an
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import io
 import json
@@ -333,9 +332,7 @@ def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params, sampli
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()),
-                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                 epilog="\n".join(__doc__.splitlines()[1:]))
+    ap = ec.script_parser(__doc__)
     ap.add_argument("--model", default=str(enhancer_lib.DEFAULT_PATH),
                     help="enhancer .npz (default: the shipped model)")
     ap.add_argument("--frames", type=int, default=200, help="frames per sequence")

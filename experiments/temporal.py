@@ -29,8 +29,6 @@ machine) and `<out>/flicker.png` (one panel per sequence: the three series over 
 
 from __future__ import annotations
 
-import argparse
-import io
 import sys
 import time
 from collections.abc import Callable
@@ -41,7 +39,6 @@ import numpy as np
 from experiments import eval_common as ec
 from wrinkle_jax import enhancer as enhancer_lib
 from wrinkle_jax import normalmap, pipeline
-from wrinkle_jax.fileio import atomic_write_bytes
 from wrinkle_jax.meshio import GarmentSequence
 
 SERIES = ("coarse", "output", "fine")
@@ -140,16 +137,11 @@ def plot(path: Path, per_sequence: dict[str, dict], frames: list[int]) -> None:
         ax.set_xlabel("frame t (pair t-1, t)", fontsize=7)
     axes[0, 0].legend(fontsize=6)
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
-    plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())
+    ec.save_figure(fig, path, dpi=90)
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()),
-                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                 epilog="\n".join(__doc__.splitlines()[1:]))
+    ap = ec.script_parser(__doc__)
     ap.add_argument("--model", default=str(enhancer_lib.DEFAULT_PATH),
                     help="enhancer .npz (default: the shipped model)")
     ap.add_argument("--frames", type=int, default=60, help="consecutive frames per sequence")

@@ -30,8 +30,6 @@ The machine's other load changes the numbers: its 1-minute load average is recor
 
 from __future__ import annotations
 
-import argparse
-import io
 import sys
 import time
 from pathlib import Path
@@ -41,7 +39,6 @@ import numpy as np
 from experiments import eval_common as ec
 from wrinkle_jax import MATERIALS, bodies, pipeline
 from wrinkle_jax import enhancer as enhancer_lib
-from wrinkle_jax.fileio import atomic_write_bytes
 from wrinkle_jax.sim import scenes
 
 STAGES = ("bake", "tile", "network", "merge", "lift")
@@ -165,16 +162,11 @@ def plot(path: Path, results: dict) -> None:
                  f"{verdict} than the fine sim", fontsize=8)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
-    plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())
+    ec.save_figure(fig, path, dpi=100)
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()),
-                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                 epilog="\n".join(__doc__.splitlines()[1:]))
+    ap = ec.script_parser(__doc__)
     ap.add_argument("--frames", type=int, default=30, help="frames timed (after the pre-roll)")
     ap.add_argument("--scene", default="dress_dance", help="a scene of wrinkle_jax.sim.scenes")
     ap.add_argument("--material", default="silk_charmeuse", choices=MATERIALS)

@@ -23,7 +23,8 @@ import numpy as np
 from wrinkle_jax import metrics
 from wrinkle_jax.nn import losses, vgg
 
-__all__ = ["EVAL_LAYERS", "identity", "resample", "score_patches", "summarize", "unsharp_mask"]
+__all__ = ["EVAL_LAYERS", "identity", "resample", "score_patches", "scores_from_losses",
+           "summarize", "unsharp_mask"]
 
 EVAL_LAYERS = vgg.DEFAULT_LAYERS  # relu1_2, relu2_1, relu3_1, relu4_1, relu5_1 (Gatys)
 
@@ -118,12 +119,23 @@ def score_patches(vgg_params, inp, out, target, mask, layers=EVAL_LAYERS, pool="
         got = fn(vgg_params, *(jnp.asarray(np.asarray(a)[idx], jnp.float32)
                                for a in (inp, out, target, mask)))
         parts.append([np.asarray(g)[:sl.stop - sl.start] for g in got])
-    loss_in = np.concatenate([p[0] for p in parts])
-    loss_out = np.concatenate([p[1] for p in parts])
-    eps = 1e-6 * max(float(loss_in.max(initial=0.0)), 1e-30)
-    sc = metrics.improvement_score_from_losses(jnp.asarray(loss_in), jnp.asarray(loss_out),
+    return scores_from_losses(np.concatenate([p[0] for p in parts]),
+                              np.concatenate([p[1] for p in parts]))
+
+
+def scores_from_losses(loss_input, loss_output) -> dict[str, np.ndarray]:
+    """Improvement scores of a set of patches from their (N,) input and output style losses.
+
+    eps = 1e-6 of the set's largest input loss (only an exact match of input and target makes a
+    patch's score undefined). Returns dict of (N,) arrays: loss_input, loss_output, improvement
+    (paper |.| form, %), improvement_signed (%), valid (bool).
+    """
+    loss_input = np.asarray(loss_input, np.float32)
+    loss_output = np.asarray(loss_output, np.float32)
+    eps = 1e-6 * max(float(loss_input.max(initial=0.0)), 1e-30)
+    sc = metrics.improvement_score_from_losses(jnp.asarray(loss_input), jnp.asarray(loss_output),
                                                eps=eps)
-    return {"loss_input": loss_in, "loss_output": loss_out,
+    return {"loss_input": loss_input, "loss_output": loss_output,
             "improvement": np.asarray(sc.score), "improvement_signed": np.asarray(sc.signed_score),
             "valid": np.asarray(sc.valid)}
 

@@ -526,6 +526,14 @@ def script_parser(doc: str) -> argparse.ArgumentParser:
                                    epilog="\n".join(doc.splitlines()[1:]))
 
 
+def load_model_or_usage_error(ap: argparse.ArgumentParser, path) -> enhancer_lib.Enhancer:
+    """The enhancer at `path`, or a usage error (exit 2) naming the file and the `--model` flag."""
+    try:
+        return enhancer_lib.load_enhancer(path)
+    except enhancer_lib.EnhancerError as e:
+        ap.error(f"{e}; pass --model PATH (e.g. outputs/candidates/enhancer_w32_relative.npz)")
+
+
 def save_figure(fig, path, dpi: int) -> None:
     """Write a matplotlib figure as PNG atomically and close it."""
     import matplotlib.pyplot as plt

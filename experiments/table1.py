@@ -359,10 +359,7 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
-    try:
-        enh = enhancer_lib.load_enhancer(args.model)
-    except enhancer_lib.EnhancerError as e:
-        ap.error(f"{e}; pass --model PATH (e.g. outputs/candidates/enhancer_w32_relative.npz)")
+    enh = ec.load_model_or_usage_error(ap, args.model)
     sampling = Sampling(frames=args.frames, frame_stride=args.frame_stride,
                         patches_per_frame=args.patches_per_frame,
                         patch_size=enh.config.patch_size, texel_size=enh.config.texel_size,

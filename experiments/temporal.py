@@ -164,10 +164,7 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
-    try:
-        enh = enhancer_lib.load_enhancer(args.model)
-    except enhancer_lib.EnhancerError as e:
-        ap.error(f"{e}; pass --model PATH (e.g. outputs/candidates/enhancer_w32_relative.npz)")
+    enh = ec.load_model_or_usage_error(ap, args.model)
     cells = ec.table_cells(args.garments.split(","), args.materials.split(","),
                            args.motions.split(","))
     sequences = {c.key: ec.cell_sequences(c, need, ec.TEST_SEED, (Path(args.sequences),),

@@ -187,13 +187,13 @@ class CINUNet(nn.Module):
         if not self.residual:
             return out
         base = x.astype(jnp.float32)
+        mask = sharpen.mask_from_rgb(base)  # one mask for the high-pass and the unsharp base
         if self.residual_highpass > 0:
-            m = sharpen.mask_from_rgb(base)
-            out = out - sharpen.masked_blur(out, m, self.residual_highpass)
+            out = out - sharpen.masked_blur(out, mask, self.residual_highpass)
         if self.residual_base == "unsharp":
             gain = self.param("unsharp_amount", nn.initializers.constant(self.unsharp_amount),
                               (self.num_materials,), jnp.float32)
-            base = sharpen.unsharp_rgb(base, self.unsharp_sigma, gain[material])
+            base = sharpen.unsharp_rgb(base, self.unsharp_sigma, gain[material], mask)
         elif self.residual_base != "input":
             raise ValueError(f"unknown residual_base {self.residual_base!r}")
         return base + out

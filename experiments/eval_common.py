@@ -376,18 +376,22 @@ def aligned_patches(pair: AlignedPair, fine_vertices, coarse_vertices, origins: 
 # --------------------------------------------------------------------------------------------
 
 
-def unsharp_setting(path: Path = MODEL_CARD_RESULTS) -> tuple[float, float, str]:
-    """(sigma texels, amount, source) of the unsharp-mask baseline: the best entry of the
-    model card's "unsharp_sweep" (mean signed improvement on training patches) if that file
-    exists, else `DEFAULT_UNSHARP`."""
+def unsharp_setting(path: Path = MODEL_CARD_RESULTS, order: int = 1
+                    ) -> tuple[float, float, str]:
+    """(sigma texels, amount, source) of the unsharp-mask baseline with masked-blur `order`:
+    the best entry of that order in the model card's "unsharp_sweep" (mean signed improvement
+    on training patches; keys without "order=" are order 0, from before it existed) if that
+    file has one, else `DEFAULT_UNSHARP`."""
     try:
         sweep = json.loads(Path(path).read_text())["unsharp_sweep"]
-        best = max(sweep, key=sweep.get)
-        kv = dict(part.split("=") for part in best.split(","))
+        parsed = {key: dict(part.split("=") for part in key.split(",")) for key in sweep}
+        mine = [key for key, kv in parsed.items() if int(kv.get("order", 0)) == order]
+        best = max(mine, key=sweep.get)
+        kv = parsed[best]
         return float(kv["sigma"]), float(kv["amount"]), f"{path}: unsharp_sweep best {best}"
     except (OSError, KeyError, ValueError, json.JSONDecodeError):
         s, a = DEFAULT_UNSHARP
-        return s, a, f"default sigma={s:g},amount={a:g} (no sweep in {path})"
+        return s, a, f"default order={order},sigma={s:g},amount={a:g} (no sweep in {path})"
 
 
 def enhancer_method(enh: enhancer_lib.Enhancer, batch_size: int = 16,
@@ -425,12 +429,20 @@ def enhancer_method(enh: enhancer_lib.Enhancer, batch_size: int = 16,
     return run
 
 
-def baseline_methods(sigma: float, amount: float) -> dict[str, Callable[[PatchSet], np.ndarray]]:
-    """The non-learned methods, each (PatchSet) -> (K, S, S, 3) outputs (RGB form, masked)."""
+def baseline_methods(settings: dict[int, tuple[float, float]]
+                     ) -> dict[str, Callable[[PatchSet], np.ndarray]]:
+    """The non-learned methods, each (PatchSet) -> (K, S, S, 3) outputs (RGB form, masked).
+
+    settings: masked-blur order -> (sigma, amount) of an unsharp-mask baseline (one entry per
+    order, e.g. from `unsharp_setting`).
+    """
+    def unsharp(order, sigma, amount):
+        return lambda p: evaluation.unsharp_mask(p.input, p.mask, sigma, amount, order)
+
     return {
         "identity": lambda p: evaluation.identity(p.input, p.mask),
-        f"unsharp (sigma={sigma:g},amount={amount:g})":
-            lambda p: evaluation.unsharp_mask(p.input, p.mask, sigma, amount),
+        **{f"unsharp order {o} (sigma={s:g},amount={a:g})": unsharp(o, s, a)
+           for o, (s, a) in sorted(settings.items())},
         "bicubic x2 down/up": lambda p: evaluation.resample(p.input, p.mask, 2.0),
         "lanczos x2 down/up": lambda p: evaluation.resample(p.input, p.mask, 2.0,
                                                             up=cv2.INTER_LANCZOS4),

@@ -4,7 +4,8 @@
 
 Explains a run's held-out improvement score layer by layer: for the run's last checkpoint
 (`RUN_DIR`, e.g. `outputs/short_runs/width_unsharp/w32`) and for the unsharp-mask baseline
-(sigma 8, amount 1), on the same `--n` held-out patches (`short_runs.heldout_eval_set`), it
+(sigma 8, amount 1; masked blur of order 0 and of order 1), on the same `--n` held-out
+patches (`short_runs.heldout_eval_set`), it
 prints and writes each layer's mean input loss, its share of the evaluation yardstick
 (`evaluation.EVAL_LAYERS`), and the mean and median output/input loss ratio, plus the patches
 whose yardstick ratio is worst with their per-layer ratios. This is how the content term on
@@ -89,8 +90,8 @@ def main(argv=None) -> None:
     held = short_runs.heldout_eval_set(args.data, args.n)
     vgg_params = vgg.load_vgg19()
     outs = {"run": short_runs.enhance(cfg, state.params, held),
-            "unsharp sigma 8 amount 1": evaluation.unsharp_mask(held["input"], held["mask"],
-                                                                8.0, 1.0)}
+            **{f"unsharp order {o} sigma 8 amount 1":
+               evaluation.unsharp_mask(held["input"], held["mask"], 8.0, 1.0, o) for o in (0, 1)}}
     result = {"run": args.run, "steps": int(state.step), "n": len(held["input"]),
               "gains": np.asarray(state.params.get("unsharp_amount", [])).tolist(),
               "methods": {}}

@@ -23,9 +23,10 @@ of a grid (stride half a patch) in which the texels covered by BOTH meshes make 
 drawn at random (seeded by cell and frame). Input N = the coarse map, target N_hat = the fine
 map of the same frame, both cut to that mask.
 
-Methods, on the same patches: identity (score 0 by definition); unsharp masking with the best
-(sigma, amount) of the model card's sweep on training patches
-(`experiments/results/model_card/results.json`, else sigma 8 amount 1); bicubic and Lanczos x2
+Methods, on the same patches: identity (score 0 by definition); unsharp masking with masked
+blur of order 0 and of order 1, each with the best (sigma, amount) of the model card's sweep on
+training patches (`experiments/results/model_card/results.json`, else sigma 8 amount 1);
+bicubic and Lanczos x2
 down/up-sampling; the model (run on the patch itself, material given).
 
 Score: `wrinkle_jax.evaluation`'s improvement score on EVAL_LAYERS (relu1_2 ... relu5_1), the
@@ -375,8 +376,9 @@ def main(argv=None) -> int:
     sim_s = time.perf_counter() - t0
 
     # 2. Methods and scoring.
-    sigma, amount, unsharp_src = ec.unsharp_setting()
-    methods = ec.baseline_methods(sigma, amount)
+    unsharp = {o: ec.unsharp_setting(order=o) for o in (0, 1)}
+    unsharp_src = "; ".join(f"order {o}: {u[2]}" for o, u in unsharp.items())
+    methods = ec.baseline_methods({o: u[:2] for o, u in unsharp.items()})
     net_timings: dict = {}
     methods[MODEL] = ec.enhancer_method(enh, batch_size=sampling.score_batch, timings=net_timings)
     vgg_params = vgg.load_vgg19()
@@ -428,7 +430,8 @@ def main(argv=None) -> int:
         "model": str(args.model), "model_config": enh.config.to_json(),
         "model_meta": {k: v for k, v in enh.meta.items() if not isinstance(v, dict | list)},
         "methods": list(methods),
-        "unsharp": {"sigma": sigma, "amount": amount, "source": unsharp_src},
+        "unsharp": {f"order {o}": {"sigma": u[0], "amount": u[1], "source": u[2]}
+                    for o, u in unsharp.items()},
         "score": "evaluation.score_patches equivalent on " + ", ".join(evaluation.EVAL_LAYERS),
         "sampling": dataclasses.asdict(sampling), "sampling_text": sampling_text,
         "config": {"garments": args.garments.split(","), "materials": args.materials.split(","),

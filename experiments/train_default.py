@@ -1,6 +1,6 @@
 """Train the default enhancer and export it into the package (resumable, background-friendly).
 
-    nohup nice -n 2 python -m experiments.train_default [--minutes 40] [--width 32] \
+    nohup nice -n 2 python -m experiments.train_default [--minutes 40] [--width 16] \
         [--run outputs/default_run] [--warm-start] > /dev/null 2>&1 &
     python -m experiments.train_default --export-only
 
@@ -39,7 +39,8 @@ def config_from_args(args) -> train.TrainConfig:
                                              else None),
                              residual_base=args.residual_base, unsharp_sigma=args.unsharp_sigma,
                              unsharp_amount=args.unsharp_amount,
-                             residual_highpass=args.residual_highpass)
+                             residual_highpass=args.residual_highpass,
+                             blur_order=args.blur_order)
 
 
 def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None) -> Path:
@@ -56,7 +57,8 @@ def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None) -
                                     residual_base=cfg.residual_base,
                                     unsharp_sigma=cfg.unsharp_sigma,
                                     unsharp_amount=cfg.unsharp_amount,
-                                    residual_highpass=cfg.residual_highpass)
+                                    residual_highpass=cfg.residual_highpass,
+                                    blur_order=cfg.blur_order)
     rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if x]
     train_s = float(sum(r.get("step_s", 0.0) for r in rows if r["kind"] == "train"))
     evals = [r for r in rows if r["kind"] == "eval"]
@@ -73,7 +75,8 @@ def main(argv=None) -> None:
     ap.add_argument("--data", default=str(ROOT / "data" / "patches"))
     ap.add_argument("--run", default=str(ROOT / "outputs" / "default_run"))
     ap.add_argument("--out", default=str(enhancer.DEFAULT_PATH))
-    ap.add_argument("--width", type=int, default=32)
+    ap.add_argument("--width", type=int, default=16,
+                    help="the width study's choice (experiments/results/width_unsharp2_study)")
     ap.add_argument("--residual", type=int, default=1)
     ap.add_argument("--style-layers", default="relu1_2,relu2_1,relu2_2,relu3_1,relu3_2",
                     help="layer_selection's relu2_2,relu3_1,relu3_2 plus relu1_2,relu2_1, where "
@@ -93,6 +96,9 @@ def main(argv=None) -> None:
                     help="initial per-material gain (learned)")
     ap.add_argument("--residual-highpass", type=float, default=8.0,
                     help="texels; the residual can add detail but not shift orientation")
+    ap.add_argument("--blur-order", type=int, default=1, choices=(0, 1),
+                    help="masked blur of the unsharp base and the high-pass: 1 = local plane "
+                         "(flat tilted panels pass unchanged), 0 = local mean (pre-session-4)")
     ap.add_argument("--init-from", default=None,
                     help="start a fresh run from another run's last checkpoint (warm start)")
     ap.add_argument("--minutes", type=float, default=40.0)

@@ -98,3 +98,17 @@ def test_unsharp_base_round_trips_with_its_gains(tmp_path):
                                  dtype=np.float32)
     with pytest.raises(enhancer.EnhancerError, match="do not match"):
         enhancer.load_enhancer(bad)
+
+
+def test_files_without_blur_order_keep_the_order0_blur():
+    """Model files and run configs written before `blur_order` existed were trained with the
+    order-0 (local mean) blur; reading them must not silently switch to the new default."""
+    from wrinkle_jax import train
+
+    d = enhancer.EnhancerConfig(residual=True, residual_base="unsharp").to_json()
+    assert d.pop("blur_order") == 1
+    assert enhancer.EnhancerConfig.from_json(d).blur_order == 0
+    t = train.TrainConfig().to_json()
+    t.pop("blur_order")
+    assert train.TrainConfig.from_json(t).blur_order == 0
+    assert train.TrainConfig.from_json(train.TrainConfig(blur_order=1).to_json()).blur_order == 1

@@ -110,8 +110,18 @@ def test_unsharp_setting_reads_the_sweep_best_or_falls_back(tmp_path):
     p.write_text(json.dumps({"unsharp_sweep": {"sigma=2,amount=1": 3.0,
                                                "sigma=12,amount=1.5": 7.5,
                                                "sigma=8,amount=4": -60.0}}))
-    assert ec.unsharp_setting(p)[:2] == (12.0, 1.5)
+    # Keys without "order=" predate the order-1 blur: they are order 0.
+    assert ec.unsharp_setting(p, order=0)[:2] == (12.0, 1.5)
+    assert ec.unsharp_setting(p, order=1)[:2] == ec.DEFAULT_UNSHARP
+    p.write_text(json.dumps({"unsharp_sweep": {"order=0,sigma=8,amount=1.5": 9.0,
+                                               "order=1,sigma=12,amount=1": 8.0,
+                                               "order=1,sigma=16,amount=2": 5.0}}))
+    assert ec.unsharp_setting(p, order=0)[:2] == (8.0, 1.5)
+    assert ec.unsharp_setting(p, order=1)[:2] == (12.0, 1.0)
     assert ec.unsharp_setting(tmp_path / "missing.json")[:2] == ec.DEFAULT_UNSHARP
+    names = list(ec.baseline_methods({0: (8.0, 1.5), 1: (12.0, 1.0)}))
+    assert names[1:3] == ["unsharp order 0 (sigma=8,amount=1.5)",
+                          "unsharp order 1 (sigma=12,amount=1)"]
 
 
 # --------------------------------------------------------------------------------------------

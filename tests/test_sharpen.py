@@ -37,15 +37,47 @@ def test_gaussian_kernel_normalized_and_symmetric():
         np.testing.assert_array_equal(g, g[::-1])
 
 
+@pytest.mark.parametrize("order", [0, 1])
 @pytest.mark.parametrize("sigma,amount", [(1.0, 0.5), (2.0, 1.0), (8.0, 2.0)])
-def test_matches_opencv_baseline(sigma, amount):
+def test_matches_opencv_baseline(sigma, amount, order):
     x, m = _folds()
-    want = evaluation.unsharp_mask(x, m, sigma, amount)
-    got = np.asarray(sharpen.unsharp_rgb(x, sigma, amount, m))
-    np.testing.assert_allclose(got, want, atol=2e-5)
+    want = evaluation.unsharp_mask(x, m, sigma, amount, order)
+    got = np.asarray(sharpen.unsharp_rgb(x, sigma, amount, m, order))
+    np.testing.assert_allclose(got, want, atol=5e-5)
     # The inferred mask is the true one (background 0, normals never all-zero in RGB form).
-    got_inferred = np.asarray(sharpen.unsharp_rgb(x, sigma, amount))
-    np.testing.assert_allclose(got_inferred, want, atol=2e-5)
+    got_inferred = np.asarray(sharpen.unsharp_rgb(x, sigma, amount, order=order))
+    np.testing.assert_allclose(got_inferred, want, atol=5e-5)
+
+
+def _ramp(size=48):
+    """A field linear in both texel coordinates, (1, size, size, 3), and a disc mask whose
+    border cuts it at every angle, plus a one-texel-wide diagonal strip mask."""
+    y, x = np.mgrid[0:size, 0:size].astype(np.float32)
+    field = np.stack([0.3 + 0.01 * x, -0.2 + 0.012 * y, 0.5 - 0.004 * x + 0.006 * y], -1)[None]
+    disc = ((x - 20) ** 2 + (y - 26) ** 2 < 17**2).astype(np.float32)[None, ..., None]
+    strip = (np.abs(x - y) < 0.5).astype(np.float32)[None, ..., None]
+    return field.astype(np.float32), disc, strip
+
+
+def test_local_plane_blur_keeps_linear_fields_up_to_the_border():
+    """Order 1 is exact on a linear field everywhere inside the mask (the ridge costs ~0.1 % of
+    the slope); order 0 lags it along the border: the spurious ramp that unsharp masking
+    amplifies on flat tilted panels."""
+    field, disc, strip = _ramp()
+    inside = disc[..., 0] > 0
+    err1 = np.abs(np.asarray(sharpen.masked_blur(field, disc, 6.0, order=1)) - field)[inside]
+    err0 = np.abs(np.asarray(sharpen.masked_blur(field, disc, 6.0, order=0)) - field)[inside]
+    assert err1.max() < 2e-3 * np.abs(field).max()
+    assert err0.max() > 20 * err1.max()
+    # A one-texel-wide diagonal strip: the slope across it is undetermined (the ridge makes the
+    # fit fall back), the one along it is exact: the field is still kept, and all is finite.
+    got = np.asarray(sharpen.masked_blur(field, strip, 6.0, order=1))
+    assert np.all(np.isfinite(got))
+    on = strip[..., 0] > 0
+    np.testing.assert_allclose(got[on], field[on], atol=2e-3)
+    assert np.all(got[~on] == 0)
+    with pytest.raises(ValueError, match="order"):
+        sharpen.masked_blur(field, disc, 6.0, order=2)
 
 
 def test_per_patch_amount_and_identity_at_zero():
@@ -80,12 +112,13 @@ def test_sharpening_adds_detail():
     assert grad_energy(out) > 1.2 * grad_energy(x)
 
 
-def test_gradient_matches_finite_differences():
+@pytest.mark.parametrize("order", [0, 1])
+def test_gradient_matches_finite_differences(order):
     x, m = _folds(n=1, size=24)
     w = jnp.asarray(np.random.default_rng(1).normal(size=x.shape), jnp.float32)
 
     def f(amount, xx):
-        return jnp.sum(w * sharpen.unsharp_rgb(xx, 2.0, amount, m))
+        return jnp.sum(w * sharpen.unsharp_rgb(xx, 2.0, amount, m, order))
 
     g_a, g_x = jax.grad(f, argnums=(0, 1))(jnp.float32(0.8), jnp.asarray(x))
     h = 1e-2
@@ -133,11 +166,13 @@ def test_highpassed_residual_cannot_shift_orientation():
     got_hp = np.asarray(hp.apply({"params": params}, x, jnp.array([0, 1])))
     np.testing.assert_allclose(got_plain, base + np.asarray(bias), atol=1e-6)
     np.testing.assert_allclose(got_hp * m, base, atol=1e-5)
-    # Random weights: the residual is not zero, and its masked mean is far below the plain one.
+    # Random weights: the residual is not zero, and its masked mean is far below the plain one
+    # (order 1's border extrapolation keeps a little more of a random field's mean than
+    # order 0's local mean would: ~12 % here against the plain residual).
     params = unet.init_params(plain, jax.random.key(1, impl="rbg"), 32)
     r_plain = np.asarray(plain.apply({"params": params}, x, jnp.array([0, 1]))) - base
     r_hp = (np.asarray(hp.apply({"params": params}, x, jnp.array([0, 1]))) - base) * m
     assert np.abs(r_hp).mean() > 1e-3
     mean_hp = np.abs(r_hp.sum((1, 2)) / m.sum((1, 2))).max()
     mean_plain = np.abs((r_plain * m).sum((1, 2)) / m.sum((1, 2))).max()
-    assert mean_hp < 0.1 * mean_plain
+    assert mean_hp < 0.2 * mean_plain

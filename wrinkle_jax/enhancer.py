@@ -57,8 +57,8 @@ class EnhancerConfig:
       patch_size: patch side in texels the model was trained on.
       texel_size: meters of cloth per texel of the normal maps it was trained on.
       coarse_pd: particle distance (m) of the coarse inputs it was trained for.
-      residual_base, unsharp_sigma, unsharp_amount, residual_highpass: the residual's base
-        and its high-pass (`nn.unet.CINUNet`).
+      residual_base, unsharp_sigma, unsharp_amount, residual_highpass, blur_order: the
+        residual's base and its high-pass (`nn.unet.CINUNet`).
     """
 
     width: int = 32
@@ -72,6 +72,7 @@ class EnhancerConfig:
     unsharp_sigma: float = 8.0
     unsharp_amount: float = 1.0
     residual_highpass: float = 0.0
+    blur_order: int = 1
 
     def model(self, conv_impl: str = "im2col_bf16") -> unet.CINUNet:
         return unet.CINUNet(num_materials=len(self.materials), width=self.width,
@@ -79,7 +80,8 @@ class EnhancerConfig:
                             residual_base=self.residual_base,
                             unsharp_sigma=self.unsharp_sigma,
                             unsharp_amount=self.unsharp_amount,
-                            residual_highpass=self.residual_highpass, conv_impl=conv_impl)
+                            residual_highpass=self.residual_highpass,
+                            blur_order=self.blur_order, conv_impl=conv_impl)
 
     def material_id(self, name: str) -> int:
         if name not in self.materials:
@@ -93,6 +95,8 @@ class EnhancerConfig:
     @classmethod
     def from_json(cls, d: dict) -> EnhancerConfig:
         d = dict(d)
+        # Files written before blur_order existed used the order-0 (local mean) blur.
+        d.setdefault("blur_order", 0)
         d["materials"] = tuple(d["materials"])
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = set(d) - names

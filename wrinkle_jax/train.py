@@ -58,8 +58,8 @@ class TrainConfig:
         forms, so a run may resume with another one.
       relative_floor: None for the paper's absolute style loss, or the floor of the per-patch
         relative style loss (`nn.losses.enhancer_loss`); the "style" metric is then a ratio.
-      residual_base, unsharp_sigma, unsharp_amount, residual_highpass: the residual's base
-        (`nn.unet.CINUNet`:
+      residual_base, unsharp_sigma, unsharp_amount, residual_highpass, blur_order: the
+        residual's base (`nn.unet.CINUNet`:
         "input", or "unsharp" to start from unsharp masking with a learnable per-material gain).
       zero_init_output: with `residual`, start the output conv at zero so the untrained
         network is the identity (improvement 0) instead of input + random noise, whose style
@@ -90,6 +90,7 @@ class TrainConfig:
     unsharp_sigma: float = 8.0
     unsharp_amount: float = 1.0
     residual_highpass: float = 0.0
+    blur_order: int = 1
     zero_init_output: bool = True
     relative_floor: float | None = None
     seed: int = 0
@@ -104,7 +105,8 @@ class TrainConfig:
                             residual_base=self.residual_base,
                             unsharp_sigma=self.unsharp_sigma,
                             unsharp_amount=self.unsharp_amount,
-                            residual_highpass=self.residual_highpass, conv_impl=self.conv_impl)
+                            residual_highpass=self.residual_highpass,
+                            blur_order=self.blur_order, conv_impl=self.conv_impl)
 
     @property
     def vgg_conv_impl(self) -> str:
@@ -116,6 +118,8 @@ class TrainConfig:
     @classmethod
     def from_json(cls, d: dict) -> TrainConfig:
         d = dict(d)
+        # Files written before blur_order existed used the order-0 (local mean) blur.
+        d.setdefault("blur_order", 0)
         d["style_layers"] = tuple(d["style_layers"])
         return cls(**d)
 

@@ -110,6 +110,10 @@ class CINUNet(nn.Module):
         high-passed (minus its masked blur, `sharpen.masked_blur`) so it can add detail but not
         shift the patch's low-frequency orientation -- which the style loss's early layers
         (relu1_2, relu2_1) punish hard on patches already close to their target.
+      blur_order: order of the masked blur of the unsharp base and of the high-pass
+        (`sharpen.masked_blur`): 1 (local plane; flat tilted panels pass unchanged) or 0 (local
+        mean, which turns every mask border into a spurious ramp; models trained before
+        session 4 use it).
       input_norm: "imagenet" (normalize RGB by ImageNet mean/std, as the authors do) or "none".
       norm: the conditional normalization layer factory (called with num_materials).
       dtype: computation dtype of the "xla" convolutions (parameters stay float32).
@@ -124,6 +128,7 @@ class CINUNet(nn.Module):
     unsharp_sigma: float = 8.0
     unsharp_amount: float = 1.0
     residual_highpass: float = 0.0
+    blur_order: int = 1
     norm: Callable[..., nn.Module] = CIN
     dtype: jnp.dtype = jnp.float32
     conv_impl: str = "xla"
@@ -189,11 +194,12 @@ class CINUNet(nn.Module):
         base = x.astype(jnp.float32)
         mask = sharpen.mask_from_rgb(base)  # one mask for the high-pass and the unsharp base
         if self.residual_highpass > 0:
-            out = out - sharpen.masked_blur(out, mask, self.residual_highpass)
+            out = out - sharpen.masked_blur(out, mask, self.residual_highpass, self.blur_order)
         if self.residual_base == "unsharp":
             gain = self.param("unsharp_amount", nn.initializers.constant(self.unsharp_amount),
                               (self.num_materials,), jnp.float32)
-            base = sharpen.unsharp_rgb(base, self.unsharp_sigma, gain[material], mask)
+            base = sharpen.unsharp_rgb(base, self.unsharp_sigma, gain[material], mask,
+                                      self.blur_order)
         elif self.residual_base != "input":
             raise ValueError(f"unknown residual_base {self.residual_base!r}")
         return base + out

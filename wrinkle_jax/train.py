@@ -317,19 +317,30 @@ def plot_curves(metrics_path: Path, out_png: Path) -> None:
     rows = [json.loads(line) for line in metrics_path.read_text().splitlines() if line]
     train = [r for r in rows if r["kind"] == "train"]
     held = [r for r in rows if r["kind"] == "eval"]
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig, axes = plt.subplots(1, 3, figsize=(14, 3.6))
     if train:
-        steps = [r["step"] for r in train]
-        axes[0].semilogy(steps, [r["style"] for r in train], lw=0.8, alpha=0.6, label="train style")
+        steps = np.array([r["step"] for r in train])
+        style = np.array([r["style"] for r in train])
+        axes[0].semilogy(steps, style, lw=0.6, alpha=0.35, label="per step")
+        k = min(50, len(style))  # trailing mean: single batches of 8 patches are noisy
+        smooth = np.convolve(style, np.ones(k) / k, mode="valid")
+        axes[0].semilogy(steps[k - 1:], smooth, lw=1.5, label=f"mean of {k} steps")
+        axes[0].legend()
     if held:
-        axes[0].semilogy([r["step"] for r in held], [r["heldout_style"] for r in held], "o-",
-                         label="held-out style")
-        axes[1].plot([r["step"] for r in held], [r["heldout_improvement"] for r in held], "o-")
-    axes[0].set_xlabel("step")
-    axes[0].legend()
-    axes[0].set_title("style loss")
-    axes[1].set_xlabel("step")
-    axes[1].set_title("held-out improvement score")
+        hs = [r["step"] for r in held]
+        axes[1].semilogy(hs, [r["heldout_style"] for r in held], "o-", label="output")
+        axes[1].semilogy(hs, [r["heldout_input_style"] for r in held], "--", label="input")
+        axes[1].legend()
+        axes[2].plot(hs, [r["heldout_improvement"] for r in held], "o-", label="paper |.| form")
+        if "heldout_improvement_signed" in held[0]:
+            axes[2].plot(hs, [r["heldout_improvement_signed"] for r in held], "s-",
+                         label="signed")
+        axes[2].legend()
+    titles = ("train style term (the objective's units)", "held-out style loss (absolute)",
+              "held-out improvement score (%)")
+    for ax, title in zip(axes, titles, strict=True):
+        ax.set_xlabel("step")
+        ax.set_title(title, fontsize=10)
     fig.tight_layout()
     import io
 

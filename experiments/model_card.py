@@ -191,7 +191,7 @@ def card_text(enh: enhancer.Enhancer, results: dict, table: list[str], args) -> 
     """The model card: what the model is, how it was trained, and the held-out table."""
     c, m = enh.config, enh.meta
     t = m.get("train_config", {})
-    gains = np.asarray(enh.params.get("unsharp_amount", np.zeros(0))).round(3).tolist()
+    gains = [round(float(g), 3) for g in np.asarray(enh.params.get("unsharp_amount", []))]
     n_params = int(sum(np.size(x) for x in jax.tree.leaves(enh.params)))
     ms = results["methods"]["model"]["heldout"].get("net_ms_per_patch")
     hours = m.get("train_step_seconds", 0.0) / 3600

@@ -19,3 +19,4 @@ def test_readme_python_example_runs(tmp_path, monkeypatch):
     assert scope["maps"].shape[0] == 12
     assert scope["merged"].shape == scope["maps"][0].shape
     assert (tmp_path / "frame0.png").exists()
+    assert scope["detailed"].shape == scope["tiles"].shape

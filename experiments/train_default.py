@@ -90,7 +90,7 @@ def main(argv=None) -> None:
     ap.add_argument("--relative-floor", type=float, default=100.0,
                     help="per-patch relative style loss floor; <= 0 for the paper's absolute loss")
     ap.add_argument("--residual-base", default="unsharp", choices=("input", "unsharp"))
-    ap.add_argument("--unsharp-sigma", type=float, default=8.0,
+    ap.add_argument("--unsharp-sigma", type=float, default=16.0,
                     help="texels; the best sigma of the unsharp-mask sweep on training patches")
     ap.add_argument("--unsharp-amount", type=float, default=1.0,
                     help="initial per-material gain (learned)")
@@ -112,9 +112,12 @@ def main(argv=None) -> None:
         init = None
         if args.warm_start and not (run / "checkpoints").exists():
             shipped = enhancer.load_enhancer()
-            if ((shipped.config.width, shipped.config.residual, shipped.config.residual_base)
-                    != (cfg.width, cfg.residual, cfg.residual_base)):
-                raise SystemExit("--warm-start: the shipped model's width/residual/base differ")
+            c = shipped.config
+            if ((c.width, c.residual, c.residual_base, c.unsharp_sigma, c.blur_order)
+                    != (cfg.width, cfg.residual, cfg.residual_base, cfg.unsharp_sigma,
+                        cfg.blur_order)):
+                raise SystemExit("--warm-start: the shipped model's width/residual/base/"
+                                 "unsharp sigma/blur order differ from the flags")
             init = shipped.params
         if args.init_from and not (run / "checkpoints").exists():
             from experiments.per_layer_ratios import restore_params

@@ -35,9 +35,10 @@ input). The Gram matrices of the input and the target are computed once per patc
 by the methods (`eval_common.method_losses`, equal to `evaluation.score_patches`).
 
 Cost (2 CPU cores): a VGG19 pass to relu5_1 costs ~0.15-0.2 s per 128x128 patch on an idle
-machine and ~0.4-0.5 s with another job on the cores; a patch needs 2 + 4 passes (input,
-target, and every method except identity), so the defaults (12 cells x 20 frames x 8 patches
-= 1920 patches) take ~30-40 min idle. The ETA is printed as it goes. Each finished cell is
+machine and ~0.4-0.5 s with another job on the cores; a patch needs 2 + 5 passes (input,
+target, and every method except identity: two unsharp orders, bicubic, Lanczos, the model), so
+the defaults (12 cells x 20 frames x 8 patches = 1920 patches) take ~35-45 min idle. The ETA
+is printed as it goes. Each finished cell is
 stored under `<out>/cells/` and reused by a rerun with the same settings (`--fresh` ignores it).
 
 Writes `<out>/results.json` (per cell and per cell kind: n, mean and std of both scores and

@@ -1,5 +1,6 @@
-"""Tests for the evaluation scripts (`experiments.eval_common`, `.table1`, `.temporal`, `.timing`)
-on tiny analytic sheets, a tiny VGG and a tiny random enhancer (no simulation, no real VGG).
+"""Tests for the evaluation scripts (`experiments.eval_common`, `.table1`, `.table2`, `.temporal`,
+`.timing`) on tiny analytic sheets, a tiny VGG and a tiny random enhancer (no simulation, no real
+VGG).
 
 Every garment here is a flat-UV grid sheet (UVs = rest (x, y) in meters), displaced by known
 height fields, so normals and UV positions are known in closed form.
@@ -17,7 +18,7 @@ import numpy as np
 import pytest
 
 from experiments import eval_common as ec
-from experiments import table1, temporal, timing
+from experiments import table1, table2, temporal, timing
 from wrinkle_jax import enhancer, evaluation, meshio, normalmap, patches, primitives
 from wrinkle_jax.nn import vgg
 
@@ -427,3 +428,192 @@ def test_timing_ratios_body_and_plot(tmp_path):
                "pipeline": {"ms_per_frame": {k: 10.0 for k in timing.STAGES}}, "ratio": r}
     timing.plot(tmp_path / "t.png", results)
     assert (tmp_path / "t.png").read_bytes()[:4] == b"\x89PNG"
+
+
+# --------------------------------------------------------------------------------------------
+# Table 2
+# --------------------------------------------------------------------------------------------
+
+
+def test_chamfer_distance_is_zero_symmetric_translation_invariant_and_hand_computed():
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(size=(5, 3)), rng.normal(size=(7, 3))
+    assert table2.chamfer_distance(x, x) == 0.0
+    cd = table2.chamfer_distance(x, y)
+    assert cd > 0 and table2.chamfer_distance(y, x) == pytest.approx(cd, rel=1e-12)
+    shift = np.array([10.0, -3.0, 0.5])
+    assert table2.chamfer_distance(x + shift, y + shift) == pytest.approx(cd, rel=1e-9)
+    # Both directions count: a subset is at distance 0 one way only.
+    assert table2.chamfer_distance(x[:2], x) > 0
+    # a = {(0, 0), (2, 0)}, c = {(0, 1)}: a -> c 1 and sqrt(5), c -> a 1.
+    a, c = [[0.0, 0.0], [2.0, 0.0]], [[0.0, 1.0]]
+    hand = ((1.0 + np.sqrt(5.0)) / 2 + 1.0) / 2
+    assert table2.chamfer_distance(a, c) == pytest.approx(hand, rel=1e-12)
+    assert table2.chamfer_from_sq_dists(table2.sq_dists(a, c)) == pytest.approx(hand, rel=1e-12)
+    np.testing.assert_array_equal(np.diag(table2.sq_dists(x)), 0.0)
+
+
+def test_decrease_ratio_paper_form_and_signed_form():
+    assert table2.decrease_ratio(2.0, 0.5) == 75.0
+    assert table2.decrease_ratio(2.0, 0.5, signed=True) == 75.0
+    # The paper's |.| form cannot tell "further from the fine patches" from "closer".
+    assert table2.decrease_ratio(1.0, 1.5) == 50.0
+    assert table2.decrease_ratio(1.0, 1.5, signed=True) == -50.0
+    assert table2.decrease_ratio(1.0, 1.0, signed=True) == 0.0
+    assert np.isnan(table2.decrease_ratio(0.0, 0.1)) and np.isnan(table2.decrease_ratio(np.nan, 1))
+    assert table2.chamfer_scores(2.0, 3.0) == {"c1": 2.0, "c2": 3.0, "dr": 50.0,
+                                               "dr_signed": -50.0}
+
+
+def test_gram_features_are_upper_triangles_with_layers_scaled_to_unit_median_norm():
+    rng = np.random.default_rng(1)
+
+    def sym(n, c, scale):
+        m = rng.normal(size=(n, c, c)) * scale
+        return m + m.transpose(0, 2, 1)
+
+    grams = {"small": sym(3, 2, 1.0), "big": sym(3, 4, 1000.0)}
+    flat = table2.upper_triangle(grams)
+    assert list(flat) == ["small", "big"]
+    assert flat["small"].shape == (3, 3) and flat["big"].shape == (3, 10)
+    assert flat["big"].dtype == np.float32
+    g = grams["small"][1]
+    np.testing.assert_allclose(flat["small"][1], [g[0, 0], g[0, 1], g[1, 1]], rtol=1e-6)
+    scales = table2.layer_scales(flat)
+    assert scales["big"] == pytest.approx(np.median(np.linalg.norm(flat["big"], axis=1)))
+    feats = table2.scaled_features(flat, scales)
+    assert feats.shape == (3, 13)
+    for block in (feats[:, :3], feats[:, 3:]):
+        assert np.median(np.linalg.norm(block, axis=1)) == pytest.approx(1.0)
+    # A layer's overall magnitude is scaled away.
+    louder = dict(flat, big=flat["big"] * 1e3)
+    np.testing.assert_allclose(table2.scaled_features(louder, table2.layer_scales(louder)), feats,
+                               rtol=1e-5)
+    # Layer-by-layer distances equal the distances of the concatenated features.
+    np.testing.assert_allclose(table2.scaled_sq_dists(flat, None, scales),
+                               table2.sq_dists(feats), rtol=1e-9, atol=1e-12)
+    other = table2.upper_triangle({"small": sym(2, 2, 1.0), "big": sym(2, 4, 1000.0)})
+    np.testing.assert_allclose(table2.scaled_sq_dists(other, flat, scales),
+                               table2.sq_dists(table2.scaled_features(other, scales), feats),
+                               rtol=1e-9)
+    assert table2.layer_scales({"zero": np.zeros((2, 3), np.float32)}) == {"zero": 1.0}
+    with pytest.raises(ValueError, match="Gram"):
+        table2.upper_triangle({"x": np.zeros((2, 3, 4))})
+
+
+def test_set_c_frames_are_between_table1_frames_never_on_them():
+    a = table1.Sampling().frame_indices
+    c = table2.c_frame_indices(a, 200, 10)
+    assert c == list(range(5, 200, 10)) and not set(a) & set(c)
+    assert table2.c_frame_indices([0, 3, 6], 7, 3) == [1, 4, 5]  # past the end: the one before
+    with pytest.raises(ValueError, match=">= 2"):
+        table2.c_frame_indices([0, 1], 2, 1)
+    with pytest.raises(ValueError, match="within 1 frames"):
+        table2.c_frame_indices([0], 1, 2)
+
+
+def test_embedding_from_the_distance_matrix_equals_the_embedding_of_the_points():
+    x = np.random.default_rng(2).normal(size=(30, 50))
+    d2 = table2.sq_dists(x)
+    pts = table2.points_from_sq_dists(d2)
+    np.testing.assert_allclose(table2.sq_dists(pts), d2, atol=1e-9)
+    # Eigenvectors are defined up to sign.
+    np.testing.assert_allclose(np.abs(table2.spectral_embedding(pts)),
+                               np.abs(table2.spectral_embedding(x)), atol=1e-9)
+
+
+def _three_sets(n=20, seed=0):
+    """6-D Gaussian clouds (std 0.3): c at the origin, b 0.5 from it, a 3.0 from it."""
+    rng = np.random.default_rng(seed)
+    sets = []
+    for offset in (3.0, 0.5, 0.0):  # a, b, c
+        p = rng.normal(0.0, 0.3, (n, 6))
+        p[:, 0] += offset
+        sets.append(p)
+    return sets
+
+
+def test_cell_comparison_finds_b_nearer_to_c_than_a_and_a_swap_reverses_it():
+    a, b, c = _three_sets()
+    ac = np.concatenate([a, c])
+    res = {"frame": np.zeros(len(a), np.int32), "origin": np.zeros((len(a), 2), np.int32),
+           "frame_c": np.ones(len(c), np.int32), "origin_c": np.zeros((len(c), 2), np.int32),
+           "scales": {}, "n_candidates": 1, "timings": {},
+           "d2_ref": table2.sq_dists(ac),
+           "d2_method": {"near": np.concatenate([table2.sq_dists(b, ac), table2.sq_dists(b)], 1),
+                         "same": np.concatenate([table2.sq_dists(a, ac), table2.sq_dists(a)], 1)}}
+    d2, labels = table2.union_sq_dists(res["d2_ref"], res["d2_method"]["near"], len(a))
+    np.testing.assert_allclose(d2, table2.sq_dists(np.concatenate([a, b, c])), atol=1e-12)
+    rec = table2.cell_record(res)
+    near, same = rec["methods"]["near"], rec["methods"]["same"]
+    for space in table2.SPACES:
+        s = near[space]
+        assert s["c2"] < s["c1"] and s["dr_signed"] > 0 and s["dr"] == s["dr_signed"]
+        assert same[space]["dr_signed"] == pytest.approx(0.0, abs=1e-6)
+    assert near["full"]["c1"] == pytest.approx(table2.chamfer_distance(a, c), rel=1e-9)
+    assert near["full"]["c2"] == pytest.approx(table2.chamfer_distance(b, c), rel=1e-9)
+    emb = near["embedding"]
+    assert emb.shape == (60, 2) and emb.dtype == np.float32
+    assert np.sqrt(((emb - emb.mean(0)) ** 2).sum(1).mean()) == pytest.approx(1.0, rel=1e-5)
+    # Swapping the roles of a and b must flip the verdict.
+    swapped = table2.compare_sets(d2, np.choose(labels, [table2.SET_B, table2.SET_A,
+                                                         table2.SET_C]))
+    for space in table2.SPACES:
+        assert swapped[space]["c2"] > swapped[space]["c1"]
+        assert swapped[space]["dr_signed"] < 0 < swapped[space]["dr"]
+    # The order of the rows does not matter.
+    perm = np.random.default_rng(3).permutation(len(labels))
+    shuffled = table2.compare_sets(d2[np.ix_(perm, perm)], labels[perm])
+    for space in table2.SPACES:
+        for k in ("c1", "c2"):
+            assert shuffled[space][k] == pytest.approx(near[space][k], rel=1e-5)
+
+
+def test_table2_main_uses_table1_patches_writes_results_and_resumes(tmp_path, monkeypatch,
+                                                                      tiny_vgg, model):
+    seqs = tmp_path / "seqs"
+    _write_cell_files(seqs, "dress", "dance", "silk_charmeuse", frames=4)
+    model_path = tmp_path / "tiny.npz"
+    enhancer.save_enhancer(model_path, model.params, model.config)
+    monkeypatch.setattr(table2.vgg, "load_vgg19", lambda *a, **k: tiny_vgg)
+    out = tmp_path / "out"
+    argv = ["--model", str(model_path), "--garments", "dress", "--motions", "dance",
+            "--materials", "silk_charmeuse", "--frames", "4", "--frame-stride", "2",
+            "--patches-per-frame", "3", "--sequences", str(seqs),
+            "--sim-out", str(tmp_path / "sim"), "--out", str(out)]
+    assert table2.main(argv) == 0
+    assert not (tmp_path / "sim").exists()  # Table 1's sequences reused, nothing simulated
+    res = json.loads((out / "results.json").read_text())
+    assert res["methods"][0] == "identity" and res["methods"][-1] == table2.MODEL
+    assert {"platform", "cpu_count", "jax"} <= set(res["machine"])
+    cell = res["cells"]["dress_dance/silk_charmeuse"]
+    assert cell["frames_a"] == [0, 2] and cell["frames_c"] == [1, 3]
+    assert cell["group"] == "unseen garment" and cell["n_a"] == cell["n_c"] > 0
+    ident, ours = cell["methods"]["identity"], cell["methods"][table2.MODEL]
+    for space in table2.SPACES:
+        assert ident[space]["dr_signed"] == pytest.approx(0.0, abs=1e-6)
+        assert all(np.isfinite(ours[space][k]) for k in ("c1", "c2", "dr", "dr_signed"))
+    assert ident["full"]["c1"] == ours["full"]["c1"]  # one feature space for every method
+    assert set(res["by_group"]) == {"unseen garment"}
+    assert res["all"][table2.MODEL]["full"]["n_cells"] == 1
+    table = (out / "table.md").read_text()
+    assert "| silk_charmeuse | dance (seen) |" in table and "dress (unseen)" in table
+    assert (out / "embeddings.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # Set a is Table 1's patches: same frames and origins.
+    c = ec.Cell("dress", "dance", "silk_charmeuse")
+    fine, coarse = (ec.load_first_frames(ec.sequence_file(seqs, "dress_dance", c.material, r,
+                                                          ec.TEST_SEED), 4)
+                    for r in ("fine", "coarse"))
+    sampling = table1.Sampling(frames=4, frame_stride=2, patches_per_frame=3, patch_size=PATCH,
+                               texel_size=TEXEL, score_batch=3)
+    t1 = table1.evaluate_cell(fine, coarse, c.material, {}, tiny_vgg, sampling,
+                              table1._cell_seed(c))
+    with np.load(out / "cells" / "dress_dance__silk_charmeuse.npz") as z:
+        np.testing.assert_array_equal(z["frame"], t1["frame"])
+        np.testing.assert_array_equal(z["origin"], t1["origin"])
+    # A rerun with the same settings reuses the stored cell; other settings recompute.
+    monkeypatch.setattr(table2, "evaluate_cell", lambda *a, **k: pytest.fail("recomputed"))
+    assert table2.main(argv) == 0
+    assert json.loads((out / "results.json").read_text())["all"] == res["all"]
+    with pytest.raises(pytest.fail.Exception):
+        table2.main(argv + ["--seed", "3"])

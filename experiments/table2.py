@@ -1,0 +1,789 @@
+"""Paper Table 2: how close the enhancer's output patches come to FINE-SIMULATION patch statistics
+without ground-truth correspondence (Chamfer distances between sets of Gram-matrix features),
+against the non-learned baselines.
+
+    python -m experiments.table2 [--model wrinkle_jax/assets/enhancer.npz] [--frames 200]
+        [--frame-stride 10] [--patches-per-frame 8] [--out experiments/results/table2]
+
+Cells, sequences and sampling are Table 1's (`experiments.table1`; same flags and defaults): 12
+cells garment {flared_skirt (seen), dress, cape} x material {silk_charmeuse, denim_light} x
+motion {dance (seen), walk}, seed 1, the first `--frames` frames of a fine (PD 10 mm) and a
+coarse (PD 30 mm) simulation, looked up in (or simulated into) the same folders, so nothing is
+simulated when Table 1 has run. Per cell, three sets of patches (paper Sec. 6):
+
+  (a) the coarse map's patches at exactly Table 1's frames (0, k, 2k, ...; k = --frame-stride)
+      and origins (same candidate grid, same seeded draw);
+  (b) a method's output on (a): the model, and every baseline as an alternative (b) (identity,
+      unsharp masking of order 0 and 1, bicubic and Lanczos x2 down/up, as in Table 1);
+  (c) the fine map's patches at frames that correspond to NO frame of (a): midway between them,
+      t + k // 2 (t - k // 2 where that is past the last frame), `--patches-per-frame` per frame
+      drawn from the same candidate grid independently of (a)'s draw. Same garment, material,
+      motion and stretch of the motion; all within the first `--frames` frames (no extra
+      simulation). Shifting (a)'s frames by half the range instead would reuse (a)'s frame set.
+
+All patches are cut to the texels covered by both meshes (the mask of Table 1's scores).
+
+Features: the masked, normalized Gram matrices G_l / R_l on `evaluation.EVAL_LAYERS` (relu1_2,
+relu2_1, relu3_1, relu4_1, relu5_1; `eval_common.gram_matrices`, as Table 1's score), each
+flattened to its upper triangle (C_l (C_l + 1) / 2 values), divided by that layer's median
+vector norm over a and c of the cell (every layer then has a median norm of 1 and contributes
+comparably, although relu5_1 has 63 times relu1_2's values; the scale does not depend on the
+method under test), and concatenated: 305,888 values per patch (the paper: one 512 x 512 Gram).
+
+Chamfer distance of point sets P and Q (d = Euclidean distance):
+    CD(P, Q) = ( mean_{p in P} min_{q in Q} d(p, q) + mean_{q in Q} min_{p in P} d(p, q) ) / 2
+C1 = CD(a, c), C2 = CD(b, c); DR = 100 |C1 - C2| / C1 (the paper's form) and the signed
+DR_signed = 100 (C1 - C2) / C1 (> 0: the method's patches sit closer to the fine ones than the
+input's do; < 0: further away). Two spaces:
+  * embedded (the paper's): per method, the 2D spectral embedding
+    (`experiments.layer_selection.spectral_embedding`: Gaussian affinity with the median
+    bandwidth, symmetric normalized Laplacian) of a u b u c, scaled to unit RMS distance from
+    its centroid (the raw eigenmap shrinks with the number of points; DR does not depend on
+    it). C1 therefore differs slightly between methods. The embedding depends on the points
+    only through their distances, so it is computed from an exact Euclidean realization of the
+    distance matrix (classical MDS) rather than from the 305,888-value vectors.
+  * full: the same distances in the feature space itself (a 2D embedding can distort); C1 is
+    the same for every method.
+
+Cost (2 CPU cores): the VGG passes per sampled location are (a), (c) and every method output
+that differs from the input (identity reuses (a)'s): 2 + 5 = 7, as many as Table 1's (input,
+target, 5 outputs), so the defaults (12 cells x 20 frames x 8 patches = 1920 locations) take
+about as long as Table 1: ~35-45 min idle at 0.15-0.2 s per VGG patch pass, ~1.5-2 h with
+another job on the cores. Distances and embeddings add a few seconds per cell; the Gram
+features of a, c and one b set are held at a time (1.2 MB per patch: ~0.6 GB, ~1.1 GB peak).
+Each finished cell's numbers and embeddings are stored under `<out>/cells/` and reused by a
+rerun with the same settings (`--fresh` ignores them).
+
+Writes `<out>/results.json` (per cell and per method: C1, C2, DR and DR_signed, embedded and
+full; their means over the seen garment's cells, the unseen garments' and all; sampling,
+timings, machine), `<out>/table.md` (the paper's layout for the model, then every method per
+cell) and `<out>/embeddings.png` (per cell, the model's embedding: a grey, b colored, c black).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import sys
+import time
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.distance import cdist
+
+from experiments import eval_common as ec
+from experiments import table1
+from experiments.layer_selection import spectral_embedding
+from wrinkle_jax import MATERIALS, evaluation, material_index, patches
+from wrinkle_jax import enhancer as enhancer_lib
+from wrinkle_jax.fileio import atomic_write_bytes
+from wrinkle_jax.nn import vgg
+
+MODEL = table1.MODEL
+SET_A, SET_B, SET_C = 0, 1, 2  # labels: coarse input, a method's output, fine (other frames)
+SPACES = ("embedded", "full")
+GROUPS = ("seen garment", "unseen garment")
+# Stored cells hold derived numbers: change this text whenever the features, the distances or
+# the embedding change, so that a rerun recomputes instead of reusing them.
+METRIC = ("v1: upper-triangle Grams on EVAL_LAYERS / median layer norm over a+c; symmetric "
+          "mean nearest-neighbour Chamfer; 2D spectral embedding at unit RMS; c at t + k//2")
+
+
+# --------------------------------------------------------------------------------------------
+# Features, distances, Chamfer distance
+# --------------------------------------------------------------------------------------------
+
+
+def upper_triangle(grams: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Flatten every layer's symmetric Gram matrices to their upper triangles.
+
+    Args:
+      grams: layer -> (N, C_l, C_l).
+    Returns:
+      layer -> (N, C_l (C_l + 1) / 2) float32, the row-major upper triangle with the diagonal
+      (same key order).
+    """
+    out = {}
+    for name, g in grams.items():
+        g = np.asarray(g)
+        if g.ndim != 3 or g.shape[1] != g.shape[2]:
+            raise ValueError(f"{name}: expected (N, C, C) Gram matrices, got shape {g.shape}")
+        rows, cols = np.triu_indices(g.shape[1])
+        out[name] = np.ascontiguousarray(g[:, rows, cols], dtype=np.float32)
+    return out
+
+
+def layer_scales(flat: Mapping[str, np.ndarray]) -> dict[str, float]:
+    """Per layer, the median Euclidean norm of its (N, D_l) feature vectors: the divisor that
+    gives the layer a median norm of 1 (1.0 where that median is 0 or not finite)."""
+    out = {}
+    for name, x in flat.items():
+        med = float(np.median(np.sqrt(_sq_norms(x))))
+        out[name] = med if med > 0.0 and np.isfinite(med) else 1.0
+    return out
+
+
+def scaled_features(flat: Mapping[str, np.ndarray], scales: Mapping[str, float]) -> np.ndarray:
+    """The layers' (N, D_l) blocks, each divided by its scale, concatenated in key order:
+    (N, sum_l D_l) float64."""
+    return np.concatenate([np.asarray(x, np.float64) / scales[k] for k, x in flat.items()],
+                          axis=1)
+
+
+def _sq_norms(x) -> np.ndarray:
+    """(N, D) -> (N,) float64 squared row norms."""
+    x = np.asarray(x)
+    return np.einsum("ij,ij->i", x, x, dtype=np.float64)
+
+
+def sq_dists(x, y=None) -> np.ndarray:
+    """Pairwise squared Euclidean distances of (n, d) and (m, d) points: (n, m) float64, as
+    |x|^2 + |y|^2 - 2 x.y in float64, clipped at 0 (y None: x with itself, zero diagonal)."""
+    x64 = np.asarray(x, np.float64)
+    y64 = x64 if y is None else np.asarray(y, np.float64)
+    d2 = _sq_norms(x64)[:, None] + _sq_norms(y64)[None, :] - 2.0 * (x64 @ y64.T)
+    d2 = np.maximum(d2, 0.0)
+    if y is None:
+        np.fill_diagonal(d2, 0.0)
+    return d2
+
+
+def scaled_sq_dists(fx: Mapping[str, np.ndarray], fy: Mapping[str, np.ndarray] | None,
+                    scales: Mapping[str, float]) -> np.ndarray:
+    """`sq_dists(scaled_features(fx), scaled_features(fy))`, one layer at a time (no
+    concatenated float64 copies); fy None: fx with itself."""
+    if fy is not None and set(fx) != set(fy):
+        raise ValueError(f"different layers: {sorted(fx)} and {sorted(fy)}")
+    return sum(sq_dists(fx[k], None if fy is None else fy[k]) / scales[k] ** 2 for k in fx)
+
+
+def chamfer_from_sq_dists(d2) -> float:
+    """Symmetric Chamfer distance from the (n, m) squared distances between two point sets:
+    (mean_i min_j d_ij + mean_j min_i d_ij) / 2 with d = sqrt(d2); NaN if a set is empty."""
+    d2 = np.asarray(d2, np.float64)
+    if d2.ndim != 2:
+        raise ValueError(f"expected an (n, m) matrix, got shape {d2.shape}")
+    if 0 in d2.shape:
+        return float("nan")
+    d = np.sqrt(np.maximum(d2, 0.0))
+    return 0.5 * float(d.min(axis=1).mean() + d.min(axis=0).mean())
+
+
+def chamfer_distance(x, y) -> float:
+    """Symmetric Chamfer distance of (n, d) and (m, d) point sets: the mean distance from a point
+    to the nearest point of the other set, averaged over both directions (not squared).
+
+    >>> chamfer_distance([[0.0, 0.0]], [[3.0, 4.0], [0.0, 1.0]])  # (1 + (5 + 1) / 2) / 2
+    2.0
+    """
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    if x.ndim != 2 or y.ndim != 2 or x.shape[1] != y.shape[1]:
+        raise ValueError(f"expected (n, d) and (m, d) points, got {x.shape} and {y.shape}")
+    if not len(x) or not len(y):
+        return float("nan")
+    return chamfer_from_sq_dists(cdist(x, y, "sqeuclidean"))
+
+
+def decrease_ratio(c1: float, c2: float, signed: bool = False) -> float:
+    """The paper's DR = 100 |C1 - C2| / C1, or signed 100 (C1 - C2) / C1 (> 0 when C2 < C1);
+    NaN unless C1 is positive and finite."""
+    c1, c2 = float(c1), float(c2)
+    if not (np.isfinite(c1) and c1 > 0.0):
+        return float("nan")
+    dr = 100.0 * (c1 - c2) / c1
+    return dr if signed else abs(dr)
+
+
+def chamfer_scores(c1: float, c2: float) -> dict:
+    """{"c1", "c2", "dr" (paper's |.|), "dr_signed"} as floats."""
+    return {"c1": float(c1), "c2": float(c2), "dr": decrease_ratio(c1, c2),
+            "dr_signed": decrease_ratio(c1, c2, signed=True)}
+
+
+def points_from_sq_dists(d2) -> np.ndarray:
+    """A Euclidean realization of a squared-distance matrix (classical MDS).
+
+    Args:
+      d2: (n, n) squared Euclidean distances between n points (symmetric, zero diagonal).
+    Returns:
+      (n, k) float64 points whose pairwise squared distances are d2 up to rounding (k: the
+      number of eigenvalues of -J d2 J / 2 above 1e-12 of the largest; J the centering).
+    """
+    d2 = np.asarray(d2, np.float64)
+    n = len(d2)
+    centering = np.eye(n) - 1.0 / n
+    b = -0.5 * centering @ d2 @ centering
+    vals, vecs = np.linalg.eigh(0.5 * (b + b.T))
+    if not vals[-1] > 0.0:
+        return np.zeros((n, 1))
+    keep = vals > 1e-12 * vals[-1]
+    return vecs[:, keep] * np.sqrt(vals[keep])
+
+
+def unit_rms(points) -> np.ndarray:
+    """(n, d) points centered and scaled to unit root-mean-square distance from their centroid
+    (float64; only centered when they all coincide)."""
+    p = np.asarray(points, np.float64)
+    p = p - p.mean(axis=0)
+    rms = float(np.sqrt((p * p).sum(axis=1).mean()))
+    return p / rms if rms > 0.0 else p
+
+
+def compare_sets(d2, labels) -> dict:
+    """C1 = CD(a, c), C2 = CD(b, c) and DR of one method in one cell, embedded and in full space.
+
+    Args:
+      d2: (n, n) squared feature distances of the union of the sets a, b and c (any order).
+      labels: (n,) int, `SET_A`, `SET_B` or `SET_C` per row of d2.
+    Returns:
+      {"embedded": chamfer_scores(...) in the unit-RMS 2D spectral embedding of the union,
+       "full": chamfer_scores(...) from d2 itself, "embedding": (n, 2) float64}.
+    """
+    d2 = np.asarray(d2, np.float64)
+    labels = np.asarray(labels)
+    if d2.shape != (len(labels), len(labels)):
+        raise ValueError(f"{d2.shape} distances for {len(labels)} labels")
+    a, b, c = (labels == s for s in (SET_A, SET_B, SET_C))
+    if not (a.any() and b.any() and c.any()):
+        raise ValueError("each of the sets a, b and c needs at least one point")
+    emb = unit_rms(spectral_embedding(points_from_sq_dists(d2), dim=2))
+    return {"embedded": chamfer_scores(chamfer_distance(emb[a], emb[c]),
+                                       chamfer_distance(emb[b], emb[c])),
+            "full": chamfer_scores(chamfer_from_sq_dists(d2[np.ix_(a, c)]),
+                                   chamfer_from_sq_dists(d2[np.ix_(b, c)])),
+            "embedding": emb}
+
+
+# --------------------------------------------------------------------------------------------
+# One cell
+# --------------------------------------------------------------------------------------------
+
+
+def c_frame_indices(frame_indices: Iterable[int], frames: int, frame_stride: int) -> list[int]:
+    """Frames of set (c), one per scored frame t: t + frame_stride // 2, or t - frame_stride // 2
+    where that is not below `frames`. With scored frames 0, k, 2k, ... (k = frame_stride >= 2)
+    none of them is a scored frame.
+
+    Raises:
+      ValueError: frame_stride < 2, or a frame with neither neighbour in [0, frames).
+    """
+    half = int(frame_stride) // 2
+    if half < 1:
+        raise ValueError("the frame stride must be >= 2: set (c) uses the frames between the "
+                         "scored ones")
+    out = []
+    for t in frame_indices:
+        tc = t + half if t + half < frames else t - half
+        if tc < 0:
+            raise ValueError(f"no frame {half} away from frame {t} within {frames} frames")
+        out.append(int(tc))
+    return out
+
+
+def set_features(vgg_params, images, mask, batch_size: int, counter: dict | None = None
+                 ) -> dict[str, np.ndarray]:
+    """Upper triangles of the normalized masked Grams (`eval_common.gram_matrices` on
+    `evaluation.EVAL_LAYERS`) of (N, S, S, 3) RGB-form images with (N, S, S, 1) masks:
+    layer -> (N, C_l (C_l + 1) / 2) float32. Fixed batch shape (the last batch padded);
+    counter["vgg_passes"] accumulates batches."""
+    counter = {} if counter is None else counter
+    parts: dict[str, list] = {}
+    n = len(images)
+    for s in range(0, n, batch_size):
+        k = min(batch_size, n - s)
+        idx = np.resize(np.arange(s, s + k), batch_size)
+        grams = ec.gram_matrices(vgg_params, np.asarray(images)[idx], np.asarray(mask)[idx])
+        counter["vgg_passes"] = counter.get("vgg_passes", 0) + 1
+        for name, v in upper_triangle({kk: np.asarray(g)[:k] for kk, g in grams.items()}).items():
+            parts.setdefault(name, []).append(v)
+    return {name: np.concatenate(v) for name, v in parts.items()}
+
+
+def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg_params,
+                  sampling: table1.Sampling, cell_seed=(0,),
+                  progress: Callable[[int, str], None] | None = None) -> dict:
+    """Sets a, c and every method's b of one fine/coarse sequence pair, and their distances.
+
+    Args:
+      fine, coarse: `GarmentSequence`s of the same pattern, scene, material and seed (frames
+        (T, V, 3) meters; T > the last frame of `c_frame_indices`).
+      material: material name (to the model through `PatchSet.material_id`).
+      methods: name -> (PatchSet) -> (K, S, S, 3) RGB-form outputs (the b sets).
+      vgg_params: `vgg.load_vgg19()` (or a small VGG in tests).
+      sampling: `table1.Sampling` (a's frames and origins are exactly Table 1's).
+      cell_seed: extra seed entropy for the patch draws (`table1._cell_seed(cell)`).
+      progress: called with (patches, what) after each set's features.
+    Returns:
+      {"frame", "origin": (N_a,) int32 frames and (N_a, 2) origins of a (and every b),
+       "frame_c", "origin_c": the same for c, "scales": layer -> float (`layer_scales` of a u c),
+       "d2_ref": (N_a + N_c,)*2 float64 scaled squared distances of a then c,
+       "d2_method": {name: (N_a, N_a + N_c + N_a) distances of b to a, c and b},
+       "n_candidates": int, "timings": {"bake_s", "methods_s": {name: s}, "features_s",
+       "distances_s", "vgg_passes"}}.
+    """
+    size = sampling.patch_size
+    stride = size // 2 if sampling.grid_stride is None else sampling.grid_stride
+    pair = ec.aligned_pair(fine.garment, coarse.garment, sampling.texel_size)
+    mask = np.asarray(patches.pad_to_patch(pair.mask, size)[0])
+    cand, _ = ec.candidate_origins(mask, size, stride, sampling.min_coverage)
+    if not len(cand):
+        raise ValueError(f"no {size}x{size} patch reaches {sampling.min_coverage:.0%} coverage "
+                         "by both meshes")
+    mid = material_index(material)
+    frames_c = c_frame_indices(sampling.frame_indices, sampling.frames, sampling.frame_stride)
+    timings = {"bake_s": 0.0, "methods_s": {k: 0.0 for k in methods}, "features_s": 0.0,
+               "distances_s": 0.0}
+    counter: dict = {}
+    # 1. Patches: a (and the methods' input) at Table 1's frames and origins; c in between.
+    t0 = time.perf_counter()
+    sets_ab, sets_c = [], []
+    for t, tc in zip(sampling.frame_indices, frames_c, strict=True):
+        sel = ec.choose_origins(cand, sampling.patches_per_frame, (sampling.seed, *cell_seed, t))
+        sets_ab.append(ec.aligned_patches(pair, fine.frames[t], coarse.frames[t], sel, size,
+                                          mid))
+        sel_c = ec.choose_origins(cand, sampling.patches_per_frame,
+                                  (sampling.seed, *cell_seed, t, tc))
+        sets_c.append(ec.aligned_patches(pair, fine.frames[tc], coarse.frames[tc], sel_c, size,
+                                         mid))
+    timings["bake_s"] = time.perf_counter() - t0
+    inp = np.concatenate([p.input for p in sets_ab])
+    mask_ab = np.concatenate([p.mask for p in sets_ab])
+    n_a = len(inp)
+
+    def features(images, m, what):
+        t0 = time.perf_counter()
+        f = set_features(vgg_params, images, m, sampling.score_batch, counter)
+        timings["features_s"] += time.perf_counter() - t0
+        if progress is not None:
+            progress(len(images), what)
+        return f
+
+    # 2. a u c: features, layer scales, distances.
+    ref = features(np.concatenate([inp, *(p.target for p in sets_c)]),
+                   np.concatenate([mask_ab, *(p.mask for p in sets_c)]), "a + c")
+    scales = layer_scales(ref)
+    t0 = time.perf_counter()
+    d2_ref = scaled_sq_dists(ref, None, scales)
+    timings["distances_s"] += time.perf_counter() - t0
+    # 3. Each method's b: features (identity reuses a's), distances to a, c and itself.
+    d2_method = {}
+    for name, fn in methods.items():
+        t0 = time.perf_counter()
+        out = np.concatenate([fn(p) for p in sets_ab])
+        timings["methods_s"][name] += time.perf_counter() - t0
+        if np.array_equal(out, inp):
+            d2_method[name] = np.concatenate([d2_ref[:n_a], d2_ref[:n_a, :n_a]], axis=1)
+            if progress is not None:
+                progress(n_a, f"{name} (= a)")
+            continue
+        f_b = features(out, mask_ab, name)
+        t0 = time.perf_counter()
+        d2_method[name] = np.concatenate([scaled_sq_dists(f_b, ref, scales),
+                                          scaled_sq_dists(f_b, None, scales)], axis=1)
+        timings["distances_s"] += time.perf_counter() - t0
+        del f_b
+    timings["vgg_passes"] = counter.get("vgg_passes", 0)
+    return {"frame": np.repeat(np.asarray(sampling.frame_indices, np.int32),
+                               [len(p.origins) for p in sets_ab]),
+            "origin": np.concatenate([p.origins for p in sets_ab]),
+            "frame_c": np.repeat(np.asarray(frames_c, np.int32),
+                                 [len(p.origins) for p in sets_c]),
+            "origin_c": np.concatenate([p.origins for p in sets_c]),
+            "scales": scales, "d2_ref": d2_ref, "d2_method": d2_method,
+            "n_candidates": int(len(cand)), "timings": timings}
+
+
+def union_sq_dists(d2_ref: np.ndarray, d2_b: np.ndarray, n_a: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The squared distances of a u b u c (rows in that order) and their labels, from
+    `evaluate_cell`'s a-then-c block and one method's b block."""
+    n_c, n_b = len(d2_ref) - n_a, len(d2_b)
+    if d2_b.shape != (n_b, n_a + n_c + n_b):
+        raise ValueError(f"b block {d2_b.shape} does not match {n_a} a and {n_c} c points")
+    a, b, c = slice(0, n_a), slice(n_a, n_a + n_b), slice(n_a + n_b, n_a + n_b + n_c)
+    d2 = np.empty((n_a + n_b + n_c,) * 2)
+    d2[a, a], d2[a, c] = d2_ref[:n_a, :n_a], d2_ref[:n_a, n_a:]
+    d2[c, a], d2[c, c] = d2_ref[n_a:, :n_a], d2_ref[n_a:, n_a:]
+    d2[b, a], d2[b, c], d2[b, b] = d2_b[:, :n_a], d2_b[:, n_a:n_a + n_c], d2_b[:, n_a + n_c:]
+    d2[a, b], d2[c, b] = d2[b, a].T, d2[b, c].T
+    return d2, np.repeat([SET_A, SET_B, SET_C], [n_a, n_b, n_c])
+
+
+def cell_record(res: dict) -> dict:
+    """What is kept of an evaluated cell: sampling, scales, timings and per method
+    `compare_sets` (embedding as float32), without the distance matrices."""
+    n_a = len(res["frame"])
+    methods = {}
+    t0 = time.perf_counter()
+    for name, blk in res["d2_method"].items():
+        got = compare_sets(*union_sq_dists(res["d2_ref"], blk, n_a))
+        got["embedding"] = got["embedding"].astype(np.float32)
+        methods[name] = got
+    timings = dict(res["timings"], compare_s=time.perf_counter() - t0)
+    return {"frame": res["frame"], "origin": res["origin"], "frame_c": res["frame_c"],
+            "origin_c": res["origin_c"], "scales": res["scales"],
+            "n_candidates": res["n_candidates"], "timings": timings, "methods": methods}
+
+
+# --------------------------------------------------------------------------------------------
+# Cell files (resume)
+# --------------------------------------------------------------------------------------------
+
+
+def _cell_path(out: Path, cell: ec.Cell) -> Path:
+    return out / "cells" / f"{cell.scene.name}__{cell.material}.npz"
+
+
+def save_cell(path: Path, record: dict, fingerprint: dict) -> None:
+    """Store one cell record (arrays + JSON numbers and fingerprint), atomically."""
+    names = list(record["methods"])
+    numbers = {k: {s: record["methods"][k][s] for s in SPACES} for k in names}
+    arrays = {k: record[k] for k in ("frame", "origin", "frame_c", "origin_c")}
+    arrays["methods"] = np.array(names)
+    arrays["embeddings"] = np.stack([record["methods"][k]["embedding"] for k in names])
+    arrays["meta"] = np.str_(json.dumps(  # NaN stays NaN (json reads it back)
+        {"fingerprint": fingerprint, "numbers": numbers, "scales": record["scales"],
+         "n_candidates": record["n_candidates"], "timings": record["timings"]}))
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def load_cell(path: Path, fingerprint: dict) -> dict | None:
+    """A stored cell record if it exists and was made with the same settings, else None."""
+    if not path.exists():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+            if meta["fingerprint"] != json.loads(json.dumps(fingerprint)):
+                return None
+            methods = {name: {**meta["numbers"][name], "embedding": emb}
+                       for name, emb in zip(z["methods"].tolist(), z["embeddings"],
+                                            strict=True)}
+            return {"frame": z["frame"], "origin": z["origin"], "frame_c": z["frame_c"],
+                    "origin_c": z["origin_c"], "scales": meta["scales"],
+                    "n_candidates": meta["n_candidates"], "timings": meta["timings"],
+                    "methods": methods}
+    except (OSError, KeyError, ValueError):
+        return None
+
+
+# --------------------------------------------------------------------------------------------
+# Summaries, table, figure
+# --------------------------------------------------------------------------------------------
+
+
+def group_of(cell: ec.Cell) -> str:
+    return GROUPS[0] if cell.garment == ec.SEEN_GARMENT else GROUPS[1]
+
+
+def mean_scores(records: list[dict]) -> dict:
+    """Per method and space, the means over cells of C1, C2, DR and DR_signed (NaN-skipping),
+    with the number of cells: {name: {space: {"c1", "c2", "dr", "dr_signed", "n_cells"}}}."""
+    out = {}
+    for name in records[0]["methods"]:
+        out[name] = {}
+        for space in SPACES:
+            vals = {k: np.array([r["methods"][name][space][k] for r in records], np.float64)
+                    for k in ("c1", "c2", "dr", "dr_signed")}
+            ok = np.isfinite(vals["dr_signed"])
+            out[name][space] = {k: float(v[ok].mean()) if ok.any() else float("nan")
+                                for k, v in vals.items()}
+            out[name][space]["n_cells"] = int(ok.sum())
+    return out
+
+
+def _fmt(d: dict, paper: bool = False) -> str:
+    if not np.isfinite(d.get("dr_signed", float("nan"))):
+        return "-"
+    if paper:
+        return f"{d['c1']:.3f} / {d['c2']:.3f} / {d['dr']:.1f} ({d['dr_signed']:+.1f})"
+    return f"{d['c1']:.3f} / {d['c2']:.3f} / {d['dr_signed']:+.1f}"
+
+
+def table_markdown(results: dict) -> str:
+    """table.md: the paper's layout for the model (rows material x motion, columns garments) in
+    both spaces; then every method per cell and the group means, in both spaces."""
+    cells = results["cells"]
+    cfg = results["config"]
+    lines = [f"# Table 2: Chamfer distances to fine-simulation patches (model "
+             f"`{results['model']}`)", "", results["sampling_text"], "",
+             "C1 = CD(a, c), C2 = CD(b, c); DR = 100 |C1 - C2| / C1 (the paper's), signed "
+             "DR = 100 (C1 - C2) / C1 (> 0: b is closer to the fine patches than the input).",
+             ""]
+    for space in SPACES:
+        where = ("2D spectral embedding (the paper's)" if space == "embedded"
+                 else "full Gram feature space")
+        lines += [f"## Model, {where}: C1 / C2 / DR (signed DR)", "",
+                  "| material | motion | " + " | ".join(
+                      f"{g} ({'seen' if g == ec.SEEN_GARMENT else 'unseen'})"
+                      for g in cfg["garments"]) + " |",
+                  "|---|---|" + "---|" * len(cfg["garments"])]
+        for ma in cfg["materials"]:
+            for mo in cfg["motions"]:
+                row = [ma, f"{mo} ({'seen' if mo == ec.SEEN_MOTION else 'unseen'})"]
+                for g in cfg["garments"]:
+                    key = ec.Cell(g, mo, ma).key
+                    row.append(_fmt(cells[key]["methods"][MODEL][space], paper=True)
+                               if key in cells else "-")
+                lines.append("| " + " | ".join(row) + " |")
+        lines.append("")
+    for space in SPACES:
+        where = "2D spectral embedding" if space == "embedded" else "full Gram feature space"
+        lines += [f"## All methods, {where}: C1 / C2 / signed DR", "",
+                  "| cell | kind | " + " | ".join(results["methods"]) + " |",
+                  "|---|---|" + "---|" * len(results["methods"])]
+        for key, c in cells.items():
+            lines.append(f"| {key} | {c['kind']} | " + " | ".join(
+                _fmt(c["methods"][m][space]) for m in results["methods"]) + " |")
+        for group, means in [*results["by_group"].items(), ("all", results["all"])]:
+            n = means[MODEL][space]["n_cells"] if MODEL in means else ""
+            lines.append(f"| mean, {group} | {n} cells | " + " | ".join(
+                _fmt(means[m][space]) for m in results["methods"]) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def plot_embeddings(path: Path, cells: list[ec.Cell], records: dict[str, dict],
+                    ncols: int, method: str = MODEL) -> None:
+    """One scatter per cell of `method`'s 2D embedding: a grey, b colored, c black."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ncols = max(1, min(ncols, len(cells)))
+    nrows = -(-len(cells) // ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(3.2 * ncols, 3.1 * nrows), squeeze=False)
+    for ax, cell in zip(axes.ravel(), cells, strict=False):
+        rec = records[cell.key]
+        emb = rec["methods"][method]["embedding"]
+        n_a, n_c = len(rec["frame"]), len(rec["frame_c"])
+        n_b = len(emb) - n_a - n_c
+        ax.scatter(*emb[:n_a].T, s=5, c="0.65", label="a: coarse input")
+        ax.scatter(*emb[n_a:n_a + n_b].T, s=5, c="tab:red", label=f"b: {method}")
+        ax.scatter(*emb[n_a + n_b:].T, s=5, c="black", label="c: fine, other frames")
+        e = rec["methods"][method]["embedded"]
+        ax.set_title(f"{cell.key}\nC1 {e['c1']:.3f}  C2 {e['c2']:.3f}  DR {e['dr']:.1f} "
+                     f"(signed {e['dr_signed']:+.1f})", fontsize=8)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    for ax in axes.ravel()[len(cells):]:
+        ax.axis("off")
+    axes.ravel()[0].legend(fontsize=6, loc="best")
+    fig.tight_layout()
+    ec.save_figure(fig, path, dpi=90)
+
+
+# --------------------------------------------------------------------------------------------
+# Main
+# --------------------------------------------------------------------------------------------
+
+
+def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params,
+        sampling: table1.Sampling, out: Path, fingerprint_of: Callable[[ec.Cell], dict],
+        fresh: bool = False, log: Callable[[str], None] = print) -> dict[str, dict]:
+    """Evaluate (or reload from `<out>/cells/`) every cell, printing progress and an ETA.
+
+    Returns:
+      cell key -> `cell_record` (timings also hold "cell_s", the cell's wall time).
+    """
+    per_cell = len(sampling.frame_indices) * sampling.patches_per_frame * (2 + len(methods))
+    cached = {c.key: None if fresh else load_cell(_cell_path(out, c), fingerprint_of(c))
+              for c in cells}
+    total = per_cell * sum(v is None for v in cached.values())
+    done = [0]
+    t_start = time.perf_counter()
+    records = {}
+    for i, cell in enumerate(cells):
+        tag = f"[{i + 1}/{len(cells)}] {cell.key}"
+        if cached[cell.key] is not None:
+            log(f"{tag}: reusing {_cell_path(out, cell)}")
+            records[cell.key] = cached[cell.key]
+            continue
+        fine = ec.load_first_frames(sequences[cell.key]["fine"], sampling.frames)
+        coarse = ec.load_first_frames(sequences[cell.key]["coarse"], sampling.frames)
+
+        def progress(k, what, tag=tag):
+            done[0] += k
+            elapsed = time.perf_counter() - t_start
+            log(f"{tag}: {what} features done, {elapsed / 60:.1f} min, "
+                f"{ec.eta_text(done[0], total, elapsed)}")
+
+        t0 = time.perf_counter()
+        rec = cell_record(evaluate_cell(fine, coarse, cell.material, methods, vgg_params,
+                                        sampling, table1._cell_seed(cell), progress))
+        rec["timings"]["cell_s"] = time.perf_counter() - t0
+        save_cell(_cell_path(out, cell), rec, fingerprint_of(cell))
+        records[cell.key] = rec
+        sig = {k: (round(v["embedded"]["dr_signed"], 1), round(v["full"]["dr_signed"], 1))
+               for k, v in rec["methods"].items()}
+        log(f"{tag}: signed DR (embedded, full) {sig}")
+    return records
+
+
+def main(argv=None) -> int:
+    ap = ec.script_parser(__doc__)
+    ap.add_argument("--model", default=str(enhancer_lib.DEFAULT_PATH),
+                    help="enhancer .npz (default: the shipped model)")
+    ap.add_argument("--frames", type=int, default=200, help="frames per sequence")
+    ap.add_argument("--frame-stride", type=int, default=10,
+                    help="set a uses every k-th frame, set c the frames midway between (k >= 2)")
+    ap.add_argument("--patches-per-frame", type=int, default=8)
+    ap.add_argument("--min-coverage", type=float, default=0.5,
+                    help="minimum fraction of patch texels covered by both meshes")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the patch draw")
+    ap.add_argument("--garments", default=",".join(ec.GARMENTS))
+    ap.add_argument("--materials", default=",".join(ec.TABLE_MATERIALS))
+    ap.add_argument("--motions", default=",".join(ec.MOTIONS))
+    ap.add_argument("--sequences", default=str(ec.SEQUENCES),
+                    help="folder of existing simulations to reuse")
+    ap.add_argument("--sim-out", default=str(ec.TABLE1_SEQUENCES),
+                    help="folder for the simulations this script makes (Table 1's)")
+    ap.add_argument("--out", default=str(ec.RESULTS / "table2"))
+    ap.add_argument("--fresh", action="store_true", help="ignore stored cells and recompute")
+    args = ap.parse_args(argv)
+    if args.frames < 1 or args.patches_per_frame < 1:
+        ap.error("--frames and --patches-per-frame must be >= 1")
+    if args.frame_stride < 2:
+        ap.error("--frame-stride must be >= 2 (set c uses the frames between the scored ones)")
+    for name in args.materials.split(","):
+        if name not in MATERIALS:
+            ap.error(f"unknown material {name!r}")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_all = time.perf_counter()
+    enh = ec.load_model_or_usage_error(ap, args.model)
+    sampling = table1.Sampling(frames=args.frames, frame_stride=args.frame_stride,
+                               patches_per_frame=args.patches_per_frame,
+                               patch_size=enh.config.patch_size,
+                               texel_size=enh.config.texel_size, min_coverage=args.min_coverage,
+                               seed=args.seed, score_batch=min(args.patches_per_frame, 16))
+    try:
+        frames_c = c_frame_indices(sampling.frame_indices, sampling.frames, sampling.frame_stride)
+    except ValueError as e:
+        ap.error(str(e))
+    cells = ec.table_cells(args.garments.split(","), args.materials.split(","),
+                           args.motions.split(","))
+
+    # 1. Sequences: Table 1's (simulated only if missing there too; resumable).
+    t0 = time.perf_counter()
+    sequences = {c.key: ec.cell_sequences(c, args.frames, ec.TEST_SEED, (Path(args.sequences),),
+                                          Path(args.sim_out)) for c in cells}
+    sim_s = time.perf_counter() - t0
+
+    # 2. Methods, features, distances.
+    unsharp = {o: ec.unsharp_setting(order=o) for o in (0, 1)}
+    unsharp_src = "; ".join(f"order {o}: {u[2]}" for o, u in unsharp.items())
+    methods = ec.baseline_methods({o: u[:2] for o, u in unsharp.items()})
+    net_timings: dict = {}
+    methods[MODEL] = ec.enhancer_method(enh, batch_size=sampling.score_batch, timings=net_timings)
+    vgg_params = vgg.load_vgg19()
+    fingerprint = {"model": str(Path(args.model).resolve()),
+                   "model_mtime": Path(args.model).stat().st_mtime,
+                   "sampling": dataclasses.asdict(sampling), "methods": list(methods),
+                   "metric": METRIC}
+    n_max = len(cells) * len(sampling.frame_indices) * sampling.patches_per_frame
+    print(f"{len(cells)} cells x {len(sampling.frame_indices)} frames x "
+          f"<= {sampling.patches_per_frame} patches = <= {n_max} patches per set (a, c, and b "
+          f"for each of {len(methods)} methods)", flush=True)
+
+    def fingerprint_of(cell):
+        return dict(fingerprint, sequences={r: str(sequences[cell.key][r])
+                                            for r in ("fine", "coarse")})
+
+    records = run(cells, sequences, methods, vgg_params, sampling, out, fingerprint_of,
+                  args.fresh, log=lambda m: print(m, flush=True))
+
+    # 3. Summaries.
+    cells_out, groups = {}, {g: [] for g in GROUPS}
+    for cell in cells:
+        r = records[cell.key]
+        groups[group_of(cell)].append(r)
+        cells_out[cell.key] = {
+            "scene": cell.scene.name, "garment": cell.garment, "motion": cell.motion,
+            "material": cell.material, "kind": cell.kind, "group": group_of(cell),
+            "n_a": int(len(r["frame"])), "n_c": int(len(r["frame_c"])),
+            "n_candidates_per_frame": r["n_candidates"],
+            "frames_a": sorted(set(r["frame"].tolist())),
+            "frames_c": sorted(set(r["frame_c"].tolist())),
+            "fine": str(sequences[cell.key]["fine"]),
+            "coarse": str(sequences[cell.key]["coarse"]),
+            "sequence_source": {res: sequences[cell.key][f"{res}_info"]["source"]
+                                for res in ("fine", "coarse")},
+            "layer_scales": r["scales"],
+            "methods": {k: {s: v[s] for s in SPACES} for k, v in r["methods"].items()},
+            "timings": r["timings"]}
+    by_group = {g: mean_scores(v) for g, v in groups.items() if v}
+    cell_t = [c["timings"] for c in cells_out.values()]
+    n_all = sum(c["n_a"] for c in cells_out.values())
+    features_s = sum(t["features_s"] for t in cell_t)
+    passes = sum(t["vgg_passes"] for t in cell_t) * sampling.score_batch
+    sampling_text = (
+        f"Sampling: first {sampling.frames} frames of each sequence (seed {ec.TEST_SEED}). "
+        f"(a) coarse simulation (PD 30 mm) at Table 1's frames "
+        f"{table1._frames_text(sampling.frame_indices)} and patches: "
+        f"{sampling.patches_per_frame} random {sampling.patch_size}x{sampling.patch_size} "
+        f"patches per frame ({sampling.texel_size * 1e3:g} mm texels) among the grid patches "
+        f"with >= {sampling.min_coverage:.0%} of texels covered by both meshes. (b) each "
+        f"method's output on (a). (c) fine simulation (PD 10 mm) at the non-corresponding "
+        f"frames {table1._frames_text(frames_c)}, as many patches per frame, drawn "
+        f"independently. Features: upper-triangle normalized Gram matrices on "
+        f"{', '.join(evaluation.EVAL_LAYERS)}, each layer divided by its median norm over a "
+        f"and c. Unsharp: {unsharp_src}.")
+    results = {
+        "model": str(args.model), "model_config": enh.config.to_json(),
+        "model_meta": {k: v for k, v in enh.meta.items() if not isinstance(v, dict | list)},
+        "methods": list(methods),
+        "unsharp": {f"order {o}": {"sigma": u[0], "amount": u[1], "source": u[2]}
+                    for o, u in unsharp.items()},
+        "sets": {"a": "coarse-map patches at Table 1's frames and origins",
+                 "b": "a method's output on a (every method in turn)",
+                 "c": "fine-map patches at frames t + stride // 2 (t - stride // 2 past the "
+                      "end), origins drawn independently"},
+        "features": "upper triangles of eval_common.gram_matrices on "
+                    + ", ".join(evaluation.EVAL_LAYERS)
+                    + ", each layer divided by its median vector norm over a u c, concatenated",
+        "chamfer": "CD(P, Q) = (mean_p min_q |p - q| + mean_q min_p |p - q|) / 2; C1 = CD(a, c), "
+                   "C2 = CD(b, c), dr = 100 |C1 - C2| / C1, dr_signed = 100 (C1 - C2) / C1; "
+                   "embedded: 2D spectral embedding of a u b u c at unit RMS radius; full: "
+                   "feature space",
+        "metric_version": METRIC,
+        "sampling": dataclasses.asdict(sampling), "frames_c": frames_c,
+        "sampling_text": sampling_text,
+        "config": {"garments": args.garments.split(","), "materials": args.materials.split(","),
+                   "motions": args.motions.split(","), "seed": ec.TEST_SEED,
+                   "scenes": {c.key: json.loads(c.scene.to_json()) for c in cells}},
+        "cells": cells_out, "by_group": by_group, "all": mean_scores(list(records.values())),
+        "timings": {
+            "note": "per-cell timings are from the run that computed the cell "
+                    "(see cells.*.timings)",
+            "cells_s": sum(t.get("cell_s", 0.0) for t in cell_t),
+            "features_s": features_s, "vgg_patch_passes": passes,
+            "vgg_s_per_patch_pass": features_s / passes if passes else None,
+            "distances_s": sum(t["distances_s"] for t in cell_t),
+            "compare_s": sum(t["compare_s"] for t in cell_t),
+            "network_ms_per_patch": (1e3 * sum(t["methods_s"].get(MODEL, 0.0) for t in cell_t)
+                                     / n_all if n_all else None),
+            "network_compile_s": net_timings.get("compile_s"),
+            "sequences_s": sim_s, "this_run_s": time.perf_counter() - t_all},
+        "machine": ec.machine_info(),
+        "command": "python -m experiments.table2 " + " ".join(
+            sys.argv[1:] if argv is None else argv),
+    }
+    ec.write_json(out / "results.json", results)
+    table = table_markdown(results)
+    (out / "table.md").write_text(table)
+    plot_embeddings(out / "embeddings.png", cells, records, ncols=len(results["config"]
+                                                                      ["garments"]))
+    print(table)
+    print(f"wrote {out / 'results.json'}, {out / 'table.md'}, {out / 'embeddings.png'} "
+          f"in {(time.perf_counter() - t_all) / 60:.1f} min")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax import enhancer as enhancer_lib
-from wrinkle_jax import evaluation, meshio, normalmap, patches
+from wrinkle_jax import evaluation, material_index, meshio, normalmap, patches
 from wrinkle_jax.fileio import atomic_write_bytes, atomic_write_text
 from wrinkle_jax.mesh import Garment, global_uv_scale
 from wrinkle_jax.nn import losses, vgg
@@ -395,9 +395,14 @@ def unsharp_setting(path: Path = MODEL_CARD_RESULTS, order: int = 1
 
 
 def enhancer_method(enh: enhancer_lib.Enhancer, batch_size: int = 16,
-                    timings: dict | None = None) -> Callable[[PatchSet], np.ndarray]:
+                    timings: dict | None = None,
+                    material_of: Callable[[int], int] | None = None
+                    ) -> Callable[[PatchSet], np.ndarray]:
     """The model as a method: (PatchSet) -> (K, S, S, 3) RGB-form outputs, unit normals inside
     the mask and zero outside (as the baselines).
+
+    `material_of` maps the patch set's `material_id` to the id the model is told (default:
+    itself); the wrong-material ablation (paper Fig. 10) passes another material's id.
 
     One jitted apply with a fixed batch shape (the last batch padded), compiled here (seconds
     in `timings["compile_s"]`), so calls time the network only; `timings` accumulates
@@ -417,8 +422,9 @@ def enhancer_method(enh: enhancer_lib.Enhancer, batch_size: int = 16,
         t0 = time.perf_counter()
         for s in range(0, n, batch_size):
             idx = np.resize(np.arange(s, min(s + batch_size, n)), batch_size)
+            mid = p.material_id if material_of is None else material_of(p.material_id)
             o = apply(enh.params, jnp.asarray(p.input[idx]),
-                      jnp.full((batch_size,), p.material_id, jnp.int32))
+                      jnp.full((batch_size,), mid, jnp.int32))
             outs.append(np.asarray(o)[:min(batch_size, n - s)])
         timings["network_s"] = timings.get("network_s", 0.0) + time.perf_counter() - t0
         timings["network_patches"] = timings.get("network_patches", 0) + n
@@ -427,6 +433,17 @@ def enhancer_method(enh: enhancer_lib.Enhancer, batch_size: int = 16,
         return ((nrm + 1.0) * 0.5 * p.mask).astype(np.float32)
 
     return run
+
+
+def wrong_material(material_id: int, materials=TABLE_MATERIALS) -> int:
+    """The id (in `wrinkle_jax.MATERIALS`) of the table material that is not `material_id`'s:
+    silk_charmeuse <-> denim_light, the lightest and stiffest of the table's materials. A
+    material outside `materials` maps to the first of them."""
+    ids = [material_index(m) for m in materials]
+    others = [i for i in ids if i != material_id]
+    if not others:
+        raise ValueError("need at least two distinct materials")
+    return others[0]
 
 
 def baseline_methods(settings: dict[int, tuple[float, float]]

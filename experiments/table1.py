@@ -27,7 +27,9 @@ Methods, on the same patches: identity (score 0 by definition); unsharp masking 
 blur of order 0 and of order 1, each with the best (sigma, amount) of the model card's sweep on
 training patches (`experiments/results/model_card/results.json`, else sigma 8 amount 1);
 bicubic and Lanczos x2
-down/up-sampling; the model (run on the patch itself, material given).
+down/up-sampling; the model (run on the patch itself, material given); and the wrong-material
+ablation (paper Fig. 10): the model told the other table material (silk_charmeuse <->
+denim_light; `eval_common.wrong_material`; off with --no-wrong-material).
 
 Score: `wrinkle_jax.evaluation`'s improvement score on EVAL_LAYERS (relu1_2 ... relu5_1), the
 paper's |.| form and the signed form (negative = further from the target's style than the
@@ -35,9 +37,10 @@ input). The Gram matrices of the input and the target are computed once per patc
 by the methods (`eval_common.method_losses`, equal to `evaluation.score_patches`).
 
 Cost (2 CPU cores): a VGG19 pass to relu5_1 costs ~0.15-0.2 s per 128x128 patch on an idle
-machine and ~0.4-0.5 s with another job on the cores; a patch needs 2 + 5 passes (input,
-target, and every method except identity: two unsharp orders, bicubic, Lanczos, the model), so
-the defaults (12 cells x 20 frames x 8 patches = 1920 patches) take ~35-45 min idle. The ETA
+machine and ~0.4-0.5 s with another job on the cores; a patch needs 2 + 6 passes (input,
+target, and every method except identity: two unsharp orders, bicubic, Lanczos, the model with
+the right and the wrong material), so the defaults (12 cells x 20 frames x 8 patches = 1920
+patches) take ~40-50 min idle. The ETA
 is printed as it goes. Each finished cell is
 stored under `<out>/cells/` and reused by a rerun with the same settings (`--fresh` ignores it).
 
@@ -65,6 +68,7 @@ from wrinkle_jax.fileio import atomic_write_bytes
 from wrinkle_jax.nn import vgg
 
 MODEL = "model"
+WRONG = "model, wrong material"
 SUMMARY_KINDS = ("seen garment, seen motion", "seen garment, unseen motion", "unseen garment")
 
 
@@ -352,6 +356,8 @@ def main(argv=None) -> int:
                     help="folder for the simulations this script makes")
     ap.add_argument("--out", default=str(ec.RESULTS / "table1"))
     ap.add_argument("--fresh", action="store_true", help="ignore stored cells and rescore")
+    ap.add_argument("--no-wrong-material", action="store_true",
+                    help="skip the wrong-material ablation (the model told the other material)")
     args = ap.parse_args(argv)
     if args.frames < 1 or args.frame_stride < 1 or args.patches_per_frame < 1:
         ap.error("--frames, --frame-stride and --patches-per-frame must be >= 1")
@@ -382,6 +388,10 @@ def main(argv=None) -> int:
     methods = ec.baseline_methods({o: u[:2] for o, u in unsharp.items()})
     net_timings: dict = {}
     methods[MODEL] = ec.enhancer_method(enh, batch_size=sampling.score_batch, timings=net_timings)
+    if not args.no_wrong_material:
+        # Paper Fig. 10: the right patches, the other table material's CIN parameters.
+        methods[WRONG] = ec.enhancer_method(enh, batch_size=sampling.score_batch,
+                                            material_of=ec.wrong_material)
     vgg_params = vgg.load_vgg19()
     fingerprint = {"model": str(Path(args.model).resolve()),
                    "model_mtime": Path(args.model).stat().st_mtime,

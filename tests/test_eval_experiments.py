@@ -19,7 +19,7 @@ import pytest
 
 from experiments import eval_common as ec
 from experiments import table1, table2, temporal, timing
-from wrinkle_jax import enhancer, evaluation, meshio, normalmap, patches, primitives
+from wrinkle_jax import enhancer, evaluation, material_index, meshio, normalmap, patches, primitives
 from wrinkle_jax.nn import vgg
 
 SIZE = (0.3, 0.2)  # sheet, meters
@@ -232,6 +232,31 @@ def test_model_method_outputs_unit_normals_inside_the_mask_only(model):
     assert timings["network_patches"] == 3 and timings["compile_s"] > 0
 
 
+def test_wrong_material_swaps_the_table_materials_and_the_method_tells_the_model_so(model):
+    silk, denim = material_index("silk_charmeuse"), material_index("denim_light")
+    assert ec.wrong_material(silk) == denim and ec.wrong_material(denim) == silk
+    assert ec.wrong_material(material_index("wool_melton")) == silk
+    with pytest.raises(ValueError):
+        ec.wrong_material(silk, materials=("silk_charmeuse",))
+    # Give every material its own CIN parameters, so the material id changes the output.
+    key = jax.random.key(3, impl="rbg")
+    leaves, tree = jax.tree_util.tree_flatten(model.params)
+    keys = jax.random.split(key, len(leaves))
+    params = jax.tree_util.tree_unflatten(tree, [
+        x + 0.3 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys, strict=True)])
+    noisy = model._replace(params=params)
+    fine, coarse = _pair(1)
+    pair = ec.aligned_pair(fine.garment, coarse.garment, TEXEL)
+    mask = np.asarray(patches.pad_to_patch(pair.mask, PATCH)[0])
+    origins, _ = ec.candidate_origins(mask, PATCH, PATCH // 2, 0.1)
+    ps = ec.aligned_patches(pair, fine.frames[0], coarse.frames[0], origins[:2], PATCH, silk)
+    wrong = ec.enhancer_method(noisy, batch_size=2, material_of=ec.wrong_material)(ps)
+    right = ec.enhancer_method(noisy, batch_size=2)
+    np.testing.assert_allclose(wrong, right(dataclasses.replace(ps, material_id=denim)),
+                               atol=1e-6)
+    assert np.abs(wrong - right(ps)).max() > 1e-3
+
+
 def _write_cell_files(root, garment, motion, material, frames=3):
     """Tiny fine/coarse sheet files that `eval_common.cell_sequences` accepts for a cell."""
     sc = ec.scene_for(garment, motion)
@@ -262,7 +287,8 @@ def test_table1_main_writes_results_and_resumes_from_stored_cells(tmp_path, monk
                 "machine"):
         assert key in res
     assert set(res["machine"]) >= {"platform", "cpu_count", "jax"}
-    assert res["methods"][0] == "identity" and res["methods"][-1] == table1.MODEL
+    assert res["methods"][0] == "identity" and res["methods"][-2:] == [table1.MODEL,
+                                                                          table1.WRONG]
     assert set(res["cells"]) == {"dress_dance/silk_charmeuse", "dress_walk/silk_charmeuse"}
     cell = res["cells"]["dress_walk/silk_charmeuse"]
     assert cell["scene"] == "dress_walk" and cell["kind"] == "unseen garment"

@@ -208,6 +208,13 @@ class Cell:
         return "seen garment, " + ("seen motion" if self.motion == SEEN_MOTION
                                    else "unseen motion")
 
+    @property
+    def patch_seed(self) -> list[int]:
+        """Stable seed entropy of the cell's patch draws (Python's hash() is salted per
+        process); with the sampling seed and the frame it fixes Table 1's patches, which
+        Table 2 and the stride ablation reuse."""
+        return [int.from_bytes(self.key.encode(), "little") % (2**32)]
+
 
 def table_cells(garments=GARMENTS, materials=TABLE_MATERIALS, motions=MOTIONS) -> list[Cell]:
     """Cells in table order: material, then motion, then garment."""

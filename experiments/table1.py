@@ -102,11 +102,6 @@ class Sampling:
         return list(range(0, self.frames, self.frame_stride))
 
 
-def _cell_seed(cell: ec.Cell) -> list[int]:
-    """A stable integer seed list for a cell (Python's hash() is salted per process)."""
-    return [int.from_bytes(cell.key.encode(), "little") % (2**32)]
-
-
 def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg_params,
                   sampling: Sampling, cell_seed=(0,),
                   progress: Callable[[int], None] | None = None) -> dict:
@@ -327,7 +322,7 @@ def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params, sampli
 
         t0 = time.perf_counter()
         res = evaluate_cell(fine, coarse, cell.material, methods, vgg_params, sampling,
-                            _cell_seed(cell), progress)
+                            cell.patch_seed, progress)
         res["timings"]["cell_s"] = time.perf_counter() - t0
         save_cell(_cell_path(out, cell), res, fingerprint_of(cell))
         results[cell.key] = res

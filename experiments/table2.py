@@ -313,7 +313,7 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
       methods: name -> (PatchSet) -> (K, S, S, 3) RGB-form outputs (the b sets).
       vgg_params: `vgg.load_vgg19()` (or a small VGG in tests).
       sampling: `table1.Sampling` (a's frames and origins are exactly Table 1's).
-      cell_seed: extra seed entropy for the patch draws (`table1._cell_seed(cell)`).
+      cell_seed: extra seed entropy for the patch draws (`eval_common.Cell.patch_seed`).
       progress: called with (patches, what) after each set's features.
     Returns:
       {"frame", "origin": (N_a,) int32 frames and (N_a, 2) origins of a (and every b),
@@ -615,7 +615,7 @@ def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params,
 
         t0 = time.perf_counter()
         rec = cell_record(evaluate_cell(fine, coarse, cell.material, methods, vgg_params,
-                                        sampling, table1._cell_seed(cell), progress))
+                                        sampling, cell.patch_seed, progress))
         rec["timings"]["cell_s"] = time.perf_counter() - t0
         save_cell(_cell_path(out, cell), rec, fingerprint_of(cell))
         records[cell.key] = rec

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from experiments import eval_common as ec
-from experiments import table1, table2, temporal, timing
+from experiments import stride, table1, table2, temporal, timing
 from wrinkle_jax import enhancer, evaluation, material_index, meshio, normalmap, patches, primitives
 from wrinkle_jax.nn import vgg
 
@@ -633,7 +633,7 @@ def test_table2_main_uses_table1_patches_writes_results_and_resumes(tmp_path, mo
     sampling = table1.Sampling(frames=4, frame_stride=2, patches_per_frame=3, patch_size=PATCH,
                                texel_size=TEXEL, score_batch=3)
     t1 = table1.evaluate_cell(fine, coarse, c.material, {}, tiny_vgg, sampling,
-                              table1._cell_seed(c))
+                              c.patch_seed)
     with np.load(out / "cells" / "dress_dance__silk_charmeuse.npz") as z:
         np.testing.assert_array_equal(z["frame"], t1["frame"])
         np.testing.assert_array_equal(z["origin"], t1["origin"])
@@ -643,3 +643,77 @@ def test_table2_main_uses_table1_patches_writes_results_and_resumes(tmp_path, mo
     assert json.loads((out / "results.json").read_text())["all"] == res["all"]
     with pytest.raises(pytest.fail.Exception):
         table2.main(argv + ["--seed", "3"])
+
+
+# --------------------------------------------------------------------------------------------
+# Stride ablation
+# --------------------------------------------------------------------------------------------
+
+
+def test_border_pairs_mark_the_neighbour_pairs_across_tile_starts_and_ends():
+    origins = np.array([[0, 0], [16, 0], [28, 0]])  # rows 0, 16 and the clamped last row
+    got = stride.border_pairs(origins, 32, 60, axis=0)
+    # tiles start at 16, 28 and end after 31, 47, 59 (the last, at the map's edge, has no pair)
+    assert np.flatnonzero(got).tolist() == [15, 27, 31, 47]
+    assert np.flatnonzero(stride.border_pairs(origins, 32, 60, axis=1)).tolist() == [31]
+
+
+def test_seam_ratio_is_one_for_uniform_bending_and_sees_a_kink_at_a_tile_border():
+    h = w = 64
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    ang = np.radians(0.5) * (x + y)  # the normal turns 0.5 degrees per texel along x and y
+    nrm = np.stack([np.sin(ang), np.zeros_like(ang), np.cos(ang)], -1)
+    mask = np.ones((h, w), bool)
+    origins = np.array([[r, c] for r in (0, 16, 32) for c in (0, 16, 32)])
+    assert stride.seam_ratio(stride.seam_sums(nrm, mask, origins, 32)) == pytest.approx(1.0)
+    kinked = nrm.copy()
+    kinked[:, 16:] = nrm[:, 16:] @ np.array([[np.cos(0.1), 0, -np.sin(0.1)], [0, 1, 0],
+                                              [np.sin(0.1), 0, np.cos(0.1)]]).T
+    assert stride.seam_ratio(stride.seam_sums(kinked, mask, origins, 32)) > 1.5
+    off_border = nrm.copy()
+    off_border[:, 20:] = kinked[:, 16:60]  # the same kink between tiles' borders
+    assert stride.seam_ratio(stride.seam_sums(off_border, mask, origins, 32)) < 1.0
+    assert np.isnan(stride.seam_ratio(np.zeros(4)))
+
+
+def test_stride_identity_network_scores_zero_and_leaves_the_coarse_seams(tiny_vgg, model):
+    params = {**model.params, "out": jax.tree.map(jax.numpy.zeros_like, model.params["out"])}
+    ident = model._replace(params=params)
+    fine, coarse = _pair(3)
+    sampling = table1.Sampling(frames=3, frame_stride=1, patches_per_frame=2, patch_size=PATCH,
+                               texel_size=TEXEL, min_coverage=0.3, score_batch=2)
+    res = stride.evaluate_cell(fine, coarse, "denim_light", ident, [8, 16, 24], tiny_vgg,
+                               sampling, [0, 2], batch_size=2)
+    for name in (stride.PATCH, 8, 16, 24):
+        sc = ec.scores_from_losses(res["loss_input"], res["loss"][name])
+        np.testing.assert_allclose(sc["improvement_signed"][sc["valid"]], 0.0, atol=1e-3)
+    for s in (8, 16, 24):
+        assert stride.seam_ratio(res["seams"][s]) == pytest.approx(
+            stride.seam_ratio(res["seams_coarse"][s]), rel=1e-3)
+    counts = [res["patches_per_frame"][s] for s in (8, 16, 24)]
+    assert counts[0] > counts[1] > counts[2]
+    pooled = stride.summarize({"a": res}, [8, 16, 24])
+    assert pooled["8"]["patches_per_frame"] == counts[0]
+    assert pooled["8"]["ms_tile_network_merge"] > 0
+    assert pooled[stride.PATCH]["score"]["n"] == 4
+
+
+def test_stride_main_writes_results_table_and_plot(tmp_path, monkeypatch, tiny_vgg, model):
+    seqs = tmp_path / "seqs"
+    _write_cell_files(seqs, "dress", "walk", "silk_charmeuse", frames=3)
+    model_path = tmp_path / "tiny.npz"
+    enhancer.save_enhancer(model_path, model.params, model.config)
+    monkeypatch.setattr(stride.vgg, "load_vgg19", lambda *a, **k: tiny_vgg)
+    out = tmp_path / "out"
+    argv = ["--model", str(model_path), "--garments", "dress", "--motions", "walk",
+            "--materials", "silk_charmeuse", "--frames", "3", "--frame-stride", "1",
+            "--frame-every", "2", "--patches-per-frame", "2", "--strides", "16,24",
+            "--sequences", str(seqs), "--sim-out", str(tmp_path / "sim"), "--out", str(out)]
+    assert stride.main(argv) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert res["frames"] == [0, 2] and set(res["pooled"]) == {"patch", "16", "24"}
+    assert res["pooled"]["16"]["patches_per_frame"] > res["pooled"]["24"]["patches_per_frame"]
+    assert (out / "pareto.png").stat().st_size > 0
+    assert "| 24 |" in (out / "table.md").read_text()
+    with pytest.raises(SystemExit):
+        stride.main(argv + ["--strides", "64"])  # larger than the tiny model's 32-texel patch

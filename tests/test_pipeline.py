@@ -224,3 +224,26 @@ def test_map_smaller_than_a_patch_is_padded(model):
     inside = res.mask[..., 0] > 0
     np.testing.assert_allclose(np.linalg.norm(res.normal_maps[:, inside], axis=-1), 1.0,
                                atol=1e-5)
+
+
+def test_a_given_layout_bakes_onto_its_pixels_and_must_match_the_texel_size(seq, model):
+    """With `layout`, N* lives on that layout's grid (here 20 texels of margin instead of 8):
+    the identity network returns the coarse map baked on it."""
+    params = {**model.params, "out": jax.tree.map(jnp.zeros_like, model.params["out"])}
+    ident = model._replace(params=params)
+    layout = normalmap.layout_for(seq.garment, model.config.texel_size, margin=20)
+    pipe = pipeline.make_pipeline(seq.garment, ident, pipeline.PipelineConfig(
+        batch_size=BATCH, lift=False), layout=layout)
+    assert pipe.shape == (layout.height, layout.width)
+    got = np.stack([f.normal_map for f in pipeline.iter_enhance(pipe, seq.frames, 0, [1, 2])])
+    plan = normalmap.make_plan(seq.garment, layout=layout)
+    want = np.asarray(jax.jit(normalmap.bake_frames)(plan, seq.frames[[1, 2]]))
+    inside = np.asarray(plan.mask)[..., 0] > 0
+    assert got.shape == (2, layout.height, layout.width, 3)
+    np.testing.assert_allclose(got[:, inside], want[:, inside], atol=1e-5)
+    own = normalmap.layout_for(seq.garment, model.config.texel_size)
+    assert (layout.height, layout.width) == (own.height + 24, own.width + 24)
+    wrong = normalmap.layout_for(seq.garment, 2 * model.config.texel_size)
+    with pytest.raises(pipeline.PipelineError, match="texel size"):
+        pipeline.make_pipeline(seq.garment, ident, pipeline.PipelineConfig(lift=False),
+                               layout=wrong)

@@ -276,7 +276,7 @@ def _body_for(body, index: int):
 
 def make_pipeline(garment: Garment, enhancer: enhancer_lib.Enhancer | None = None,
                   config: PipelineConfig = PipelineConfig(), body=None,  # noqa: B008
-                  compile: bool = True) -> Pipeline:
+                  compile: bool = True, layout: normalmap.UVLayout | None = None) -> Pipeline:
     """Prepare the per-garment setup and compile every stage (NumPy setup, AOT compile).
 
     Args:
@@ -287,8 +287,12 @@ def make_pipeline(garment: Garment, enhancer: enhancer_lib.Enhancer | None = Non
         a callable ``frame_index -> body`` for an animated body (bodies of the same structure
         share one compile).
       compile: compile the stages now (the "compile" timing); False compiles on first use.
+      layout: bake onto this UV layout instead of the garment's own (e.g.
+        `evaluation`-style comparisons with a fine mesh baked on the same pixels); its texel
+        size must be the model's.
     Raises:
-      PipelineError: the garment covers no texel at the model's texel size.
+      PipelineError: the garment covers no texel at the model's texel size, or `layout` has
+        another texel size.
       enhancer.EnhancerError: no model given and the shipped one is missing or unreadable.
     """
     enh = enhancer_lib.load_enhancer() if enhancer is None else enhancer
@@ -296,7 +300,11 @@ def make_pipeline(garment: Garment, enhancer: enhancer_lib.Enhancer | None = Non
     stride = size // 2 if config.stride is None else int(config.stride)
     timings = {}
     t0 = time.perf_counter()
-    plan = normalmap.make_plan(garment, texel_size=enh.config.texel_size)
+    if layout is not None and not np.isclose(layout.texel_size, enh.config.texel_size,
+                                             rtol=1e-6):
+        raise PipelineError(f"layout texel size {layout.texel_size} m differs from the "
+                            f"model's {enh.config.texel_size} m")
+    plan = normalmap.make_plan(garment, texel_size=enh.config.texel_size, layout=layout)
     mask = np.asarray(plan.mask)
     if not mask.any():
         raise PipelineError(f"the garment covers no texel at texel size "

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 
 import jax
@@ -56,7 +57,7 @@ def bench_speed(scene_names, resolutions, frames: int, material: str = "silk_cha
                          "substeps": config.substeps, "stretch_sweeps": config.stretch_sweeps,
                          "ms_per_frame": round(1e3 * dt / max(n, 1), 1),
                          "compile_plus_first_chunk_s": round(compile_s, 2)})
-            print(json.dumps(rows[-1]), flush=True)
+            print(json.dumps(rows[-1]), file=sys.stderr, flush=True)  # progress
     return rows
 
 
@@ -126,7 +127,7 @@ def bench_substeps(substep_list, pd: float, frames: int):
             "energy_drift_max_rel": float(np.abs(energy - energy[0]).max() / scale),
             "max_penetration_m": max(max(pen), 0.0),
         })
-        print(json.dumps(rows[-1]), flush=True)
+        print(json.dumps(rows[-1]), file=sys.stderr, flush=True)  # progress
     return rows
 
 
@@ -155,7 +156,7 @@ def bench_intersections(data: str, every: int, frames: int):
                          "mean_pairs": round(st["mean_pairs"], 1), "max_pairs": st["max_pairs"],
                          "mean_face_fraction": round(st["mean_face_fraction"], 5),
                          "s_per_frame": round((time.perf_counter() - t0) / len(st["frames"]), 3)})
-            print(json.dumps(rows[-1]), flush=True)
+            print(json.dumps(rows[-1]), file=sys.stderr, flush=True)  # progress
     return rows
 
 

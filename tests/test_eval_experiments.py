@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from experiments import eval_common as ec
-from experiments import stride, table1, table2, temporal, timing
+from experiments import report, stride, table1, table2, temporal, timing
 from wrinkle_jax import enhancer, evaluation, material_index, meshio, normalmap, patches, primitives
 from wrinkle_jax.nn import vgg
 
@@ -717,3 +717,49 @@ def test_stride_main_writes_results_table_and_plot(tmp_path, monkeypatch, tiny_v
     assert "| 24 |" in (out / "table.md").read_text()
     with pytest.raises(SystemExit):
         stride.main(argv + ["--strides", "64"])  # larger than the tiny model's 32-texel patch
+
+
+# --------------------------------------------------------------------------------------------
+# Report
+# --------------------------------------------------------------------------------------------
+
+
+def test_report_demote_and_drop():
+    text = "# A\n## B\ntext # not a heading"
+    assert report.demote(text, 1) == "## A\n### B\ntext # not a heading"
+    right, wrong = {"signed_mean": 40.0}, {"signed_mean": 38.0}
+    assert report._drop(right, wrong, "signed_mean") == pytest.approx(5.0)
+    assert report._drop({"signed_mean": 0.0}, wrong, "signed_mean") is None
+
+
+def test_report_assembles_stored_results_and_names_what_is_missing(tmp_path, monkeypatch,
+                                                                   tiny_vgg, model):
+    seqs = tmp_path / "seqs"
+    _write_cell_files(seqs, "dress", "walk", "silk_charmeuse")
+    _write_cell_files(seqs, "dress", "walk", "denim_light")
+    model_path = tmp_path / "tiny.npz"
+    enhancer.save_enhancer(model_path, model.params, model.config)
+    monkeypatch.setattr(table1.vgg, "load_vgg19", lambda *a, **k: tiny_vgg)
+    results = tmp_path / "results"
+    assert table1.main(["--model", str(model_path), "--garments", "dress", "--motions", "walk",
+                        "--frames", "3", "--frame-stride", "2", "--patches-per-frame", "2",
+                        "--sequences", str(seqs), "--sim-out", str(tmp_path / "sim"),
+                        "--out", str(results / "table1")]) == 0
+    (results / "timing").mkdir()
+    (results / "timing" / "results.json").write_text(
+        (ec.RESULTS / "timing" / "results.json").read_text())  # the committed timing run
+    out = tmp_path / "REPORT.md"
+    assert report.main(["--results", str(results), "--out", str(out)]) == 0
+    text = out.read_text()
+    t1 = json.loads((results / "table1" / "results.json").read_text())
+    unseen = t1["by_kind"]["unseen garment"]
+    assert f"model signed mean {unseen['model']['signed_mean']:+.1f}" in text
+    assert "| silk_charmeuse | walk (unseen) |" in text  # Table 1's own layout, embedded
+    assert "### Wrong material at inference" in text and "| denim_light |" in text
+    assert "0.09x the fine simulation's speed" in text  # the timing run's ratio
+    for missing in ("Table 2", "the stride ablation", "the flicker study",
+                    "the PatchGAN baseline"):
+        assert f"**Not run yet**: {missing}." in text
+    assert "- table2: `python -m experiments.table2`" in text
+    assert "- patchgan: no script yet" in text
+    assert report.main(["--results", str(results), "--out", str(out), "--strict"]) == 1

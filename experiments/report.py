@@ -1,0 +1,484 @@
+"""Assemble `experiments/results/REPORT.md` from the evaluation suite's stored results.
+
+    python -m experiments.report [--results experiments/results] [--out REPORT.md path]
+
+Nothing is recomputed: every section reads the `results.json` (or `table.json`, benchmark JSON)
+that its script wrote, says which command made it and on which machine, and the speed-against-
+error plots are drawn here from those numbers (`<results>/report/*.png`). A section whose
+results are missing says so and gives the command that makes them, so the report is honest
+about what has not been run; `--strict` makes that an error (exit status 1).
+
+Sections: headline numbers; Table 1 (+ the wrong-material ablation); Table 2; baselines
+(including the DeepWrinkles-style PatchGAN); ablations (sheet-only training, wrong material,
+stride, width); temporal coherence; timing; speed against error (width, stride, lifting
+solver, simulator substeps, VGG layers); commands; machines.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import re
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+from experiments import eval_common as ec
+
+MODEL, WRONG = "model", "model, wrong material"
+KINDS = ("seen garment, seen motion", "seen garment, unseen motion", "unseen garment")
+
+# What makes each result (relative to the project root); the report prints these.
+COMMANDS = {
+    "table1": "python -m experiments.table1",
+    "table2": "python -m experiments.table2",
+    "stride": "python -m experiments.stride",
+    "temporal": "python -m experiments.temporal",
+    "timing": "python -m experiments.timing --frames 30 --model wrinkle_jax/assets/enhancer.npz",
+    "lift": "python benchmarks/bench_lift.py --quick > experiments/results/lift/bench.json",
+    "substeps": ("python benchmarks/bench_sim.py --quick --part substeps "
+                 "> experiments/results/sim/substeps.json"),
+    "layer_selection": "python -m experiments.layer_selection",
+    "width": ("python -m experiments.short_runs width --residual-base unsharp ... (session 2; "
+              "the settings are each entry's config)"),
+    # No script yet (None): the report says so instead of naming a command that does not exist.
+    "patchgan": None,
+    "sheet_only": None,
+}
+
+
+class Report:
+    """Markdown lines, the missing results and the machines seen, collected section by section.
+    """
+
+    def __init__(self, results: Path):
+        self.results = results
+        self.lines: list[str] = []
+        self.missing: list[tuple[str, str]] = []
+        self.machines: dict[str, dict] = {}
+        self.commands: dict[str, str] = {}
+
+    def add(self, *lines: str) -> None:
+        self.lines.extend(lines)
+
+    def load(self, name: str, rel: str) -> dict | None:
+        """JSON at `<results>/<rel>`, remembering its command and machine; None if missing."""
+        path = self.results / rel
+        if not path.exists():
+            self.missing.append((name, COMMANDS.get(name) or "no script yet"))
+            return None
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as err:
+            self.missing.append((name, f"{COMMANDS.get(name)} (unreadable: {err})"))
+            return None
+        if isinstance(data, dict):
+            self.commands[name] = data.get("command", COMMANDS.get(name) or "?")
+            if isinstance(data.get("machine"), dict):
+                self.machines[name] = data["machine"]
+        return data
+
+    def not_run(self, what: str, name: str, why: str = "") -> None:
+        cmd = COMMANDS[name]
+        how = f"Command: `{cmd}`." if cmd else "No script yet."
+        self.add(f"**Not run yet**: {what}. {how}" + (f" {why}" if why else ""), "")
+
+    def image(self, rel: str, alt: str) -> None:
+        """Link an image under `<results>` (relative to REPORT.md) if it exists."""
+        if (self.results / rel).exists():
+            self.add(f"![{alt}]({rel})", "")
+
+
+def demote(markdown: str, levels: int = 1) -> str:
+    """Push every markdown heading down `levels` levels (embed a script's table.md)."""
+    return re.sub(r"^(#+) ", lambda m: "#" * (len(m.group(1)) + levels) + " ", markdown,
+                  flags=re.M)
+
+
+def _score(d: dict | None, signed: bool = True) -> str:
+    if not d or not d.get("n"):
+        return "-"
+    if signed:
+        return f"{d['signed_mean']:+.1f}"
+    return f"{d['improvement_mean']:.1f}"
+
+
+def _drop(right: dict, wrong: dict, key: str) -> float | None:
+    """Relative drop in % of a mean score when the model is told the wrong material."""
+    if not right or not wrong or not right.get(key):
+        return None
+    return 100.0 * (right[key] - wrong[key]) / abs(right[key])
+
+
+# --------------------------------------------------------------------------------------------
+# Sections
+# --------------------------------------------------------------------------------------------
+
+
+def headline(rep: Report, t1, t2, timing, temporal) -> None:
+    rep.add("## Headline numbers", "")
+    rows = []
+    if t1:
+        k = t1["by_kind"].get("unseen garment", {})
+        best = max((m for m in k if m not in (MODEL, WRONG, "identity")),
+                   key=lambda m: k[m]["signed_mean"], default=None)
+        rows.append(f"- Table 1, unseen garments ({k.get(MODEL, {}).get('n', 0)} patches): "
+                    f"model signed mean {_score(k.get(MODEL))} (paper's |.| form "
+                    f"{_score(k.get(MODEL), False)}); best baseline {best} "
+                    f"{_score(k.get(best))} (|.| {_score(k.get(best), False)}).")
+        a = t1["all"]
+        if WRONG in a:
+            rows.append(f"- Wrong material at inference (all cells): signed mean "
+                        f"{_score(a[MODEL])} -> {_score(a[WRONG])} "
+                        f"({_drop(a[MODEL], a[WRONG], 'signed_mean'):.1f} % drop; the paper "
+                        "saw about 5 %).")
+    if t2 and MODEL in t2.get("by_group", {}).get("unseen garment", {}):
+        m = t2["by_group"]["unseen garment"][MODEL]
+        rows.append(f"- Table 2, unseen garments (model, mean over cells): embedded C1 "
+                    f"{m['embedded']['c1']:.3f}, C2 {m['embedded']['c2']:.3f}, DR "
+                    f"{m['embedded']['dr']:.1f} (signed {m['embedded']['dr_signed']:+.1f}); "
+                    f"full space DR {m['full']['dr']:.1f} (signed "
+                    f"{m['full']['dr_signed']:+.1f}).")
+    if timing:
+        r = timing["ratio"]
+        rows.append(f"- Timing ({timing['scene']}, {timing['material']}): ours "
+                    f"{r['ours_ms_per_frame']:.0f} ms/frame (coarse sim + enhancement + lift) vs "
+                    f"fine simulation {r['fine_ms_per_frame']:.0f} ms/frame: "
+                    f"{r['speedup']:.2f}x the fine simulation's speed "
+                    f"({r['speedup_no_lift']:.2f}x without lifting).")
+    if temporal and temporal["overall"].get("output_over_fine_median") is not None:
+        rows.append(f"- Flicker: output/fine frame-to-frame change, median over sequences "
+                    f"{temporal['overall']['output_over_fine_median']:.2f}.")
+    rep.add(*(rows or ["No results yet."]), "")
+
+
+def table1_section(rep: Report, t1) -> None:
+    rep.add("## Table 1: improvement score on coarse simulations", "")
+    if not t1:
+        rep.not_run("Table 1", "table1")
+        return
+    table = (rep.results / "table1" / "table.md")
+    if table.exists():
+        rep.add(demote(table.read_text().split("\n", 1)[1].strip(), 1), "")
+    t = t1["timings"]
+    rep.add(f"Run: {t['cells_s'] / 60:.1f} min of scoring, "
+            f"{t['vgg_s_per_patch_pass']:.3f} s per VGG patch pass, network "
+            f"{t['network_ms_per_patch']:.1f} ms/patch.", "")
+
+
+def wrong_material_section(rep: Report, t1) -> None:
+    rep.add("### Wrong material at inference (paper Fig. 10)", "")
+    if not t1 or WRONG not in t1.get("all", {}):
+        rep.not_run("the wrong-material ablation (part of Table 1)", "table1")
+        return
+    rep.add("The same patches; the model is told the other table material (silk_charmeuse <-> "
+            "denim_light).", "",
+            "| cells | right material: signed (|.|) | wrong material: signed (|.|) | "
+            "signed drop |", "|---|---|---|---|")
+    for name, d in [*t1["by_kind"].items(), ("all", t1["all"])]:
+        drop = _drop(d[MODEL], d[WRONG], "signed_mean")
+        rep.add(f"| {name} | {_score(d[MODEL])} ({_score(d[MODEL], False)}) | "
+                f"{_score(d[WRONG])} ({_score(d[WRONG], False)}) | "
+                f"{'-' if drop is None else f'{drop:.1f} %'} |")
+    rep.add("", "Per material (all garments):", "", "| true material | right | wrong |",
+            "|---|---|---|")
+    for ma in t1["config"]["materials"]:
+        cells = [c for c in t1["cells"].values() if c["material"] == ma]
+        n = sum(c["methods"][MODEL]["n"] for c in cells)
+        if not n:
+            continue
+        right = sum(c["methods"][MODEL]["signed_mean"] * c["methods"][MODEL]["n"]
+                    for c in cells) / n
+        wrong = sum(c["methods"][WRONG]["signed_mean"] * c["methods"][WRONG]["n"]
+                    for c in cells) / n
+        rep.add(f"| {ma} | {right:+.1f} | {wrong:+.1f} |")
+    rep.add("")
+
+
+def table2_section(rep: Report, t2) -> None:
+    rep.add("## Table 2: Chamfer distances of Gram features without correspondence", "")
+    if not t2:
+        rep.not_run("Table 2", "table2")
+        return
+    table = rep.results / "table2" / "table.md"
+    if table.exists():
+        rep.add(demote(table.read_text().split("\n", 1)[1].strip(), 1), "")
+    rep.image("table2/embeddings.png", "Table 2 embeddings")
+
+
+def baselines_section(rep: Report, t1) -> None:
+    rep.add("## Baselines", "",
+            "Identity, unsharp masking (masked blur of order 0 and 1, each at the model card's "
+            "best setting on training patches), bicubic and Lanczos x2 down/up-sampling are "
+            "scored on the same patches as the model in Tables 1 and 2 above.", "")
+    rep.add("### DeepWrinkles-style conditional PatchGAN (paper Fig. 9)", "")
+    pg = rep.load("patchgan", "patchgan/results.json")
+    if pg is None:
+        rep.not_run("the PatchGAN baseline", "patchgan",
+                    "It is to be trained on the model's training dataset "
+                    "(`python -m experiments.make_sequences` then "
+                    "`python -m experiments.make_dataset`, ~80 min) for the model's 0.75 h "
+                    "training budget.")
+        return
+    rep.add("```", json.dumps(pg.get("summary", pg), indent=1)[:3000], "```", "")
+
+
+def ablations_section(rep: Report, t1, stride) -> None:
+    rep.add("## Ablations", "")
+    rep.add("### Training on the sheet only vs all training scenes (paper Fig. 8)", "")
+    sheet = rep.load("sheet_only", "sheet_only/results.json")
+    if sheet is None:
+        rep.not_run("the sheet-only ablation", "sheet_only",
+                    "Planned: `experiments.make_dataset --only sheet_balls_wind` into its own "
+                    "folder, then `experiments.train_default --data` on it for the shipped "
+                    "model's budget, scored on the same held-out patches.")
+    else:
+        rep.add("```", json.dumps(sheet.get("summary", sheet), indent=1)[:3000], "```", "")
+    wrong_material_section(rep, t1)
+    rep.add("### Patch stride (seams against time)", "")
+    if not stride:
+        rep.not_run("the stride ablation", "stride")
+    else:
+        table = rep.results / "stride" / "table.md"
+        if table.exists():
+            rep.add(demote(table.read_text().split("\n", 1)[1].strip(), 2), "")
+        rep.image("stride/pareto.png", "stride: time against score and seams")
+    rep.add("### Network width", "",
+            "See the width Pareto plot under speed against error.", "")
+
+
+def temporal_section(rep: Report, temporal) -> None:
+    rep.add("## Temporal coherence (flicker)", "")
+    if not temporal:
+        rep.not_run("the flicker study", "temporal")
+        return
+    rep.add(f"Mean angle (degrees) between the unit normals of consecutive frames over the "
+            f"garment texels, frames {temporal['frames'][0]}-{temporal['frames'][-1]} "
+            f"({temporal['fps']:g} fps); output = the pipeline's N* (no lift), coarse = its "
+            "input, fine = the fine simulation.", "",
+            "| sequence | coarse | output | fine | output / fine | output - coarse |",
+            "|---|---|---|---|---|---|")
+    for key, s in temporal["sequences"].items():
+        sm = s["summary"]
+        ratio = sm.get("output_over_fine")
+        added = sm.get("added_over_coarse_deg")
+        rep.add(f"| {key} | {sm['coarse']['mean']:.3f} | {sm['output']['mean']:.3f} | "
+                f"{sm['fine']['mean']:.3f} | {'-' if ratio is None else f'{ratio:.2f}'} | "
+                f"{'-' if added is None else f'{added:+.3f}'} |")
+    rep.add("")
+    rep.image("temporal/flicker.png", "flicker per sequence")
+
+
+def timing_section(rep: Report, timing) -> None:
+    rep.add("## Timing (paper Fig. 2)", "")
+    if not timing:
+        rep.not_run("the timing study", "timing")
+        return
+    p = timing["pipeline"]
+    rep.add(f"{timing['scene']}, {timing['material']}, {timing['frames']} frames, model width "
+            f"{timing.get('model_width')}; steady state, compile and setup excluded.", "",
+            "| stage | ms per frame |", "|---|---|",
+            f"| coarse simulation (PD {timing['coarse_sim']['pd_m'] * 1e3:g} mm, "
+            f"{timing['coarse_sim']['vertices']} vertices) | "
+            f"{timing['coarse_sim']['ms_per_frame']:.1f} |")
+    for stage, ms in p["ms_per_frame"].items():
+        rep.add(f"| {stage} | {ms:.1f} |")
+    r = timing["ratio"]
+    rep.add(f"| **ours, total** | **{r['ours_ms_per_frame']:.0f}** |",
+            f"| fine simulation (PD {timing['fine_sim']['pd_m'] * 1e3:g} mm, "
+            f"{timing['fine_sim']['vertices']} vertices) | {r['fine_ms_per_frame']:.0f} |", "",
+            f"Ours runs at {r['speedup']:.2f}x the fine simulation's speed "
+            f"({r['speedup_no_lift']:.2f}x without lifting; {p['patches_per_frame']} patches "
+            f"per frame).", "")
+    rep.image("timing/timing.png", "per-stage timing")
+
+
+# --------------------------------------------------------------------------------------------
+# Speed against error
+# --------------------------------------------------------------------------------------------
+
+
+def _plot(path: Path, draw: Callable, xlabel: str, ylabel: str, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.2, 3.6))
+    draw(ax)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=10)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    ec.save_figure(fig, path, dpi=100)
+
+
+def _label_points(ax, xs, ys, labels) -> None:
+    ax.plot(xs, ys, "o")
+    for x, y, t in zip(xs, ys, labels, strict=True):
+        ax.annotate(t, (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
+
+
+def pareto_section(rep: Report, stride) -> None:
+    rep.add("## Speed against error", "")
+    out = rep.results / "report"
+    # Width.
+    rep.add("### Network width", "")
+    width = rep.load("width", "width_unsharp2_study/results.json")
+    if width:
+        pts = [(k, v["infer_ms_per_patch"], v["heldout"]["all"]["signed_mean"],
+                v["heldout"]["all"]["n"]) for k, v in width.items() if "heldout" in v]
+        _plot(out / "pareto_width.png",
+              lambda ax: _label_points(ax, [p[1] for p in pts], [p[2] for p in pts],
+                                       [p[0] for p in pts]),
+              "inference ms per 128x128 patch", "held-out signed score",
+              "width (5-min training budget each)")
+        rep.add("| model | ms/patch | held-out signed score | n |", "|---|---|---|---|",
+                *[f"| {k} | {ms:.1f} | {s:+.1f} | {n} |" for k, ms, s, n in pts], "",
+                "Caveat: a session-2 study (5-minute training budget per width, order-0 "
+                "unsharp base at sigma 8), not the shipped recipe; it has to be rerun with the "
+                "shipped recipe and budget.", "")
+        rep.image("report/pareto_width.png", "width Pareto")
+    else:
+        rep.not_run("the width study", "width")
+    rep.add("### Patch stride", "")
+    if stride:
+        rep.add("Plotted by the stride ablation above (`stride/pareto.png`).", "")
+    else:
+        rep.not_run("the stride ablation", "stride")
+    # Lifting solver.
+    rep.add("### Lifting solver (iterations / tolerance)", "")
+    lift = rep.load("lift", "lift/bench.json")
+    if lift and lift.get("speed_vs_error_10k"):
+        curves = lift["speed_vs_error_10k"]
+        cols = curves["columns"]
+        tc, ac = cols.index("seconds"), cols.index("angle_error_deg")
+
+        def draw(ax):
+            for name in ("gauss_newton", "adam_lr0.1", "lbfgs"):
+                pts = curves.get(name) or []
+                ax.plot([p[tc] * 1e3 for p in pts], [p[ac] for p in pts], "o-", ms=3,
+                        label=name)
+            ax.set_xscale("log")
+            ax.legend(fontsize=8)
+
+        _plot(out / "pareto_lift.png", draw, "ms per frame (cumulative over iterations)",
+              "mean normal angle error (deg)", f"lifting, {curves['vertices']} vertices")
+        s = lift.get("summary_10k", {})
+        ref = s.get("reference_final", {})
+        rep.add(f"Reference (Adam, the authors' solver): {ref.get('seconds_per_frame', 0):.2f} "
+                f"s/frame, {ref.get('angle_error_deg', 0):.2f} deg; Gauss-Newton reaches that "
+                f"error in {s.get('gn_per_frame_at_reference_error_s') or float('nan'):.3f} "
+                f"s/frame ({s.get('gn_speedup_at_reference_error')}x).", "")
+        rep.image("report/pareto_lift.png", "lifting solver Pareto")
+    else:
+        rep.not_run("the lifting benchmark's speed-against-error curves", "lift")
+    # Simulator substeps.
+    rep.add("### Simulator substeps", "")
+    sub = rep.load("substeps", "sim/substeps.json")
+    rows = (sub or {}).get("substeps") or []
+    if rows:
+        keys = [k for k in ("strain_p99", "strain_mean") if k in rows[0]]
+        ykey = keys[0] if keys else None
+        if ykey and "ms_per_frame" in rows[0]:
+            _plot(out / "pareto_substeps.png",
+                  lambda ax: _label_points(ax, [r["ms_per_frame"] for r in rows],
+                                           [r[ykey] for r in rows],
+                                           [str(r["substeps"]) for r in rows]),
+                  "ms per frame", ykey, "simulator substeps")
+            rep.image("report/pareto_substeps.png", "substeps Pareto")
+        rep.add("```", json.dumps(rows, indent=1)[:2500], "```", "")
+    else:
+        rep.not_run("the simulator substep sweep", "substeps")
+    # VGG layers.
+    rep.add("### VGG layers (training cost against discriminative power)", "")
+    ls = rep.load("layer_selection", "layer_selection/table.json")
+    if ls:
+        rows = ls["rows"]
+        _plot(out / "pareto_vgg_layers.png",
+              lambda ax: _label_points(ax, [r["step_ms_to_layer"] for r in rows],
+                                       [r["knn_full"] for r in rows],
+                                       [r["layer"] for r in rows]),
+              "VGG19 forward+backward to the layer, ms per batch step",
+              "kNN material accuracy of the layer's Grams", "VGG layers")
+        rep.add(f"From `layer_selection/table.md` ({ls['n_per_set']} patches per set): the "
+                "cost of running VGG19 up to a layer in a training step against how well "
+                "that layer's Gram matrices separate materials.", "")
+        rep.image("report/pareto_vgg_layers.png", "VGG layer Pareto")
+    else:
+        rep.not_run("the VGG layer study", "layer_selection")
+
+
+def machines_section(rep: Report) -> None:
+    rep.add("## Commands and machines", "", "| result | command | machine |", "|---|---|---|")
+    for name, cmd in rep.commands.items():
+        m = rep.machines.get(name)
+        mtext = (f"{m.get('cpu_count')} CPUs, {m.get('platform')}, jax {m.get('jax')}, load "
+                 f"{m.get('load_avg_1min')}" if m else "-")
+        rep.add(f"| {name} | `{cmd}` | {mtext} |")
+    rep.add("", "Regenerate this report: `python -m experiments.report`.", "")
+    if rep.missing:
+        rep.add("## Not run yet", "", *[f"- {n}: " + (f"`{c}`" if c != "no script yet" else c)
+                                        for n, c in rep.missing], "")
+
+
+def _git_commit() -> str | None:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, check=True, cwd=ec.ROOT).stdout.strip() or None
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
+def build(results: Path) -> Report:
+    """Read every stored result under `results` and lay out the report."""
+    rep = Report(results)
+    t1 = rep.load("table1", "table1/results.json")
+    t2 = rep.load("table2", "table2/results.json")
+    stride = rep.load("stride", "stride/results.json")
+    temporal = rep.load("temporal", "temporal/results.json")
+    timing = rep.load("timing", "timing/results.json")
+    rep.add("# wrinkle-jax evaluation report", "",
+            f"Generated {datetime.date.today().isoformat()} by `python -m experiments.report` "
+            f"from the stored results under `experiments/results/` (commit "
+            f"{_git_commit() or 'unknown'}). Scores: the improvement score on the Gram "
+            "matrices of relu1_2 ... relu5_1 (100 = the fine simulation's style, 0 = the "
+            "coarse input's, < 0 = further away; the paper's form takes |.|, which counts "
+            "overshoot as improvement).", "")
+    headline(rep, t1, t2, timing, temporal)
+    table1_section(rep, t1)
+    table2_section(rep, t2)
+    baselines_section(rep, t1)
+    ablations_section(rep, t1, stride)
+    temporal_section(rep, temporal)
+    timing_section(rep, timing)
+    pareto_section(rep, stride)
+    machines_section(rep)
+    return rep
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--results", default=str(ec.RESULTS))
+    ap.add_argument("--out", default=None, help="default: <results>/REPORT.md")
+    ap.add_argument("--strict", action="store_true", help="fail if any result is missing")
+    args = ap.parse_args(argv)
+    results = Path(args.results)
+    rep = build(results)
+    out = Path(args.out) if args.out else results / "REPORT.md"
+    out.write_text("\n".join(rep.lines).rstrip() + "\n")
+    print(f"wrote {out} ({len(rep.lines)} lines); missing: "
+          f"{', '.join(n for n, _ in rep.missing) or 'nothing'}")
+    if args.strict and rep.missing:
+        print("missing results: " + "; ".join(f"{n} ({c})" for n, c in rep.missing),
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

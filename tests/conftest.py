@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import jax
+import numpy as np
 import pytest
 
-from wrinkle_jax import primitives
+from wrinkle_jax import data, primitives
+from wrinkle_jax.meshio import make_sequence, save_sequence
 
 
 def x64():
@@ -37,3 +39,25 @@ def cube():
 def skirt():
     return primitives.flared_skirt(n_theta=32, n_s=8)
 
+
+
+@pytest.fixture(scope="session")
+def tiny_patch_root(tmp_path_factory):
+    """A tiny patch dataset (32x32 patches, 4 mm texels): a "sheet" and a "cape" sequence of 4
+    frames of a travelling fold with fine ripples, silk_chiffon; both splits non-empty."""
+    src = tmp_path_factory.mktemp("seq")
+    g = primitives.grid_sheet(40, 40, size=(0.25, 0.25))
+    xy = g.vertices[:, :2]
+    paths = []
+    for name, garment in (("sheet", "sheet"), ("cape", "cape")):
+        frames = [np.c_[xy, 0.015 * np.sin(15 * xy[:, 1] + t)
+                        + 0.002 * np.sin(120 * xy[:, 0] + t)] for t in range(4)]
+        seq = make_sequence(np.asarray(frames, np.float32), g,
+                            metadata={"material": "silk_chiffon", "garment": garment})
+        save_sequence(src / f"{name}.npz", seq)
+        paths.append(src / f"{name}.npz")
+    root = tmp_path_factory.mktemp("patches")
+    cfg = data.PatchDataConfig(texel_size=0.004, patch_size=32, crops_per_frame=2,
+                               min_coverage=0.5, shard_size=8)
+    data.build_dataset(paths, root, cfg)
+    return root

@@ -15,8 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from wrinkle_jax import data, primitives, train
-from wrinkle_jax.meshio import make_sequence, save_sequence
+from wrinkle_jax import data, train
 from wrinkle_jax.nn import vgg
 
 CONFIG = train.TrainConfig(width=4, batch_size=4, steps=4, learning_rate=1e-3,
@@ -31,23 +30,8 @@ def tiny_vgg():
 
 
 @pytest.fixture(scope="module")
-def data_root(tmp_path_factory):
-    src = tmp_path_factory.mktemp("seq")
-    g = primitives.grid_sheet(40, 40, size=(0.25, 0.25))
-    xy = g.vertices[:, :2]
-    paths = []
-    for name, garment in (("sheet", "sheet"), ("cape", "cape")):
-        frames = [np.c_[xy, 0.015 * np.sin(15 * xy[:, 1] + t)
-                        + 0.002 * np.sin(120 * xy[:, 0] + t)] for t in range(4)]
-        seq = make_sequence(np.asarray(frames, np.float32), g,
-                            metadata={"material": "silk_chiffon", "garment": garment})
-        save_sequence(src / f"{name}.npz", seq)
-        paths.append(src / f"{name}.npz")
-    root = tmp_path_factory.mktemp("patches")
-    cfg = data.PatchDataConfig(texel_size=0.004, patch_size=32, crops_per_frame=2,
-                               min_coverage=0.5, shard_size=8)
-    data.build_dataset(paths, root, cfg)
-    return root
+def data_root(tiny_patch_root):
+    return tiny_patch_root
 
 
 def test_overfits_four_patches(data_root, tiny_vgg):

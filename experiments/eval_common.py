@@ -36,8 +36,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wrinkle_jax import MATERIALS, evaluation, material_index, meshio, normalmap, patches
 from wrinkle_jax import enhancer as enhancer_lib
-from wrinkle_jax import evaluation, material_index, meshio, normalmap, patches
 from wrinkle_jax.fileio import atomic_write_bytes, atomic_write_text
 from wrinkle_jax.mesh import Garment, global_uv_scale
 from wrinkle_jax.nn import losses, vgg
@@ -72,6 +72,49 @@ def machine_info() -> dict:
             "python": sys.version.split()[0], "jax": jax.__version__,
             "jax_backend": jax.default_backend(), "numpy": np.__version__,
             "opencv": cv2.__version__}
+
+
+def file_digest(path: str | os.PathLike) -> str:
+    """'sha256:<first 16 hex digits>' of a file's bytes: identifies a model across clones (its
+    mtime does not)."""
+    import hashlib
+
+    return "sha256:" + hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+
+
+def portable_path(path: str | os.PathLike) -> str:
+    """`path` relative to the project root when it lies under it (fingerprints then survive a
+    clone to another folder), else absolute."""
+    p = Path(path).resolve()
+    try:
+        return str(p.relative_to(ROOT))
+    except ValueError:
+        return str(p)
+
+
+def model_methods(specs: list[str], batch_size: int) -> tuple[dict, dict]:
+    """Extra models as methods, from "NAME=PATH" specs (e.g. a trained baseline).
+
+    A one-material model (e.g. the PatchGAN baseline's "any") is told material 0; others the
+    patch set's material by name. Returns (methods, sources): name -> method, and name -> a
+    source string (file digest) that identifies its outputs.
+    """
+    methods, sources = {}, {}
+    for spec in specs:
+        name, sep, path = spec.partition("=")
+        if not sep or not name or not path:
+            raise ValueError(f"expected NAME=PATH, got {spec!r}")
+        enh = enhancer_lib.load_enhancer(path)
+        names = enh.config.materials
+        if len(names) == 1:
+            def material_of(_, names=names):
+                return 0
+        else:
+            def material_of(i, enh=enh):
+                return enh.config.material_id(MATERIALS[i])
+        methods[name] = enhancer_method(enh, batch_size=batch_size, material_of=material_of)
+        sources[name] = f"model {file_digest(path)}"
+    return methods, sources
 
 
 def write_json(path: str | os.PathLike, obj) -> None:

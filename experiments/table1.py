@@ -195,13 +195,20 @@ def _cell_path(out: Path, cell: ec.Cell) -> Path:
     return out / "cells" / f"{cell.scene.name}__{cell.material}.npz"
 
 
-def save_cell(path: Path, result: dict, fingerprint: dict) -> None:
-    """Store one evaluated cell (arrays + JSON fingerprint of the settings), atomically."""
+# What defines a cell's patches (sampling, sequences); each method's losses are tagged with a
+# source string instead, so a rerun with another method set scores only the new methods.
+CELL_KEYS = ("sampling", "sequences")
+
+
+def save_cell(path: Path, result: dict, fingerprint: dict, sources: dict[str, str]) -> None:
+    """Store one evaluated cell atomically: arrays, the JSON fingerprint of its patches and
+    the source of every method's losses (`sources`: name -> string)."""
     arrays = {"frame": result["frame"], "origin": result["origin"],
               "coverage": result["coverage"], "loss_input": result["loss_input"],
               "methods": np.array(list(result["loss"])),
               "losses": np.stack([result["loss"][k] for k in result["loss"]]),
               "meta": np.str_(json.dumps({"fingerprint": fingerprint,
+                                          "sources": {k: sources[k] for k in result["loss"]},
                                           "n_candidates": result["n_candidates"],
                                           "timings": result["timings"]}))}
     buf = io.BytesIO()
@@ -209,21 +216,76 @@ def save_cell(path: Path, result: dict, fingerprint: dict) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
+def _cell_part(fingerprint: dict) -> dict:
+    """The part of a fingerprint that defines the patches, with portable sequence paths."""
+    fp = json.loads(json.dumps({k: fingerprint.get(k) for k in CELL_KEYS}))
+    if isinstance(fp.get("sequences"), dict):
+        fp["sequences"] = {k: ec.portable_path(v) for k, v in fp["sequences"].items()}
+    return fp
+
+
+def _legacy_sources(fingerprint: dict, methods: list[str]) -> dict[str, str]:
+    """Sources of a cell file written before sources were stored (model methods named by the
+    model file's path and mtime): the model's digest if that file is unchanged since."""
+    model = fingerprint.get("model")
+    src = None
+    if model and Path(model).exists() and Path(model).stat().st_mtime == fingerprint.get(
+            "model_mtime"):
+        src = f"model {ec.file_digest(model)}"
+    out = {}
+    for m in methods:
+        if m == MODEL:
+            out[m] = src or "unknown model"
+        elif m == WRONG:
+            out[m] = f"{src} wrong material" if src else "unknown model"
+        else:
+            out[m] = m
+    return out
+
+
 def load_cell(path: Path, fingerprint: dict) -> dict | None:
-    """A stored cell if it exists and was made with the same settings, else None."""
+    """A stored cell if it exists and its patches are this fingerprint's, else None.
+
+    The result also holds "sources" (name -> source of its losses) and "legacy" (True for a
+    file written before sources were stored)."""
     if not path.exists():
         return None
     try:
         with np.load(path, allow_pickle=False) as z:
             meta = json.loads(str(z["meta"]))
-            if meta["fingerprint"] != json.loads(json.dumps(fingerprint)):
+            if _cell_part(meta["fingerprint"]) != _cell_part(fingerprint):
                 return None
+            names = z["methods"].tolist()
+            legacy = "sources" not in meta
+            sources = (_legacy_sources(meta["fingerprint"], names) if legacy
+                       else meta["sources"])
             return {"frame": z["frame"], "origin": z["origin"], "coverage": z["coverage"],
                     "loss_input": z["loss_input"],
-                    "loss": dict(zip(z["methods"].tolist(), z["losses"], strict=True)),
-                    "n_candidates": meta["n_candidates"], "timings": meta["timings"]}
+                    "loss": dict(zip(names, z["losses"], strict=True)),
+                    "n_candidates": meta["n_candidates"], "timings": meta["timings"],
+                    "sources": sources, "legacy": legacy}
     except (OSError, KeyError, ValueError):
         return None
+
+
+def merge_cell(cached: dict, new: dict, order: list[str]) -> dict:
+    """A stored cell plus newly scored methods on the same patches (`new` from
+    `evaluate_cell` with only those methods); methods in `order`, then any others stored.
+
+    Raises:
+      ValueError: the patches or the input's losses differ (the sequences changed).
+    """
+    if (not np.array_equal(cached["frame"], new["frame"])
+            or not np.array_equal(cached["origin"], new["origin"])
+            or not np.allclose(cached["loss_input"], new["loss_input"], rtol=1e-4)):
+        raise ValueError("stored cell and rescored methods are not on the same patches")
+    loss = {**cached["loss"], **new["loss"]}
+    loss = {k: loss[k] for k in [*order, *[k for k in loss if k not in order]]}
+    t_old, t_new = cached["timings"], new["timings"]
+    timings = {**t_old, "methods_s": {**t_old.get("methods_s", {}), **t_new["methods_s"]},
+               "score_s": t_old.get("score_s", 0.0) + t_new["score_s"],
+               "vgg_passes": t_old.get("vgg_passes", 0) + t_new["vgg_passes"]}
+    return {**cached, "loss": loss, "timings": timings}
 
 
 # --------------------------------------------------------------------------------------------
@@ -291,24 +353,44 @@ def table_markdown(results: dict) -> str:
 
 def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params, sampling: Sampling,
         out: Path, fingerprint_of: Callable[[ec.Cell], dict], fresh: bool = False,
-        log: Callable[[str], None] = print) -> dict[str, dict]:
+        log: Callable[[str], None] = print, sources: dict[str, str] | None = None
+        ) -> dict[str, dict]:
     """Evaluate (or reload from `<out>/cells/`) every cell, printing progress and an ETA.
 
+    A stored cell is reused method by method: a method whose stored source equals
+    `sources[name]` (default: the name) is not rescored; the others are scored on the same
+    patches and added to the file (2 VGG passes per patch for the input and target Grams,
+    plus one per new method).
+
     Returns:
-      cell key -> `evaluate_cell` result (timings also hold "cell_s", the cell's wall time).
+      cell key -> `evaluate_cell` result restricted to `methods` (timings also hold
+      "cell_s", the cell's wall time).
     """
+    sources = {k: k for k in methods} if sources is None else sources
     n_frames = len(sampling.frame_indices)
     cached = {c.key: None if fresh else load_cell(_cell_path(out, c), fingerprint_of(c))
               for c in cells}
-    total = n_frames * sum(v is None for v in cached.values())
+
+    def missing(c):
+        got = cached[c.key]
+        if got is None:
+            return list(methods)
+        return [m for m in methods if m not in got["loss"] or got["sources"].get(m) != sources[m]]
+
+    todo = {c.key: missing(c) for c in cells}
+    total = n_frames * sum(bool(v) for v in todo.values())
     done = [0]
     t_start = time.perf_counter()
     results = {}
     for i, cell in enumerate(cells):
         tag = f"[{i + 1}/{len(cells)}] {cell.key}"
-        if cached[cell.key] is not None:
-            log(f"{tag}: reusing {_cell_path(out, cell)}")
-            results[cell.key] = cached[cell.key]
+        path = _cell_path(out, cell)
+        old = cached[cell.key]
+        if not todo[cell.key]:
+            log(f"{tag}: reusing {path}")
+            if old["legacy"]:  # upgrade the file in place (sources stored from now on)
+                save_cell(path, old, fingerprint_of(cell), old["sources"])
+            results[cell.key] = {**old, "loss": {k: old["loss"][k] for k in methods}}
             continue
         fine = ec.load_first_frames(sequences[cell.key]["fine"], sampling.frames)
         coarse = ec.load_first_frames(sequences[cell.key]["coarse"], sampling.frames)
@@ -321,13 +403,28 @@ def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params, sampli
                 f"{ec.eta_text(done[0], total, elapsed)}")
 
         t0 = time.perf_counter()
-        res = evaluate_cell(fine, coarse, cell.material, methods, vgg_params, sampling,
-                            cell.patch_seed, progress)
+        names = todo[cell.key]
+        if old is not None:
+            log(f"{tag}: scoring {', '.join(names)} on the stored patches")
+        res = evaluate_cell(fine, coarse, cell.material, {k: methods[k] for k in names},
+                            vgg_params, sampling, cell.patch_seed, progress)
         res["timings"]["cell_s"] = time.perf_counter() - t0
-        save_cell(_cell_path(out, cell), res, fingerprint_of(cell))
-        results[cell.key] = res
+        if old is not None:
+            try:
+                res = merge_cell(old, res, list(methods))
+                res["timings"]["cell_s"] = old["timings"].get("cell_s", 0.0) + \
+                    res["timings"]["cell_s"]
+            except ValueError:
+                log(f"{tag}: the stored patches differ; rescoring every method")
+                res = evaluate_cell(fine, coarse, cell.material, methods, vgg_params,
+                                    sampling, cell.patch_seed)
+                res["timings"]["cell_s"] = time.perf_counter() - t0
+                old = None
+        keep = {} if old is None else old["sources"]
+        save_cell(path, res, fingerprint_of(cell), {**keep, **sources})
+        results[cell.key] = {**res, "loss": {k: res["loss"][k] for k in methods}}
         sig = {k: round(float(np.mean(s["improvement_signed"][s["valid"]])), 1)
-               for k, s in cell_scores(res).items() if s["valid"].any()}
+               for k, s in cell_scores(results[cell.key]).items() if s["valid"].any()}
         log(f"{tag}: signed means {sig}")
     return results
 
@@ -353,6 +450,9 @@ def main(argv=None) -> int:
     ap.add_argument("--fresh", action="store_true", help="ignore stored cells and rescore")
     ap.add_argument("--no-wrong-material", action="store_true",
                     help="skip the wrong-material ablation (the model told the other material)")
+    ap.add_argument("--extra", action="append", default=[], metavar="NAME=PATH",
+                    help="also score this enhancer file as method NAME (repeatable; e.g. "
+                         "patchgan=experiments/results/patchgan/patchgan.npz)")
     args = ap.parse_args(argv)
     if args.frames < 1 or args.frame_stride < 1 or args.patches_per_frame < 1:
         ap.error("--frames, --frame-stride and --patches-per-frame must be >= 1")
@@ -383,24 +483,31 @@ def main(argv=None) -> int:
     methods = ec.baseline_methods({o: u[:2] for o, u in unsharp.items()})
     net_timings: dict = {}
     methods[MODEL] = ec.enhancer_method(enh, batch_size=sampling.score_batch, timings=net_timings)
+    model_src = f"model {ec.file_digest(args.model)}"
+    sources = {k: k for k in methods} | {MODEL: model_src}
     if not args.no_wrong_material:
         # Paper Fig. 10: the right patches, the other table material's CIN parameters.
         methods[WRONG] = ec.enhancer_method(enh, batch_size=sampling.score_batch,
                                             material_of=ec.wrong_material)
+        sources[WRONG] = f"{model_src} wrong material"
+    try:
+        extra, extra_src = ec.model_methods(args.extra, sampling.score_batch)
+    except (ValueError, enhancer_lib.EnhancerError) as err:
+        ap.error(f"--extra: {err}")
+    methods.update(extra)
+    sources.update(extra_src)
     vgg_params = vgg.load_vgg19()
-    fingerprint = {"model": str(Path(args.model).resolve()),
-                   "model_mtime": Path(args.model).stat().st_mtime,
-                   "sampling": dataclasses.asdict(sampling), "methods": list(methods)}
+    fingerprint = {"sampling": dataclasses.asdict(sampling)}
     n_patches_max = len(cells) * len(sampling.frame_indices) * sampling.patches_per_frame
     print(f"{len(cells)} cells x {len(sampling.frame_indices)} frames x "
           f"<= {sampling.patches_per_frame} patches = <= {n_patches_max} patches, "
           f"{len(methods)} methods", flush=True)
     def fingerprint_of(cell):
-        return dict(fingerprint, sequences={r: str(sequences[cell.key][r])
+        return dict(fingerprint, sequences={r: ec.portable_path(sequences[cell.key][r])
                                             for r in ("fine", "coarse")})
 
     results_by_cell = run(cells, sequences, methods, vgg_params, sampling, out, fingerprint_of,
-                          args.fresh, log=lambda m: print(m, flush=True))
+                          args.fresh, log=lambda m: print(m, flush=True), sources=sources)
     # 3. Summaries.
     cells_out, kinds = {}, {k: [] for k in SUMMARY_KINDS}
     for cell in cells:
@@ -435,7 +542,7 @@ def main(argv=None) -> int:
     results = {
         "model": str(args.model), "model_config": enh.config.to_json(),
         "model_meta": {k: v for k, v in enh.meta.items() if not isinstance(v, dict | list)},
-        "methods": list(methods),
+        "methods": list(methods), "method_sources": sources,
         "unsharp": {f"order {o}": {"sigma": u[0], "amount": u[1], "source": u[2]}
                     for o, u in unsharp.items()},
         "score": "evaluation.score_patches equivalent on " + ", ".join(evaluation.EVAL_LAYERS),

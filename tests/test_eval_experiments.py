@@ -232,6 +232,20 @@ def test_model_method_outputs_unit_normals_inside_the_mask_only(model):
     assert timings["network_patches"] == 3 and timings["compile_s"] > 0
 
 
+def test_merge_cell_adds_methods_on_the_same_patches_only():
+    base = {"frame": np.array([0, 0]), "origin": np.array([[0, 0], [4, 4]]),
+            "loss_input": np.array([1.0, 2.0]), "loss": {"a": np.array([0.5, 0.5])},
+            "timings": {"methods_s": {"a": 1.0}, "score_s": 2.0, "vgg_passes": 3}}
+    new = {**base, "loss": {"b": np.array([0.1, 0.2])},
+           "timings": {"methods_s": {"b": 0.5}, "score_s": 1.0, "vgg_passes": 2}}
+    got = table1.merge_cell(base, new, ["b", "a"])
+    assert list(got["loss"]) == ["b", "a"] and got["timings"]["vgg_passes"] == 5
+    with pytest.raises(ValueError):
+        table1.merge_cell(base, {**new, "loss_input": np.array([1.0, 2.5])}, ["a", "b"])
+    with pytest.raises(ValueError):
+        table1.merge_cell(base, {**new, "origin": np.array([[0, 0], [4, 8]])}, ["a", "b"])
+
+
 def test_wrong_material_swaps_the_table_materials_and_the_method_tells_the_model_so(model):
     silk, denim = material_index("silk_charmeuse"), material_index("denim_light")
     assert ec.wrong_material(silk) == denim and ec.wrong_material(denim) == silk
@@ -308,6 +322,31 @@ def test_table1_main_writes_results_and_resumes_from_stored_cells(tmp_path, monk
     assert json.loads((out / "results.json").read_text())["all"] == res["all"]
     with pytest.raises(pytest.fail.Exception):
         table1.main(argv + ["--seed", "3"])
+    # An extra model is scored alone on the stored patches; the other methods are reused.
+    monkeypatch.undo()
+    monkeypatch.setattr(table1.vgg, "load_vgg19", lambda *a, **k: tiny_vgg)
+    calls = []
+    real = table1.evaluate_cell
+
+    def spy(fine, coarse, material, methods, *a, **k):
+        calls.append(list(methods))
+        return real(fine, coarse, material, methods, *a, **k)
+
+    monkeypatch.setattr(table1, "evaluate_cell", spy)
+    other = tmp_path / "other.npz"
+    params = jax.tree.map(lambda x: x * 0.5, model.params)
+    enhancer.save_enhancer(other, params, model.config)
+    assert table1.main(argv + ["--extra", f"half={other}"]) == 0
+    assert calls == [["half"], ["half"]]
+    res2 = json.loads((out / "results.json").read_text())
+    assert res2["methods"][-1] == "half" and res2["method_sources"]["half"].startswith("model ")
+    for name in res["methods"]:
+        assert res2["all"][name] == res["all"][name]
+    # ... and a later run without it still reuses the stored cells.
+    calls.clear()
+    assert table1.main(argv) == 0 and calls == []
+    with pytest.raises(SystemExit):
+        table1.main(argv + ["--extra", "no-path"])
 
 
 def test_scene_for_reuses_existing_scenes_and_derives_new_ones():

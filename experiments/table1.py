@@ -216,15 +216,15 @@ def save_cell(path: Path, result: dict, fingerprint: dict, sources: dict[str, st
     atomic_write_bytes(path, buf.getvalue())
 
 
-def _cell_part(fingerprint: dict) -> dict:
+def cell_part(fingerprint: dict, keys: tuple[str, ...] = CELL_KEYS) -> dict:
     """The part of a fingerprint that defines the patches, with portable sequence paths."""
-    fp = json.loads(json.dumps({k: fingerprint.get(k) for k in CELL_KEYS}))
+    fp = json.loads(json.dumps({k: fingerprint.get(k) for k in keys}))
     if isinstance(fp.get("sequences"), dict):
         fp["sequences"] = {k: ec.portable_path(v) for k, v in fp["sequences"].items()}
     return fp
 
 
-def _legacy_sources(fingerprint: dict, methods: list[str]) -> dict[str, str]:
+def legacy_sources(fingerprint: dict, methods: list[str]) -> dict[str, str]:
     """Sources of a cell file written before sources were stored (model methods named by the
     model file's path and mtime): the model's digest if that file is unchanged since."""
     model = fingerprint.get("model")
@@ -253,11 +253,11 @@ def load_cell(path: Path, fingerprint: dict) -> dict | None:
     try:
         with np.load(path, allow_pickle=False) as z:
             meta = json.loads(str(z["meta"]))
-            if _cell_part(meta["fingerprint"]) != _cell_part(fingerprint):
+            if cell_part(meta["fingerprint"]) != cell_part(fingerprint):
                 return None
             names = z["methods"].tolist()
             legacy = "sources" not in meta
-            sources = (_legacy_sources(meta["fingerprint"], names) if legacy
+            sources = (legacy_sources(meta["fingerprint"], names) if legacy
                        else meta["sources"])
             return {"frame": z["frame"], "origin": z["origin"], "coverage": z["coverage"],
                     "loss_input": z["loss_input"],

@@ -436,15 +436,21 @@ def _cell_path(out: Path, cell: ec.Cell) -> Path:
     return out / "cells" / f"{cell.scene.name}__{cell.material}.npz"
 
 
-def save_cell(path: Path, record: dict, fingerprint: dict) -> None:
-    """Store one cell record (arrays + JSON numbers and fingerprint), atomically."""
+# What defines a cell's sets a and c and their features; each method's numbers carry a source.
+CELL_KEYS = ("sampling", "sequences", "metric")
+
+
+def save_cell(path: Path, record: dict, fingerprint: dict, sources: dict[str, str]) -> None:
+    """Store one cell record (arrays + JSON numbers, fingerprint and every method's source),
+    atomically."""
     names = list(record["methods"])
     numbers = {k: {s: record["methods"][k][s] for s in SPACES} for k in names}
     arrays = {k: record[k] for k in ("frame", "origin", "frame_c", "origin_c")}
     arrays["methods"] = np.array(names)
     arrays["embeddings"] = np.stack([record["methods"][k]["embedding"] for k in names])
     arrays["meta"] = np.str_(json.dumps(  # NaN stays NaN (json reads it back)
-        {"fingerprint": fingerprint, "numbers": numbers, "scales": record["scales"],
+        {"fingerprint": fingerprint, "sources": {k: sources[k] for k in names},
+         "numbers": numbers, "scales": record["scales"],
          "n_candidates": record["n_candidates"], "timings": record["timings"]}))
     buf = io.BytesIO()
     np.savez(buf, **arrays)
@@ -452,23 +458,49 @@ def save_cell(path: Path, record: dict, fingerprint: dict) -> None:
 
 
 def load_cell(path: Path, fingerprint: dict) -> dict | None:
-    """A stored cell record if it exists and was made with the same settings, else None."""
+    """A stored cell record if it exists and its sets a and c are this fingerprint's, else None
+    (with "sources" and "legacy" as `table1.load_cell`)."""
     if not path.exists():
         return None
     try:
         with np.load(path, allow_pickle=False) as z:
             meta = json.loads(str(z["meta"]))
-            if meta["fingerprint"] != json.loads(json.dumps(fingerprint)):
+            if (table1.cell_part(meta["fingerprint"], CELL_KEYS)
+                    != table1.cell_part(fingerprint, CELL_KEYS)):
                 return None
+            names = z["methods"].tolist()
+            legacy = "sources" not in meta
             methods = {name: {**meta["numbers"][name], "embedding": emb}
-                       for name, emb in zip(z["methods"].tolist(), z["embeddings"],
-                                            strict=True)}
+                       for name, emb in zip(names, z["embeddings"], strict=True)}
             return {"frame": z["frame"], "origin": z["origin"], "frame_c": z["frame_c"],
                     "origin_c": z["origin_c"], "scales": meta["scales"],
                     "n_candidates": meta["n_candidates"], "timings": meta["timings"],
-                    "methods": methods}
+                    "methods": methods, "legacy": legacy,
+                    "sources": (table1.legacy_sources(meta["fingerprint"], names) if legacy
+                                else meta["sources"])}
     except (OSError, KeyError, ValueError):
         return None
+
+
+def merge_records(old: dict, new: dict, order: list[str]) -> dict:
+    """A stored cell record plus newly computed methods on the same sets a and c.
+
+    Raises:
+      ValueError: the sets or their layer scales differ (the sequences changed).
+    """
+    same = all(np.array_equal(old[k], new[k]) for k in ("frame", "origin", "frame_c",
+                                                         "origin_c"))
+    scales_ok = set(old["scales"]) == set(new["scales"]) and all(
+        np.isclose(old["scales"][k], new["scales"][k], rtol=1e-4) for k in old["scales"])
+    if not (same and scales_ok):
+        raise ValueError("stored cell and new methods are not on the same sets a and c")
+    methods = {**old["methods"], **new["methods"]}
+    methods = {k: methods[k] for k in [*order, *[k for k in methods if k not in order]]}
+    t_old, t_new = old["timings"], new["timings"]
+    timings = {**t_old, "methods_s": {**t_old.get("methods_s", {}), **t_new["methods_s"]}}
+    for k in ("features_s", "distances_s", "compare_s", "vgg_passes"):
+        timings[k] = t_old.get(k, 0) + t_new.get(k, 0)
+    return {**old, "methods": methods, "timings": timings}
 
 
 # --------------------------------------------------------------------------------------------
@@ -585,24 +617,42 @@ def plot_embeddings(path: Path, cells: list[ec.Cell], records: dict[str, dict],
 
 def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params,
         sampling: table1.Sampling, out: Path, fingerprint_of: Callable[[ec.Cell], dict],
-        fresh: bool = False, log: Callable[[str], None] = print) -> dict[str, dict]:
+        fresh: bool = False, log: Callable[[str], None] = print,
+        sources: dict[str, str] | None = None) -> dict[str, dict]:
     """Evaluate (or reload from `<out>/cells/`) every cell, printing progress and an ETA.
 
+    As `table1.run`, stored cells are reused method by method (`sources`); a new method costs
+    the features of a and c again (2 VGG passes per location) plus its own b.
+
     Returns:
-      cell key -> `cell_record` (timings also hold "cell_s", the cell's wall time).
+      cell key -> `cell_record` restricted to `methods` (timings also hold "cell_s").
     """
-    per_cell = len(sampling.frame_indices) * sampling.patches_per_frame * (2 + len(methods))
+    sources = {k: k for k in methods} if sources is None else sources
     cached = {c.key: None if fresh else load_cell(_cell_path(out, c), fingerprint_of(c))
               for c in cells}
-    total = per_cell * sum(v is None for v in cached.values())
+
+    def missing(c):
+        got = cached[c.key]
+        if got is None:
+            return list(methods)
+        return [m for m in methods
+                if m not in got["methods"] or got["sources"].get(m) != sources[m]]
+
+    todo = {c.key: missing(c) for c in cells}
+    per_loc = len(sampling.frame_indices) * sampling.patches_per_frame
+    total = sum(per_loc * (2 + len(v)) for v in todo.values() if v)
     done = [0]
     t_start = time.perf_counter()
     records = {}
     for i, cell in enumerate(cells):
         tag = f"[{i + 1}/{len(cells)}] {cell.key}"
-        if cached[cell.key] is not None:
-            log(f"{tag}: reusing {_cell_path(out, cell)}")
-            records[cell.key] = cached[cell.key]
+        path = _cell_path(out, cell)
+        old = cached[cell.key]
+        if not todo[cell.key]:
+            log(f"{tag}: reusing {path}")
+            if old["legacy"]:  # upgrade the file in place (sources stored from now on)
+                save_cell(path, old, fingerprint_of(cell), old["sources"])
+            records[cell.key] = {**old, "methods": {k: old["methods"][k] for k in methods}}
             continue
         fine = ec.load_first_frames(sequences[cell.key]["fine"], sampling.frames)
         coarse = ec.load_first_frames(sequences[cell.key]["coarse"], sampling.frames)
@@ -614,13 +664,29 @@ def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params,
                 f"{ec.eta_text(done[0], total, elapsed)}")
 
         t0 = time.perf_counter()
-        rec = cell_record(evaluate_cell(fine, coarse, cell.material, methods, vgg_params,
-                                        sampling, cell.patch_seed, progress))
+        names = todo[cell.key]
+        if old is not None:
+            log(f"{tag}: computing {', '.join(names)} on the stored sets")
+        rec = cell_record(evaluate_cell(fine, coarse, cell.material,
+                                        {k: methods[k] for k in names}, vgg_params, sampling,
+                                        cell.patch_seed, progress))
         rec["timings"]["cell_s"] = time.perf_counter() - t0
-        save_cell(_cell_path(out, cell), rec, fingerprint_of(cell))
-        records[cell.key] = rec
+        if old is not None:
+            try:
+                rec = merge_records(old, rec, list(methods))
+                rec["timings"]["cell_s"] = (old["timings"].get("cell_s", 0.0)
+                                            + time.perf_counter() - t0)
+            except ValueError:
+                log(f"{tag}: the stored sets differ; recomputing every method")
+                rec = cell_record(evaluate_cell(fine, coarse, cell.material, methods,
+                                                vgg_params, sampling, cell.patch_seed))
+                rec["timings"]["cell_s"] = time.perf_counter() - t0
+                old = None
+        keep = {} if old is None else old["sources"]
+        save_cell(path, rec, fingerprint_of(cell), {**keep, **sources})
+        records[cell.key] = {**rec, "methods": {k: rec["methods"][k] for k in methods}}
         sig = {k: (round(v["embedded"]["dr_signed"], 1), round(v["full"]["dr_signed"], 1))
-               for k, v in rec["methods"].items()}
+               for k, v in records[cell.key]["methods"].items()}
         log(f"{tag}: signed DR (embedded, full) {sig}")
     return records
 
@@ -645,6 +711,9 @@ def main(argv=None) -> int:
                     help="folder for the simulations this script makes (Table 1's)")
     ap.add_argument("--out", default=str(ec.RESULTS / "table2"))
     ap.add_argument("--fresh", action="store_true", help="ignore stored cells and recompute")
+    ap.add_argument("--extra", action="append", default=[], metavar="NAME=PATH",
+                    help="also compare this enhancer file's outputs as method NAME "
+                         "(repeatable; e.g. patchgan=experiments/results/patchgan/patchgan.npz)")
     args = ap.parse_args(argv)
     if args.frames < 1 or args.patches_per_frame < 1:
         ap.error("--frames and --patches-per-frame must be >= 1")
@@ -681,22 +750,26 @@ def main(argv=None) -> int:
     methods = ec.baseline_methods({o: u[:2] for o, u in unsharp.items()})
     net_timings: dict = {}
     methods[MODEL] = ec.enhancer_method(enh, batch_size=sampling.score_batch, timings=net_timings)
+    sources = {k: k for k in methods} | {MODEL: f"model {ec.file_digest(args.model)}"}
+    try:
+        extra, extra_src = ec.model_methods(args.extra, sampling.score_batch)
+    except (ValueError, enhancer_lib.EnhancerError) as err:
+        ap.error(f"--extra: {err}")
+    methods.update(extra)
+    sources.update(extra_src)
     vgg_params = vgg.load_vgg19()
-    fingerprint = {"model": str(Path(args.model).resolve()),
-                   "model_mtime": Path(args.model).stat().st_mtime,
-                   "sampling": dataclasses.asdict(sampling), "methods": list(methods),
-                   "metric": METRIC}
+    fingerprint = {"sampling": dataclasses.asdict(sampling), "metric": METRIC}
     n_max = len(cells) * len(sampling.frame_indices) * sampling.patches_per_frame
     print(f"{len(cells)} cells x {len(sampling.frame_indices)} frames x "
           f"<= {sampling.patches_per_frame} patches = <= {n_max} patches per set (a, c, and b "
           f"for each of {len(methods)} methods)", flush=True)
 
     def fingerprint_of(cell):
-        return dict(fingerprint, sequences={r: str(sequences[cell.key][r])
+        return dict(fingerprint, sequences={r: ec.portable_path(sequences[cell.key][r])
                                             for r in ("fine", "coarse")})
 
     records = run(cells, sequences, methods, vgg_params, sampling, out, fingerprint_of,
-                  args.fresh, log=lambda m: print(m, flush=True))
+                  args.fresh, log=lambda m: print(m, flush=True), sources=sources)
 
     # 3. Summaries.
     cells_out, groups = {}, {g: [] for g in GROUPS}
@@ -737,7 +810,7 @@ def main(argv=None) -> int:
     results = {
         "model": str(args.model), "model_config": enh.config.to_json(),
         "model_meta": {k: v for k, v in enh.meta.items() if not isinstance(v, dict | list)},
-        "methods": list(methods),
+        "methods": list(methods), "method_sources": sources,
         "unsharp": {f"order {o}": {"sigma": u[0], "amount": u[1], "source": u[2]}
                     for o, u in unsharp.items()},
         "sets": {"a": "coarse-map patches at Table 1's frames and origins",

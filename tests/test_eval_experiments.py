@@ -232,6 +232,21 @@ def test_model_method_outputs_unit_normals_inside_the_mask_only(model):
     assert timings["network_patches"] == 3 and timings["compile_s"] > 0
 
 
+def test_legacy_cell_sources_trust_an_unchanged_model_file_only(tmp_path):
+    f = tmp_path / "m.npz"
+    f.write_bytes(b"weights")
+    fp = {"model": str(f), "model_mtime": f.stat().st_mtime}
+    src = table1.legacy_sources(fp, ["identity", table1.MODEL, table1.WRONG])
+    digest = ec.file_digest(f)
+    assert digest.startswith("sha256:") and len(digest) == 7 + 16
+    assert src == {"identity": "identity", table1.MODEL: f"model {digest}",
+                   table1.WRONG: f"model {digest} wrong material"}
+    stale = table1.legacy_sources({**fp, "model_mtime": 1.0}, [table1.MODEL])
+    assert stale[table1.MODEL] == "unknown model"
+    assert ec.portable_path(ec.ROOT / "data" / "x.npz") == "data/x.npz"
+    assert ec.portable_path(tmp_path / "y") == str((tmp_path / "y").resolve())
+
+
 def test_merge_cell_adds_methods_on_the_same_patches_only():
     base = {"frame": np.array([0, 0]), "origin": np.array([[0, 0], [4, 4]]),
             "loss_input": np.array([1.0, 2.0]), "loss": {"a": np.array([0.5, 0.5])},
@@ -682,6 +697,43 @@ def test_table2_main_uses_table1_patches_writes_results_and_resumes(tmp_path, mo
     assert json.loads((out / "results.json").read_text())["all"] == res["all"]
     with pytest.raises(pytest.fail.Exception):
         table2.main(argv + ["--seed", "3"])
+    # An extra model is computed alone on the stored sets; the others keep their numbers.
+    monkeypatch.undo()
+    monkeypatch.setattr(table2.vgg, "load_vgg19", lambda *a, **k: tiny_vgg)
+    calls = []
+    real = table2.evaluate_cell
+
+    def spy(fine, coarse, material, methods, *a, **k):
+        calls.append(list(methods))
+        return real(fine, coarse, material, methods, *a, **k)
+
+    monkeypatch.setattr(table2, "evaluate_cell", spy)
+    other = tmp_path / "other.npz"
+    enhancer.save_enhancer(other, jax.tree.map(lambda x: x * 0.5, model.params), model.config)
+    assert table2.main(argv + ["--extra", f"half={other}"]) == 0
+    assert calls == [["half"]]
+    res2 = json.loads((out / "results.json").read_text())
+    assert res2["methods"][-1] == "half"
+    half = res2["cells"]["dress_dance/silk_charmeuse"]["methods"]["half"]
+    assert half["full"]["c1"] == pytest.approx(ours["full"]["c1"], rel=1e-5)
+    for name in res["methods"]:
+        assert res2["all"][name] == res["all"][name]
+    calls.clear()
+    assert table2.main(argv) == 0 and calls == []
+
+
+def test_merge_records_checks_the_sets_and_orders_the_methods():
+    rec = {"frame": np.array([0]), "origin": np.array([[0, 0]]), "frame_c": np.array([1]),
+           "origin_c": np.array([[4, 4]]), "scales": {"relu1_2": 2.0},
+           "methods": {"a": {"x": 1}}, "timings": {"methods_s": {"a": 1.0}, "vgg_passes": 2}}
+    new = {**rec, "methods": {"b": {"x": 2}},
+           "timings": {"methods_s": {"b": 0.5}, "vgg_passes": 3}}
+    got = table2.merge_records(rec, new, ["b", "a"])
+    assert list(got["methods"]) == ["b", "a"] and got["timings"]["vgg_passes"] == 5
+    with pytest.raises(ValueError):
+        table2.merge_records(rec, {**new, "scales": {"relu1_2": 2.1}}, ["a", "b"])
+    with pytest.raises(ValueError):
+        table2.merge_records(rec, {**new, "frame_c": np.array([3])}, ["a", "b"])
 
 
 # --------------------------------------------------------------------------------------------

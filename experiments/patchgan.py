@@ -80,13 +80,14 @@ def load_state(run: Path, template: patchgan.GANState, config: patchgan.GANConfi
 
 def train(config: patchgan.GANConfig, data_root: Path, run: Path, minutes: float,
           max_steps: int | None = None, checkpoint_every: int = 200, fresh: bool = False,
-          log=print) -> dict:
-    """Train (or resume) until `minutes` of this run's wall time or `max_steps` total steps.
+          log=print, train_scenes: tuple[str, ...] | None = None) -> dict:
+    """Train (or resume) until `minutes` of this run's wall time or `max_steps` total steps
+    (on `train_scenes` only, if given).
 
     Returns {"state", "steps", "train_s" (all runs), "this_run_s"}.
     """
     run.mkdir(parents=True, exist_ok=True)
-    train_set = data.PatchDataset(data_root, "train")
+    train_set = data.PatchDataset(data_root, "train", scenes=train_scenes)
     iterator = data.BatchIterator(train_set, config.batch_size, seed=config.seed)
     state = patchgan.create_gan_state(config, jax.random.key(config.seed, impl="rbg"),
                                       train_set.patch_size)
@@ -222,22 +223,28 @@ def main(argv=None) -> int:
     ap.add_argument("--width", type=int, default=patchgan.GANConfig.width,
                     help="generator width (default: the shipped model's)")
     ap.add_argument("--disc-width", type=int, default=patchgan.GANConfig.disc_width)
+    ap.add_argument("--train-scenes", default=None,
+                    help="train on these scenes only (comma-separated; the paper's Fig. 9 "
+                         "trained both networks on the long skirt: skirt_dance)")
     ap.add_argument("--fresh", action="store_true")
     args = ap.parse_args(argv)
+    scenes = tuple(args.train_scenes.split(",")) if args.train_scenes else None
     out, run = Path(args.out), Path(args.run)
     out.mkdir(parents=True, exist_ok=True)
     config = patchgan.GANConfig(l1_weight=args.l1_weight, width=args.width,
                                 disc_width=args.disc_width)
     got = train(config, Path(args.data), run, args.minutes, args.steps,
-                args.checkpoint_every, args.fresh, log=lambda s: print(s, flush=True))
-    ds = data.PatchDataset(args.data, "train")
+                args.checkpoint_every, args.fresh, log=lambda s: print(s, flush=True),
+                train_scenes=scenes)
+    ds = data.PatchDataset(args.data, "train", scenes=scenes)
     entry = ds.entries[0]
     ecfg = config.enhancer_config(ds.patch_size, entry["texel_size"],
                                   entry["config"]["coarse_pd"])
     gan_path = enhancer.save_enhancer(out / "patchgan.npz", got["state"].g_params, ecfg, meta={
         "baseline": "DeepWrinkles-style conditional PatchGAN (wrinkle_jax.nn.patchgan)",
         "gan_config": config.to_json(), "steps": got["steps"],
-        "train_minutes": round(got["train_s"] / 60, 2), "data": str(args.data)})
+        "train_minutes": round(got["train_s"] / 60, 2), "data": str(args.data),
+        "train_scenes": sorted({e["scene"] for e in ds.entries})})
     gan = enhancer.load_enhancer(gan_path)
     model = enhancer.load_enhancer(args.model)
     plot_curves(run / "metrics.jsonl", out / "loss_curve.png")
@@ -258,6 +265,7 @@ def main(argv=None) -> int:
         print(split, {k: round(v[split]["all"]["signed_mean"], 1) for k, v in scores.items()},
               flush=True)
     res = {"config": config.to_json(), "data": str(args.data), "steps": got["steps"],
+           "train_scenes": sorted({e["scene"] for e in ds.entries}),
            "train_s": got["train_s"], "minutes_budget": args.minutes,
            "model": str(args.model), "model_meta": {k: v for k, v in model.meta.items()
                                                     if not isinstance(v, dict | list)},

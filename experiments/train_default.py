@@ -11,6 +11,13 @@ wall-clock budget `--minutes` is used up. `--warm-start` starts a fresh run from
 weights (`wrinkle_jax/assets/enhancer.npz`) -- for a later session on a new machine. At the end
 (or with `--export-only`) the last checkpoint's parameters are written, float16, to
 `wrinkle_jax/assets/enhancer.npz` with the training facts in its metadata.
+
+Sheet-only ablation (paper Fig. 8), same recipe and budget, trained on the sheet scene only:
+
+    python -m experiments.train_default --train-scenes sheet_balls_wind \
+        --run outputs/sheet_only --out experiments/results/sheet_only/enhancer.npz --minutes 45
+    python -m experiments.model_card --model experiments/results/sheet_only/enhancer.npz \
+        --out experiments/results/sheet_only
 """
 
 from __future__ import annotations
@@ -43,12 +50,13 @@ def config_from_args(args) -> train.TrainConfig:
                              blur_order=args.blur_order)
 
 
-def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None) -> Path:
+def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None,
+           train_scenes: tuple[str, ...] | None = None) -> Path:
     cfg = train.TrainConfig.from_json(json.loads((run / "config.json").read_text()))
     manager = train._manager(run / "checkpoints", cfg)
     template = train.create_train_state(cfg, jax.random.key(0, impl="rbg"))
     state, _ = train.restore_checkpoint(manager, template, cfg)
-    ds = data.PatchDataset(data_root, "train")
+    ds = data.PatchDataset(data_root, "train", scenes=train_scenes)
     entry = ds.entries[0]
     econf = enhancer.EnhancerConfig(width=cfg.width, residual=cfg.residual,
                                     input_norm=cfg.input_norm, materials=MATERIALS,
@@ -65,6 +73,7 @@ def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None) -
     meta = {"train_config": cfg.to_json(), "steps": int(state.step),
             "train_step_seconds": round(train_s, 1), "wall_seconds_this_call": wall_s,
             "train_patches": len(ds), "train_sequences": [e["sequence"] for e in ds.entries],
+            "train_scenes": sorted({e["scene"] for e in ds.entries}),
             "last_eval": evals[-1] if evals else None,
             "exported": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())}
     return enhancer.save_enhancer(out, jax.device_get(state.params), econf, meta)
@@ -104,7 +113,11 @@ def main(argv=None) -> None:
     ap.add_argument("--minutes", type=float, default=40.0)
     ap.add_argument("--warm-start", action="store_true")
     ap.add_argument("--export-only", action="store_true")
+    ap.add_argument("--train-scenes", default=None,
+                    help="train on these scenes only (comma-separated; e.g. sheet_balls_wind "
+                         "for the sheet-only ablation, paper Fig. 8)")
     args = ap.parse_args(argv)
+    scenes = tuple(args.train_scenes.split(",")) if args.train_scenes else None
     run, data_root = Path(args.run), Path(args.data)
     t0 = time.time()
     if not args.export_only:
@@ -123,8 +136,9 @@ def main(argv=None) -> None:
             from experiments.per_layer_ratios import restore_params
             init = restore_params(Path(args.init_from))[1].params
         train.train(cfg, data_root, run, resume=True, vgg_params=vgg.load_vgg19(),
-                    progress=False, time_limit_s=60 * args.minutes, init_params=init)
-    path = export(run, Path(args.out), data_root, round(time.time() - t0, 1))
+                    progress=False, time_limit_s=60 * args.minutes, init_params=init,
+                    train_scenes=scenes)
+    path = export(run, Path(args.out), data_root, round(time.time() - t0, 1), scenes)
     size = path.stat().st_size
     print(json.dumps({"exported": str(path), "bytes": size,
                       "params": int(sum(np.size(x) for x in jax.tree.leaves(

@@ -64,6 +64,23 @@ def test_splits_by_garment_and_motion(built):
     assert info["sim_skirt_dance"] == ("flared_skirt", "dance")
 
 
+def test_scene_filter_keeps_only_those_scenes_patches(built):
+    root, entries = built
+    scene = {e["sequence"]: e["scene"] for e in entries}
+    full = data.PatchDataset(root, "train")
+    sub = data.PatchDataset(root, "train", scenes=[scene["sim_skirt_dance"]])
+    assert [e["sequence"] for e in sub.entries] == ["sim_skirt_dance"]
+    assert 0 < len(sub) < len(full)
+    # the same patches as in the full split, in the same order
+    j = [e["sequence"] for e in full.entries].index("sim_skirt_dance")
+    rows = np.flatnonzero(full.sequence_of == j)
+    np.testing.assert_array_equal(sub.get(np.arange(len(sub)))["target"],
+                                  full.get(rows)["target"])
+    assert len(data.PatchDataset(root, "heldout", scenes=[scene["sim_skirt_dance"]])) == 0
+    with pytest.raises(ValueError, match="no sequences of scene"):
+        data.PatchDataset(root, "train", scenes=["no_such_scene"])
+
+
 def test_patches_are_valid_pairs(built):
     root, _ = built
     ds = data.PatchDataset(root, "train")

@@ -852,5 +852,15 @@ def test_report_assembles_stored_results_and_names_what_is_missing(tmp_path, mon
                     "the PatchGAN baseline"):
         assert f"**Not run yet**: {missing}." in text
     assert "- table2: `python -m experiments.table2`" in text
-    assert "- patchgan: no script yet" in text
+    assert "- patchgan: `python -m experiments.patchgan`" in text
+    # The sheet-only ablation reads model-card-format results (here the committed card's).
+    for name in ("model_card", "sheet_only"):
+        (results / name).mkdir()
+        (results / name / "results.json").write_text(
+            (ec.RESULTS / "model_card" / "results.json").read_text())
+    assert report.main(["--results", str(results), "--out", str(out)]) == 0
+    text = out.read_text()
+    card = json.loads((ec.RESULTS / "model_card" / "results.json").read_text())
+    unseen = card["methods"]["model"]["heldout"]["by_kind"]["unseen garment"]["signed_mean"]
+    assert f"| sheet only | {unseen:+.1f} |" in text
     assert report.main(["--results", str(results), "--out", str(out), "--strict"]) == 1

@@ -181,11 +181,11 @@ def test_patchgan_script_trains_exports_and_scores(tmp_path, monkeypatch, tiny_p
     model_path = enhancer.save_enhancer(tmp_path / "model.npz", model.params, model.config)
     out = tmp_path / "out"
     argv = ["--data", str(tiny_patch_root), "--run", str(tmp_path / "run"), "--out", str(out),
-            "--model", str(model_path), "--width", "4", "--disc-width", "4", "--steps", "2",
-            "--n", "4", "--n-seen", "4"]
+            "--model", str(model_path), "--width", "4", "--disc-width", "4",
+            "--train-scenes", "sheet", "--steps", "2", "--n", "4", "--n-seen", "4"]
     assert script.main(argv) == 0
     res = json.loads((out / "results.json").read_text())
-    assert res["steps"] == 2
+    assert res["steps"] == 2 and res["train_scenes"] == ["sheet"]
     assert set(res["scores"]) >= {"identity", "model", "patchgan"}
     assert res["scores"]["identity"]["heldout"]["all"]["signed_mean"] == 0.0
     assert np.isfinite(res["summary"]["patchgan"]["training patches"])

@@ -29,7 +29,7 @@ import functools
 import io
 import json
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import jax
@@ -252,21 +252,30 @@ class PatchDataset:
 
     Attributes:
       root: data set folder. split: "train" or "heldout".
-      entries: index entries of the sequences in this split.
+      scenes: None (every scene) or the scene names kept (e.g. the sheet-only ablation).
+      entries: index entries of the sequences in this split (and scenes).
       materials: (N,) int32 material id of every patch.
       frames: (N,) int32 source frame of every patch.
       sequence_of: (N,) int32 index into `entries` of every patch's sequence.
     """
 
-    def __init__(self, root: str | os.PathLike, split: str = "train"):
+    def __init__(self, root: str | os.PathLike, split: str = "train",
+                 scenes: Sequence[str] | None = None):
         self.root = Path(root)
         self.split = split
+        self.scenes = None if scenes is None else tuple(scenes)
         index_dir = self.root / "index"
         if not index_dir.is_dir():
             raise FileNotFoundError(f"{self.root}: not a patch data set (no index/ folder)")
-        self.entries = [e for e in (json.loads(p.read_text())
-                                    for p in sorted(index_dir.glob("*.json")))
-                        if e["split"] == split]
+        entries = [json.loads(p.read_text()) for p in sorted(index_dir.glob("*.json"))]
+        if self.scenes is not None:
+            known = {e["scene"] for e in entries}
+            unknown = sorted(set(self.scenes) - known)
+            if unknown:
+                raise ValueError(f"{self.root}: no sequences of scene(s) {', '.join(unknown)} "
+                                 f"(it has {', '.join(sorted(known))})")
+        self.entries = [e for e in entries if e["split"] == split
+                        and (self.scenes is None or e["scene"] in self.scenes)]
         self._shards, shard_ids, rows, mats, frames, seqs = [], [], [], [], [], []
         for j, e in enumerate(self.entries):
             for s in e["shards"]:

@@ -354,7 +354,8 @@ def plot_curves(metrics_path: Path, out_png: Path) -> None:
 
 def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.PathLike,
           resume: bool = False, vgg_params=None, progress: bool = True,
-          time_limit_s: float | None = None, init_params=None) -> dict:
+          time_limit_s: float | None = None, init_params=None,
+          train_scenes: tuple[str, ...] | None = None) -> dict:
     """Train (or resume training) the enhancer; returns the last metrics.
 
     Writes `out_dir/checkpoints/<step>/`, `out_dir/metrics.jsonl` (one JSON object per logged
@@ -366,6 +367,8 @@ def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.P
         equal-wall-clock comparisons and session budgets; `--resume` continues later.
       init_params: warm-start parameters (a CINUNet pytree of this config's shapes) for a fresh
         run, e.g. the shipped model's; ignored when resuming from a checkpoint.
+      train_scenes: train on these scenes' patches only (e.g. the sheet-only ablation); the
+        held-out evaluation keeps every held-out scene.
     """
     from tqdm import tqdm
 
@@ -374,7 +377,7 @@ def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.P
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     vgg_params = vgg.load_vgg19() if vgg_params is None else vgg_params
-    train_set = PatchDataset(data_root, "train")
+    train_set = PatchDataset(data_root, "train", scenes=train_scenes)
     held_set = PatchDataset(data_root, "heldout")
     mesh = data_mesh()
     if config.batch_size % mesh.size:

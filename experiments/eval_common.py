@@ -467,20 +467,9 @@ def enhancer_method(enh: enhancer_lib.Enhancer, batch_size: int = 16,
     timings["compile_s"] = time.perf_counter() - t0
 
     def run(p: PatchSet) -> np.ndarray:
-        n = len(p.input)
-        outs = []
-        t0 = time.perf_counter()
-        for s in range(0, n, batch_size):
-            idx = np.resize(np.arange(s, min(s + batch_size, n)), batch_size)
-            mid = p.material_id if material_of is None else material_of(p.material_id)
-            o = apply(enh.params, jnp.asarray(p.input[idx]),
-                      jnp.full((batch_size,), mid, jnp.int32))
-            outs.append(np.asarray(o)[:min(batch_size, n - s)])
-        timings["network_s"] = timings.get("network_s", 0.0) + time.perf_counter() - t0
-        timings["network_patches"] = timings.get("network_patches", 0) + n
-        nrm = np.concatenate(outs) * 2.0 - 1.0
-        nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=-1, keepdims=True), 1e-8)
-        return ((nrm + 1.0) * 0.5 * p.mask).astype(np.float32)
+        mid = p.material_id if material_of is None else material_of(p.material_id)
+        return enhancer_lib.enhance_patches(apply, enh.params, p.input, mid, p.mask,
+                                            batch_size, timings)
 
     return run
 

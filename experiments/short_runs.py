@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax import data, evaluation, train
+from wrinkle_jax import data, enhancer, evaluation, train
 from wrinkle_jax.nn import vgg
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -70,18 +70,11 @@ def infer_ms_per_patch(config: train.TrainConfig, params, reps: int = 5, batch: 
 
 
 def enhance(config: train.TrainConfig, params, batch, size: int = 16) -> np.ndarray:
+    """A training run's unit-normal outputs on a batch of patches."""
     model = config.model()
     fn = jax.jit(lambda p, x, m: jnp.clip(model.apply({"params": p}, x, m), 0.0, 1.0))
-    outs = []
-    for s in range(0, len(batch["input"]), size):
-        idx = np.resize(np.arange(s, min(s + size, len(batch["input"]))), size)
-        o = fn(params, jnp.asarray(batch["input"][idx]), jnp.asarray(batch["material"][idx]))
-        outs.append(np.asarray(o)[:min(size, len(batch["input"]) - s)])
-    out = np.concatenate(outs) * batch["mask"]
-    # Unit normals inside the mask, as the pipeline renormalizes after merging.
-    n = out * 2 - 1
-    n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-8)
-    return ((n + 1) * 0.5 * batch["mask"]).astype(np.float32)
+    return enhancer.enhance_patches(fn, params, batch["input"], batch["material"],
+                                    batch["mask"], size)
 
 
 def main(argv=None) -> None:

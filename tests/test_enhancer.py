@@ -134,3 +134,31 @@ def test_shipped_model_loads_and_enhances():
     assert np.all((out >= 0) & (out <= 1))
     # Sharpening: the x-component's swing across the folds grows.
     assert np.ptp(out[0, 40:90, 40:90, 0]) > 1.05 * np.ptp(patch[0, 40:90, 40:90, 0])
+
+
+def test_enhance_patches_unit_normals_in_the_mask_independent_of_batching(small):
+    rng = np.random.default_rng(0)
+    size = small.config.patch_size
+    x = rng.uniform(0.2, 0.8, (5, size, size, 3)).astype(np.float32)
+    mask = np.zeros((5, size, size, 1), np.float32)
+    mask[:, : size // 2] = 1
+    mats = np.array([0, 1, 2, 3, 4])
+    apply = enhancer.make_apply(small)
+    timings = {}
+    got = enhancer.enhance_patches(apply, small.params, x, mats, mask, batch_size=2,
+                                   timings=timings)
+    assert got.shape == x.shape and timings["network_patches"] == 5
+    inside = mask[..., 0] > 0
+    np.testing.assert_allclose(np.linalg.norm(got[inside] * 2 - 1, axis=-1), 1.0, atol=1e-5)
+    assert not got[~inside].any()
+    # one call for all five patches gives the same result; and so does the plain apply
+    np.testing.assert_allclose(
+        enhancer.enhance_patches(apply, small.params, x, mats, mask, batch_size=8), got,
+        atol=1e-6)
+    ref = np.asarray(apply(small.params, x, mats)) * 2 - 1
+    ref = (ref / np.linalg.norm(ref, axis=-1, keepdims=True) + 1) / 2 * mask
+    np.testing.assert_allclose(got, ref, atol=1e-5)
+    # a scalar material is broadcast
+    one = enhancer.enhance_patches(apply, small.params, x[:2], 3, mask[:2], batch_size=2)
+    np.testing.assert_allclose(
+        one, enhancer.enhance_patches(apply, small.params, x[:2], [3, 3], mask[:2], 2), atol=0)

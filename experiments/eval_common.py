@@ -617,27 +617,6 @@ def save_figure(fig, path, dpi: int) -> None:
 # --------------------------------------------------------------------------------------------
 
 
-def angular_change(a, b, mask) -> float:
-    """Mean angle in degrees between two normal maps over the mask texels.
-
-    a, b: (H, W, 3) normals in [-1, 1] (renormalized here; zero vectors count as 0 degrees);
-    mask: (H, W, 1) or (H, W), > 0 on the texels to average. 0.0 for an empty mask.
-    """
-    m = np.asarray(mask).reshape(np.asarray(a).shape[:2]) > 0
-    if not m.any():
-        return 0.0
-    x, y = np.asarray(a, np.float64)[m], np.asarray(b, np.float64)[m]
-    nx, ny = np.linalg.norm(x, axis=-1), np.linalg.norm(y, axis=-1)
-    ok = (nx > 1e-12) & (ny > 1e-12)
-    cos = np.where(ok, (x * y).sum(-1) / np.maximum(nx * ny, 1e-24), 1.0)
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).mean())
-
-
-def flicker_series(maps, mask) -> np.ndarray:
-    """(T, H, W, 3) normal maps -> (T - 1,) float64 mean angular change (degrees) per pair."""
-    return np.array([angular_change(maps[t], maps[t + 1], mask) for t in range(len(maps) - 1)])
-
-
 def series_stats(x: np.ndarray) -> dict:
     """mean, std, median, p95, max of a 1-D series (JSON-ready floats)."""
     x = np.asarray(x, np.float64)

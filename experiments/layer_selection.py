@@ -31,26 +31,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax import data
+from wrinkle_jax import data, metrics
 from wrinkle_jax.nn import losses, vgg
 
 ROOT = Path(__file__).resolve().parents[1]
 CANDIDATES = ("relu1_1", "relu1_2", "relu2_1", "relu2_2", "relu3_1", "relu3_2", "relu3_4",
               "relu4_1", "relu4_2", "relu4_4", "relu5_1")
-
-
-def spectral_embedding(x: np.ndarray, dim: int = 2) -> np.ndarray:
-    """(n, d) points -> (n, dim) Laplacian-eigenmap coordinates (float64)."""
-    sq = (x * x).sum(1)
-    d2 = np.maximum(sq[:, None] + sq[None, :] - 2.0 * x @ x.T, 0.0)
-    sigma2 = np.median(d2[np.triu_indices(len(x), 1)])
-    w = np.exp(-d2 / max(sigma2, 1e-30))
-    deg = w.sum(1)
-    lap_sym = w / np.sqrt(deg[:, None] * deg[None, :])
-    vals, vecs = np.linalg.eigh(lap_sym)
-    # Largest eigenvalue of D^-1/2 W D^-1/2 is the trivial one; take the next `dim`.
-    emb = vecs[:, -1 - dim:-1][:, ::-1] / np.sqrt(deg)[:, None]
-    return emb
 
 
 def knn_accuracy(x: np.ndarray, labels: np.ndarray, k: int = 7) -> float:
@@ -131,7 +117,7 @@ def main(argv=None) -> None:
     for name in CANDIDATES:
         x = np.concatenate([ga[name], gb[name]]).astype(np.float64)
         x = x / (np.linalg.norm(x, axis=1, keepdims=True).mean() + 1e-30)
-        emb = spectral_embedding(x)
+        emb = metrics.spectral_embedding(x)
         embs[name] = emb
         # Paired: how far the coarse and fine versions of the SAME crop are apart, relative
         # to how far the fine versions of two different crops are (content variation).

@@ -36,7 +36,7 @@ C1 = CD(a, c), C2 = CD(b, c); DR = 100 |C1 - C2| / C1 (the paper's form) and the
 DR_signed = 100 (C1 - C2) / C1 (> 0: the method's patches sit closer to the fine ones than the
 input's do; < 0: further away). Two spaces:
   * embedded (the paper's): per method, the 2D spectral embedding
-    (`experiments.layer_selection.spectral_embedding`: Gaussian affinity with the median
+    (`wrinkle_jax.metrics.spectral_embedding`: Gaussian affinity with the median
     bandwidth, symmetric normalized Laplacian) of a u b u c, scaled to unit RMS distance from
     its centroid (the raw eigenmap shrinks with the number of points; DR does not depend on
     it). C1 therefore differs slightly between methods. The embedding depends on the points
@@ -71,14 +71,13 @@ from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.distance import cdist
 
 from experiments import eval_common as ec
 from experiments import table1
-from experiments.layer_selection import spectral_embedding
-from wrinkle_jax import MATERIALS, evaluation, material_index, patches
+from wrinkle_jax import MATERIALS, evaluation, material_index, metrics, patches
 from wrinkle_jax import enhancer as enhancer_lib
 from wrinkle_jax.fileio import atomic_write_bytes
+from wrinkle_jax.metrics import chamfer_distance, chamfer_from_sq_dists, decrease_ratio, sq_dists
 from wrinkle_jax.nn import vgg
 
 MODEL = table1.MODEL
@@ -120,7 +119,7 @@ def layer_scales(flat: Mapping[str, np.ndarray]) -> dict[str, float]:
     gives the layer a median norm of 1 (1.0 where that median is 0 or not finite)."""
     out = {}
     for name, x in flat.items():
-        med = float(np.median(np.sqrt(_sq_norms(x))))
+        med = float(np.median(np.linalg.norm(np.asarray(x, np.float64), axis=1)))
         out[name] = med if med > 0.0 and np.isfinite(med) else 1.0
     return out
 
@@ -132,24 +131,6 @@ def scaled_features(flat: Mapping[str, np.ndarray], scales: Mapping[str, float])
                           axis=1)
 
 
-def _sq_norms(x) -> np.ndarray:
-    """(N, D) -> (N,) float64 squared row norms."""
-    x = np.asarray(x)
-    return np.einsum("ij,ij->i", x, x, dtype=np.float64)
-
-
-def sq_dists(x, y=None) -> np.ndarray:
-    """Pairwise squared Euclidean distances of (n, d) and (m, d) points: (n, m) float64, as
-    |x|^2 + |y|^2 - 2 x.y in float64, clipped at 0 (y None: x with itself, zero diagonal)."""
-    x64 = np.asarray(x, np.float64)
-    y64 = x64 if y is None else np.asarray(y, np.float64)
-    d2 = _sq_norms(x64)[:, None] + _sq_norms(y64)[None, :] - 2.0 * (x64 @ y64.T)
-    d2 = np.maximum(d2, 0.0)
-    if y is None:
-        np.fill_diagonal(d2, 0.0)
-    return d2
-
-
 def scaled_sq_dists(fx: Mapping[str, np.ndarray], fy: Mapping[str, np.ndarray] | None,
                     scales: Mapping[str, float]) -> np.ndarray:
     """`sq_dists(scaled_features(fx), scaled_features(fy))`, one layer at a time (no
@@ -157,43 +138,6 @@ def scaled_sq_dists(fx: Mapping[str, np.ndarray], fy: Mapping[str, np.ndarray] |
     if fy is not None and set(fx) != set(fy):
         raise ValueError(f"different layers: {sorted(fx)} and {sorted(fy)}")
     return sum(sq_dists(fx[k], None if fy is None else fy[k]) / scales[k] ** 2 for k in fx)
-
-
-def chamfer_from_sq_dists(d2) -> float:
-    """Symmetric Chamfer distance from the (n, m) squared distances between two point sets:
-    (mean_i min_j d_ij + mean_j min_i d_ij) / 2 with d = sqrt(d2); NaN if a set is empty."""
-    d2 = np.asarray(d2, np.float64)
-    if d2.ndim != 2:
-        raise ValueError(f"expected an (n, m) matrix, got shape {d2.shape}")
-    if 0 in d2.shape:
-        return float("nan")
-    d = np.sqrt(np.maximum(d2, 0.0))
-    return 0.5 * float(d.min(axis=1).mean() + d.min(axis=0).mean())
-
-
-def chamfer_distance(x, y) -> float:
-    """Symmetric Chamfer distance of (n, d) and (m, d) point sets: the mean distance from a point
-    to the nearest point of the other set, averaged over both directions (not squared).
-
-    >>> chamfer_distance([[0.0, 0.0]], [[3.0, 4.0], [0.0, 1.0]])  # (1 + (5 + 1) / 2) / 2
-    2.0
-    """
-    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
-    if x.ndim != 2 or y.ndim != 2 or x.shape[1] != y.shape[1]:
-        raise ValueError(f"expected (n, d) and (m, d) points, got {x.shape} and {y.shape}")
-    if not len(x) or not len(y):
-        return float("nan")
-    return chamfer_from_sq_dists(cdist(x, y, "sqeuclidean"))
-
-
-def decrease_ratio(c1: float, c2: float, signed: bool = False) -> float:
-    """The paper's DR = 100 |C1 - C2| / C1, or signed 100 (C1 - C2) / C1 (> 0 when C2 < C1);
-    NaN unless C1 is positive and finite."""
-    c1, c2 = float(c1), float(c2)
-    if not (np.isfinite(c1) and c1 > 0.0):
-        return float("nan")
-    dr = 100.0 * (c1 - c2) / c1
-    return dr if signed else abs(dr)
 
 
 def chamfer_scores(c1: float, c2: float) -> dict:
@@ -248,7 +192,7 @@ def compare_sets(d2, labels) -> dict:
     a, b, c = (labels == s for s in (SET_A, SET_B, SET_C))
     if not (a.any() and b.any() and c.any()):
         raise ValueError("each of the sets a, b and c needs at least one point")
-    emb = unit_rms(spectral_embedding(points_from_sq_dists(d2), dim=2))
+    emb = unit_rms(metrics.spectral_embedding(points_from_sq_dists(d2), dim=2))
     return {"embedded": chamfer_scores(chamfer_distance(emb[a], emb[c]),
                                        chamfer_distance(emb[b], emb[c])),
             "full": chamfer_scores(chamfer_from_sq_dists(d2[np.ix_(a, c)]),

@@ -78,3 +78,53 @@ def test_degenerate_denominator(tiny_vgg, patches):
     # An empty mask makes every loss 0: invalid, finite.
     s = score_jit(inp, out, tgt, jnp.zeros_like(mask), tiny_vgg, layers=LAYERS)
     assert np.all(np.isfinite(np.asarray(s.score))) and not np.any(np.asarray(s.valid))
+
+
+def test_chamfer_distance_is_zero_symmetric_translation_invariant_and_hand_computed():
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(size=(5, 3)), rng.normal(size=(7, 3))
+    assert metrics.chamfer_distance(x, x) == 0.0
+    cd = metrics.chamfer_distance(x, y)
+    assert cd > 0 and metrics.chamfer_distance(y, x) == pytest.approx(cd, rel=1e-12)
+    shift = np.array([10.0, -3.0, 0.5])
+    assert metrics.chamfer_distance(x + shift, y + shift) == pytest.approx(cd, rel=1e-9)
+    # Both directions count: a subset is at distance 0 one way only.
+    assert metrics.chamfer_distance(x[:2], x) > 0
+    # a = {(0, 0), (2, 0)}, c = {(0, 1)}: a -> c 1 and sqrt(5), c -> a 1.
+    a, c = [[0.0, 0.0], [2.0, 0.0]], [[0.0, 1.0]]
+    hand = ((1.0 + np.sqrt(5.0)) / 2 + 1.0) / 2
+    assert metrics.chamfer_distance(a, c) == pytest.approx(hand, rel=1e-12)
+    assert metrics.chamfer_from_sq_dists(metrics.sq_dists(a, c)) == pytest.approx(hand, rel=1e-12)
+    np.testing.assert_array_equal(np.diag(metrics.sq_dists(x)), 0.0)
+
+
+def test_decrease_ratio_paper_form_and_signed_form():
+    assert metrics.decrease_ratio(2.0, 0.5) == 75.0
+    assert metrics.decrease_ratio(2.0, 0.5, signed=True) == 75.0
+    # The paper's |.| form cannot tell "further from the fine patches" from "closer".
+    assert metrics.decrease_ratio(1.0, 1.5) == 50.0
+    assert metrics.decrease_ratio(1.0, 1.5, signed=True) == -50.0
+    assert metrics.decrease_ratio(1.0, 1.0, signed=True) == 0.0
+    assert np.isnan(metrics.decrease_ratio(0.0, 0.1))
+    assert np.isnan(metrics.decrease_ratio(np.nan, 1))
+
+
+def test_normal_angles_are_accurate_for_tiny_angles_and_zero_for_zero_vectors():
+    a = np.array([0.0, 0.0, 1.0])
+    for deg in (1e-4, 0.01, 1.0, 90.0, 179.0):
+        r = np.radians(deg)
+        b = np.array([np.sin(r), 0.0, np.cos(r)]) * 3.0  # length does not matter
+        assert metrics.normal_angles(a, b) == pytest.approx(deg, rel=1e-9)
+    assert metrics.normal_angles(a, np.zeros(3)) == 0.0
+    assert metrics.mean_angular_change(np.ones((2, 2, 3)), np.ones((2, 2, 3)),
+                                       np.ones((2, 2))) == 0.0
+
+
+def test_spectral_embedding_separates_two_clusters():
+    rng = np.random.default_rng(1)
+    x = np.concatenate([rng.normal(0, 0.1, (20, 5)), rng.normal(3, 0.1, (20, 5))])
+    emb = metrics.spectral_embedding(x, dim=2)
+    assert emb.shape == (40, 2)
+    first = np.sign(emb[:, 0])
+    assert abs(first[:20].sum()) == 20 and abs(first[20:].sum()) == 20
+    assert first[0] != first[-1]

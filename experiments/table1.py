@@ -429,12 +429,18 @@ def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params, sampli
     return results
 
 
-def main(argv=None) -> int:
-    ap = ec.script_parser(__doc__)
+# --------------------------------------------------------------------------------------------
+# Setup shared with Table 2 and the stride ablation
+# --------------------------------------------------------------------------------------------
+
+
+def add_cell_args(ap, out_default: Path, frame_stride_help: str = "score every k-th frame"
+                  ) -> None:
+    """The flags that choose the model, the cells, their sequences and the patch sampling."""
     ap.add_argument("--model", default=str(enhancer_lib.DEFAULT_PATH),
                     help="enhancer .npz (default: the shipped model)")
     ap.add_argument("--frames", type=int, default=200, help="frames per sequence")
-    ap.add_argument("--frame-stride", type=int, default=10, help="score every k-th frame")
+    ap.add_argument("--frame-stride", type=int, default=10, help=frame_stride_help)
     ap.add_argument("--patches-per-frame", type=int, default=8)
     ap.add_argument("--min-coverage", type=float, default=0.5,
                     help="minimum fraction of patch texels covered by both meshes")
@@ -445,23 +451,58 @@ def main(argv=None) -> int:
     ap.add_argument("--sequences", default=str(ec.SEQUENCES),
                     help="folder of existing simulations to reuse")
     ap.add_argument("--sim-out", default=str(ec.TABLE1_SEQUENCES),
-                    help="folder for the simulations this script makes")
-    ap.add_argument("--out", default=str(ec.RESULTS / "table1"))
-    ap.add_argument("--fresh", action="store_true", help="ignore stored cells and rescore")
-    ap.add_argument("--no-wrong-material", action="store_true",
-                    help="skip the wrong-material ablation (the model told the other material)")
+                    help="folder for the simulations made here (shared by the suite)")
+    ap.add_argument("--out", default=str(out_default))
+    ap.add_argument("--fresh", action="store_true", help="ignore stored cells and recompute")
     ap.add_argument("--extra", action="append", default=[], metavar="NAME=PATH",
-                    help="also score this enhancer file as method NAME (repeatable; e.g. "
+                    help="also evaluate this enhancer file as method NAME (repeatable; e.g. "
                          "patchgan=experiments/results/patchgan/patchgan.npz)")
-    args = ap.parse_args(argv)
-    if args.frames < 1 or args.frame_stride < 1 or args.patches_per_frame < 1:
-        ap.error("--frames, --frame-stride and --patches-per-frame must be >= 1")
+
+
+@dataclasses.dataclass
+class Setup:
+    """What a table script evaluates: model, sampling, cells, their sequence files, methods.
+
+    Attributes:
+      enh: the model; sampling: `Sampling`; cells: `eval_common.Cell`s.
+      sequences: cell key -> `eval_common.cell_sequences` (fine/coarse paths and info).
+      sim_s: seconds spent finding or simulating the sequences.
+      methods: name -> (PatchSet) -> outputs; sources: name -> source of its outputs.
+      unsharp: blur order -> (sigma, amount, source); net_timings: the model's timings.
+    """
+
+    enh: enhancer_lib.Enhancer
+    sampling: Sampling
+    cells: list
+    sequences: dict
+    sim_s: float
+    methods: dict
+    sources: dict
+    unsharp: dict
+    net_timings: dict
+
+    @property
+    def unsharp_text(self) -> str:
+        return "; ".join(f"order {o}: {u[2]}" for o, u in self.unsharp.items())
+
+    def fingerprint_of(self, cell: ec.Cell, **extra) -> dict:
+        """What defines the cell's patches: sampling, sequence files (portable), `extra`."""
+        return {"sampling": dataclasses.asdict(self.sampling), **extra,
+                "sequences": {r: ec.portable_path(self.sequences[cell.key][r])
+                              for r in ("fine", "coarse")}}
+
+
+def setup_from_args(ap, args, min_frame_stride: int = 1, wrong_material: bool = False,
+                    with_methods: bool = True) -> Setup:
+    """Validate the `add_cell_args` flags, load the model, find or simulate the sequences and
+    build the methods: the baselines, the model (and its wrong-material twin), --extra."""
+    if args.frames < 1 or args.patches_per_frame < 1:
+        ap.error("--frames and --patches-per-frame must be >= 1")
+    if args.frame_stride < min_frame_stride:
+        ap.error(f"--frame-stride must be >= {min_frame_stride}")
     for name in args.materials.split(","):
         if name not in MATERIALS:
             ap.error(f"unknown material {name!r}")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    t_all = time.perf_counter()
     enh = ec.load_model_or_usage_error(ap, args.model)
     sampling = Sampling(frames=args.frames, frame_stride=args.frame_stride,
                         patches_per_frame=args.patches_per_frame,
@@ -470,41 +511,54 @@ def main(argv=None) -> int:
                         score_batch=min(args.patches_per_frame, 16))
     cells = ec.table_cells(args.garments.split(","), args.materials.split(","),
                            args.motions.split(","))
-
-    # 1. Sequences (simulate what is missing; resumable).
-    t0 = time.perf_counter()
+    t0 = time.perf_counter()  # simulate what is missing (resumable)
     sequences = {c.key: ec.cell_sequences(c, args.frames, ec.TEST_SEED, (Path(args.sequences),),
                                           Path(args.sim_out)) for c in cells}
     sim_s = time.perf_counter() - t0
+    methods, sources, unsharp, net_timings = {}, {}, {}, {}
+    if with_methods:
+        unsharp = {o: ec.unsharp_setting(order=o) for o in (0, 1)}
+        methods = ec.baseline_methods({o: u[:2] for o, u in unsharp.items()})
+        methods[MODEL] = ec.enhancer_method(enh, batch_size=sampling.score_batch,
+                                            timings=net_timings)
+        model_src = f"model {ec.file_digest(args.model)}"
+        sources = {k: k for k in methods} | {MODEL: model_src}
+        if wrong_material:
+            # Paper Fig. 10: the right patches, the other table material's CIN parameters.
+            methods[WRONG] = ec.enhancer_method(enh, batch_size=sampling.score_batch,
+                                                material_of=ec.wrong_material)
+            sources[WRONG] = f"{model_src} wrong material"
+        try:
+            extra, extra_src = ec.model_methods(args.extra, sampling.score_batch)
+        except (ValueError, enhancer_lib.EnhancerError) as err:
+            ap.error(f"--extra: {err}")
+        methods.update(extra)
+        sources.update(extra_src)
+    return Setup(enh, sampling, cells, sequences, sim_s, methods, sources, unsharp,
+                 net_timings)
 
-    # 2. Methods and scoring.
-    unsharp = {o: ec.unsharp_setting(order=o) for o in (0, 1)}
-    unsharp_src = "; ".join(f"order {o}: {u[2]}" for o, u in unsharp.items())
-    methods = ec.baseline_methods({o: u[:2] for o, u in unsharp.items()})
-    net_timings: dict = {}
-    methods[MODEL] = ec.enhancer_method(enh, batch_size=sampling.score_batch, timings=net_timings)
-    model_src = f"model {ec.file_digest(args.model)}"
-    sources = {k: k for k in methods} | {MODEL: model_src}
-    if not args.no_wrong_material:
-        # Paper Fig. 10: the right patches, the other table material's CIN parameters.
-        methods[WRONG] = ec.enhancer_method(enh, batch_size=sampling.score_batch,
-                                            material_of=ec.wrong_material)
-        sources[WRONG] = f"{model_src} wrong material"
-    try:
-        extra, extra_src = ec.model_methods(args.extra, sampling.score_batch)
-    except (ValueError, enhancer_lib.EnhancerError) as err:
-        ap.error(f"--extra: {err}")
-    methods.update(extra)
-    sources.update(extra_src)
+
+def main(argv=None) -> int:
+    ap = ec.script_parser(__doc__)
+    add_cell_args(ap, ec.RESULTS / "table1")
+    ap.add_argument("--no-wrong-material", action="store_true",
+                    help="skip the wrong-material ablation (the model told the other material)")
+    args = ap.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_all = time.perf_counter()
+    st = setup_from_args(ap, args, wrong_material=not args.no_wrong_material)
+    enh, sampling, cells, sequences, methods = (st.enh, st.sampling, st.cells, st.sequences,
+                                                 st.methods)
+    sources, unsharp, unsharp_src, net_timings = (st.sources, st.unsharp, st.unsharp_text,
+                                                  st.net_timings)
+    sim_s = st.sim_s
     vgg_params = vgg.load_vgg19()
-    fingerprint = {"sampling": dataclasses.asdict(sampling)}
     n_patches_max = len(cells) * len(sampling.frame_indices) * sampling.patches_per_frame
     print(f"{len(cells)} cells x {len(sampling.frame_indices)} frames x "
           f"<= {sampling.patches_per_frame} patches = <= {n_patches_max} patches, "
           f"{len(methods)} methods", flush=True)
-    def fingerprint_of(cell):
-        return dict(fingerprint, sequences={r: ec.portable_path(sequences[cell.key][r])
-                                            for r in ("fine", "coarse")})
+    fingerprint_of = st.fingerprint_of
 
     results_by_cell = run(cells, sequences, methods, vgg_params, sampling, out, fingerprint_of,
                           args.fresh, log=lambda m: print(m, flush=True), sources=sources)

@@ -74,8 +74,7 @@ import numpy as np
 
 from experiments import eval_common as ec
 from experiments import table1
-from wrinkle_jax import MATERIALS, evaluation, material_index, metrics, patches
-from wrinkle_jax import enhancer as enhancer_lib
+from wrinkle_jax import evaluation, material_index, metrics, patches
 from wrinkle_jax.fileio import atomic_write_bytes
 from wrinkle_jax.metrics import chamfer_distance, chamfer_from_sq_dists, decrease_ratio, sq_dists
 from wrinkle_jax.nn import vgg
@@ -637,80 +636,33 @@ def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params,
 
 def main(argv=None) -> int:
     ap = ec.script_parser(__doc__)
-    ap.add_argument("--model", default=str(enhancer_lib.DEFAULT_PATH),
-                    help="enhancer .npz (default: the shipped model)")
-    ap.add_argument("--frames", type=int, default=200, help="frames per sequence")
-    ap.add_argument("--frame-stride", type=int, default=10,
-                    help="set a uses every k-th frame, set c the frames midway between (k >= 2)")
-    ap.add_argument("--patches-per-frame", type=int, default=8)
-    ap.add_argument("--min-coverage", type=float, default=0.5,
-                    help="minimum fraction of patch texels covered by both meshes")
-    ap.add_argument("--seed", type=int, default=0, help="seed of the patch draw")
-    ap.add_argument("--garments", default=",".join(ec.GARMENTS))
-    ap.add_argument("--materials", default=",".join(ec.TABLE_MATERIALS))
-    ap.add_argument("--motions", default=",".join(ec.MOTIONS))
-    ap.add_argument("--sequences", default=str(ec.SEQUENCES),
-                    help="folder of existing simulations to reuse")
-    ap.add_argument("--sim-out", default=str(ec.TABLE1_SEQUENCES),
-                    help="folder for the simulations this script makes (Table 1's)")
-    ap.add_argument("--out", default=str(ec.RESULTS / "table2"))
-    ap.add_argument("--fresh", action="store_true", help="ignore stored cells and recompute")
-    ap.add_argument("--extra", action="append", default=[], metavar="NAME=PATH",
-                    help="also compare this enhancer file's outputs as method NAME "
-                         "(repeatable; e.g. patchgan=experiments/results/patchgan/patchgan.npz)")
+    table1.add_cell_args(ap, ec.RESULTS / "table2", frame_stride_help=(
+        "set a uses every k-th frame, set c the frames midway between (k >= 2)"))
     args = ap.parse_args(argv)
-    if args.frames < 1 or args.patches_per_frame < 1:
-        ap.error("--frames and --patches-per-frame must be >= 1")
-    if args.frame_stride < 2:
-        ap.error("--frame-stride must be >= 2 (set c uses the frames between the scored ones)")
-    for name in args.materials.split(","):
-        if name not in MATERIALS:
-            ap.error(f"unknown material {name!r}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
-    enh = ec.load_model_or_usage_error(ap, args.model)
-    sampling = table1.Sampling(frames=args.frames, frame_stride=args.frame_stride,
-                               patches_per_frame=args.patches_per_frame,
-                               patch_size=enh.config.patch_size,
-                               texel_size=enh.config.texel_size, min_coverage=args.min_coverage,
-                               seed=args.seed, score_batch=min(args.patches_per_frame, 16))
+    if args.frame_stride < 2:
+        ap.error("--frame-stride must be >= 2 (set c uses the frames between the scored ones)")
     try:
-        frames_c = c_frame_indices(sampling.frame_indices, sampling.frames, sampling.frame_stride)
+        frames_c = c_frame_indices(range(0, args.frames, args.frame_stride), args.frames,
+                                   args.frame_stride)
     except ValueError as e:
         ap.error(str(e))
-    cells = ec.table_cells(args.garments.split(","), args.materials.split(","),
-                           args.motions.split(","))
-
-    # 1. Sequences: Table 1's (simulated only if missing there too; resumable).
-    t0 = time.perf_counter()
-    sequences = {c.key: ec.cell_sequences(c, args.frames, ec.TEST_SEED, (Path(args.sequences),),
-                                          Path(args.sim_out)) for c in cells}
-    sim_s = time.perf_counter() - t0
-
-    # 2. Methods, features, distances.
-    unsharp = {o: ec.unsharp_setting(order=o) for o in (0, 1)}
-    unsharp_src = "; ".join(f"order {o}: {u[2]}" for o, u in unsharp.items())
-    methods = ec.baseline_methods({o: u[:2] for o, u in unsharp.items()})
-    net_timings: dict = {}
-    methods[MODEL] = ec.enhancer_method(enh, batch_size=sampling.score_batch, timings=net_timings)
-    sources = {k: k for k in methods} | {MODEL: f"model {ec.file_digest(args.model)}"}
-    try:
-        extra, extra_src = ec.model_methods(args.extra, sampling.score_batch)
-    except (ValueError, enhancer_lib.EnhancerError) as err:
-        ap.error(f"--extra: {err}")
-    methods.update(extra)
-    sources.update(extra_src)
+    st = table1.setup_from_args(ap, args, min_frame_stride=2)
+    enh, sampling, cells, sequences, methods = (st.enh, st.sampling, st.cells, st.sequences,
+                                                 st.methods)
+    sources, unsharp, unsharp_src, net_timings = (st.sources, st.unsharp, st.unsharp_text,
+                                                  st.net_timings)
+    sim_s = st.sim_s
     vgg_params = vgg.load_vgg19()
-    fingerprint = {"sampling": dataclasses.asdict(sampling), "metric": METRIC}
     n_max = len(cells) * len(sampling.frame_indices) * sampling.patches_per_frame
     print(f"{len(cells)} cells x {len(sampling.frame_indices)} frames x "
           f"<= {sampling.patches_per_frame} patches = <= {n_max} patches per set (a, c, and b "
           f"for each of {len(methods)} methods)", flush=True)
 
     def fingerprint_of(cell):
-        return dict(fingerprint, sequences={r: ec.portable_path(sequences[cell.key][r])
-                                            for r in ("fine", "coarse")})
+        return st.fingerprint_of(cell, metric=METRIC)
 
     records = run(cells, sequences, methods, vgg_params, sampling, out, fingerprint_of,
                   args.fresh, log=lambda m: print(m, flush=True), sources=sources)

@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: venv test demo bench lint clean
+.PHONY: venv test demo bench lint clean eval report
 
 venv: $(STAMP)
 
@@ -22,6 +22,23 @@ demo: venv
 
 bench: venv
 	@for f in benchmarks/bench_*.py; do echo "== $$f"; $(PY) $$f || exit 1; done
+
+# The evaluation suite on the shipped model (hours on 2 cores; each step resumes or reuses
+# what is stored), then experiments/results/REPORT.md. The PatchGAN and sheet-only rows need
+# the training data first (see the README's experiments section).
+eval: venv
+	$(PY) -m experiments.table1
+	$(PY) -m experiments.table2
+	$(PY) -m experiments.stride
+	$(PY) -m experiments.temporal --frames 30
+	$(PY) -m experiments.timing --frames 30 --model wrinkle_jax/assets/enhancer.npz
+	mkdir -p experiments/results/lift
+	$(PY) benchmarks/bench_lift.py --quick > experiments/results/lift/bench.json
+	$(PY) benchmarks/bench_sim.py --quick --part substeps > experiments/results/sim/substeps.json
+	$(PY) -m experiments.report
+
+report: venv
+	$(PY) -m experiments.report
 
 lint: venv
 	$(VENV)/bin/ruff check wrinkle_jax tests benchmarks experiments

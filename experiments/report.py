@@ -35,7 +35,7 @@ COMMANDS = {
     "table1": "python -m experiments.table1",
     "table2": "python -m experiments.table2",
     "stride": "python -m experiments.stride",
-    "temporal": "python -m experiments.temporal",
+    "temporal": "python -m experiments.temporal --frames 30",
     "timing": "python -m experiments.timing --frames 30 --model wrinkle_jax/assets/enhancer.npz",
     "lift": "python benchmarks/bench_lift.py --quick > experiments/results/lift/bench.json",
     "substeps": ("python benchmarks/bench_sim.py --quick --part substeps "

@@ -281,6 +281,76 @@ def cell_sequences(cell: Cell, frames: int, seed: int = TEST_SEED,
     return out
 
 
+def run_cells(cells: list[Cell], methods: dict, sources: dict[str, str] | None, *,
+              path_of: Callable[[Cell], Path], fingerprint_of: Callable[[Cell], dict],
+              load: Callable, save: Callable, evaluate: Callable, merge: Callable,
+              field: str, units: Callable[[list[str]], int], unit: str,
+              fresh: bool = False, log: Callable[[str], None] = print) -> dict[str, dict]:
+    """Evaluate (or reload) every cell of a table, reusing stored cells method by method.
+
+    A stored cell (`load(path, fingerprint)` -> dict with `field`, "sources", "legacy",
+    "timings", or None) is reused for every method whose stored source equals `sources[name]`
+    (default: the name); the other methods are evaluated on the same patches
+    (`evaluate(cell, names, progress)`), merged in (`merge(old, new, order)`, ValueError when
+    the patches differ: then every method is evaluated again) and the cell saved
+    (`save(path, result, fingerprint, sources)`). Legacy files (written before sources were
+    stored) are rewritten in place when fully reused. Progress: `progress(k, what=None)` adds
+    k of a cell's `units(names)` work units (named `unit`) and logs an ETA.
+
+    Returns:
+      cell key -> result with `field` restricted to `methods` (timings also hold "cell_s").
+    """
+    sources = {k: k for k in methods} if sources is None else sources
+    cached = {c.key: None if fresh else load(path_of(c), fingerprint_of(c)) for c in cells}
+
+    def missing(c):
+        got = cached[c.key]
+        if got is None:
+            return list(methods)
+        return [m for m in methods if m not in got[field] or got["sources"].get(m) != sources[m]]
+
+    todo = {c.key: missing(c) for c in cells}
+    total = sum(units(v) for v in todo.values() if v)
+    done = [0]
+    t_start = time.perf_counter()
+    results = {}
+    for i, cell in enumerate(cells):
+        tag = f"[{i + 1}/{len(cells)}] {cell.key}"
+        path, old, names = path_of(cell), cached[cell.key], todo[cell.key]
+        if not names:
+            log(f"{tag}: reusing {path}")
+            if old["legacy"]:  # upgrade the file in place (sources stored from now on)
+                save(path, old, fingerprint_of(cell), old["sources"])
+            results[cell.key] = {**old, field: {k: old[field][k] for k in methods}}
+            continue
+        first, n_units = done[0], units(names)
+
+        def progress(k, what=None, tag=tag, first=first, n_units=n_units):
+            done[0] += k
+            elapsed = time.perf_counter() - t_start
+            log(f"{tag}: {what + ', ' if what else ''}{done[0] - first}/{n_units} {unit}, "
+                f"{elapsed / 60:.1f} min, {eta_text(done[0], total, elapsed)}")
+
+        if old is not None:
+            log(f"{tag}: adding {', '.join(names)} to the stored cell")
+        t0 = time.perf_counter()
+        res = evaluate(cell, names, progress)
+        if old is not None:
+            try:
+                res = merge(old, res, list(methods))
+                res["timings"]["cell_s"] = (old["timings"].get("cell_s", 0.0)
+                                            + time.perf_counter() - t0)
+            except ValueError:
+                log(f"{tag}: the stored patches differ; evaluating every method again")
+                res, old = evaluate(cell, list(methods), None), None
+        if old is None:
+            res["timings"]["cell_s"] = time.perf_counter() - t0
+        save(path, res, fingerprint_of(cell), {**({} if old is None else old["sources"]),
+                                              **sources})
+        results[cell.key] = {**res, field: {k: res[field][k] for k in methods}}
+    return results
+
+
 def load_first_frames(path: Path, frames: int) -> meshio.GarmentSequence:
     """Load a sequence and keep its first `frames` frames (error if it has fewer)."""
     seq = meshio.load_sequence(path)

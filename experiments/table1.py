@@ -357,76 +357,28 @@ def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params, sampli
         ) -> dict[str, dict]:
     """Evaluate (or reload from `<out>/cells/`) every cell, printing progress and an ETA.
 
-    A stored cell is reused method by method: a method whose stored source equals
-    `sources[name]` (default: the name) is not rescored; the others are scored on the same
-    patches and added to the file (2 VGG passes per patch for the input and target Grams,
-    plus one per new method).
+    Stored cells are reused method by method (`eval_common.run_cells`): a method whose stored
+    source equals `sources[name]` (default: the name) is not rescored; a new one costs 2 VGG
+    passes per patch (the input and target Grams) plus its own.
 
     Returns:
-      cell key -> `evaluate_cell` result restricted to `methods` (timings also hold
-      "cell_s", the cell's wall time).
+      cell key -> `evaluate_cell` result restricted to `methods` (timings also hold "cell_s").
     """
-    sources = {k: k for k in methods} if sources is None else sources
-    n_frames = len(sampling.frame_indices)
-    cached = {c.key: None if fresh else load_cell(_cell_path(out, c), fingerprint_of(c))
-              for c in cells}
-
-    def missing(c):
-        got = cached[c.key]
-        if got is None:
-            return list(methods)
-        return [m for m in methods if m not in got["loss"] or got["sources"].get(m) != sources[m]]
-
-    todo = {c.key: missing(c) for c in cells}
-    total = n_frames * sum(bool(v) for v in todo.values())
-    done = [0]
-    t_start = time.perf_counter()
-    results = {}
-    for i, cell in enumerate(cells):
-        tag = f"[{i + 1}/{len(cells)}] {cell.key}"
-        path = _cell_path(out, cell)
-        old = cached[cell.key]
-        if not todo[cell.key]:
-            log(f"{tag}: reusing {path}")
-            if old["legacy"]:  # upgrade the file in place (sources stored from now on)
-                save_cell(path, old, fingerprint_of(cell), old["sources"])
-            results[cell.key] = {**old, "loss": {k: old["loss"][k] for k in methods}}
-            continue
+    def evaluate(cell, names, progress):
         fine = ec.load_first_frames(sequences[cell.key]["fine"], sampling.frames)
         coarse = ec.load_first_frames(sequences[cell.key]["coarse"], sampling.frames)
-        first = done[0]
-
-        def progress(k, tag=tag, first=first):
-            done[0] += k
-            elapsed = time.perf_counter() - t_start
-            log(f"{tag}: frame {done[0] - first}/{n_frames}, {elapsed / 60:.1f} min, "
-                f"{ec.eta_text(done[0], total, elapsed)}")
-
-        t0 = time.perf_counter()
-        names = todo[cell.key]
-        if old is not None:
-            log(f"{tag}: scoring {', '.join(names)} on the stored patches")
         res = evaluate_cell(fine, coarse, cell.material, {k: methods[k] for k in names},
                             vgg_params, sampling, cell.patch_seed, progress)
-        res["timings"]["cell_s"] = time.perf_counter() - t0
-        if old is not None:
-            try:
-                res = merge_cell(old, res, list(methods))
-                res["timings"]["cell_s"] = old["timings"].get("cell_s", 0.0) + \
-                    res["timings"]["cell_s"]
-            except ValueError:
-                log(f"{tag}: the stored patches differ; rescoring every method")
-                res = evaluate_cell(fine, coarse, cell.material, methods, vgg_params,
-                                    sampling, cell.patch_seed)
-                res["timings"]["cell_s"] = time.perf_counter() - t0
-                old = None
-        keep = {} if old is None else old["sources"]
-        save_cell(path, res, fingerprint_of(cell), {**keep, **sources})
-        results[cell.key] = {**res, "loss": {k: res["loss"][k] for k in methods}}
         sig = {k: round(float(np.mean(s["improvement_signed"][s["valid"]])), 1)
-               for k, s in cell_scores(results[cell.key]).items() if s["valid"].any()}
-        log(f"{tag}: signed means {sig}")
-    return results
+               for k, s in cell_scores(res).items() if s["valid"].any()}
+        log(f"{cell.key}: signed means {sig}")
+        return res
+
+    return ec.run_cells(cells, methods, sources, path_of=lambda c: _cell_path(out, c),
+                        fingerprint_of=fingerprint_of, load=load_cell, save=save_cell,
+                        evaluate=evaluate, merge=merge_cell, field="loss",
+                        units=lambda names: len(sampling.frame_indices), unit="frames",
+                        fresh=fresh, log=log)
 
 
 # --------------------------------------------------------------------------------------------

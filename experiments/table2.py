@@ -564,74 +564,30 @@ def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params,
         sources: dict[str, str] | None = None) -> dict[str, dict]:
     """Evaluate (or reload from `<out>/cells/`) every cell, printing progress and an ETA.
 
-    As `table1.run`, stored cells are reused method by method (`sources`); a new method costs
-    the features of a and c again (2 VGG passes per location) plus its own b.
+    As `table1.run`, stored cells are reused method by method (`eval_common.run_cells`); a new
+    method costs the features of a and c again (2 VGG passes per location) plus its own b.
 
     Returns:
       cell key -> `cell_record` restricted to `methods` (timings also hold "cell_s").
     """
-    sources = {k: k for k in methods} if sources is None else sources
-    cached = {c.key: None if fresh else load_cell(_cell_path(out, c), fingerprint_of(c))
-              for c in cells}
-
-    def missing(c):
-        got = cached[c.key]
-        if got is None:
-            return list(methods)
-        return [m for m in methods
-                if m not in got["methods"] or got["sources"].get(m) != sources[m]]
-
-    todo = {c.key: missing(c) for c in cells}
     per_loc = len(sampling.frame_indices) * sampling.patches_per_frame
-    total = sum(per_loc * (2 + len(v)) for v in todo.values() if v)
-    done = [0]
-    t_start = time.perf_counter()
-    records = {}
-    for i, cell in enumerate(cells):
-        tag = f"[{i + 1}/{len(cells)}] {cell.key}"
-        path = _cell_path(out, cell)
-        old = cached[cell.key]
-        if not todo[cell.key]:
-            log(f"{tag}: reusing {path}")
-            if old["legacy"]:  # upgrade the file in place (sources stored from now on)
-                save_cell(path, old, fingerprint_of(cell), old["sources"])
-            records[cell.key] = {**old, "methods": {k: old["methods"][k] for k in methods}}
-            continue
+
+    def evaluate(cell, names, progress):
         fine = ec.load_first_frames(sequences[cell.key]["fine"], sampling.frames)
         coarse = ec.load_first_frames(sequences[cell.key]["coarse"], sampling.frames)
-
-        def progress(k, what, tag=tag):
-            done[0] += k
-            elapsed = time.perf_counter() - t_start
-            log(f"{tag}: {what} features done, {elapsed / 60:.1f} min, "
-                f"{ec.eta_text(done[0], total, elapsed)}")
-
-        t0 = time.perf_counter()
-        names = todo[cell.key]
-        if old is not None:
-            log(f"{tag}: computing {', '.join(names)} on the stored sets")
         rec = cell_record(evaluate_cell(fine, coarse, cell.material,
                                         {k: methods[k] for k in names}, vgg_params, sampling,
                                         cell.patch_seed, progress))
-        rec["timings"]["cell_s"] = time.perf_counter() - t0
-        if old is not None:
-            try:
-                rec = merge_records(old, rec, list(methods))
-                rec["timings"]["cell_s"] = (old["timings"].get("cell_s", 0.0)
-                                            + time.perf_counter() - t0)
-            except ValueError:
-                log(f"{tag}: the stored sets differ; recomputing every method")
-                rec = cell_record(evaluate_cell(fine, coarse, cell.material, methods,
-                                                vgg_params, sampling, cell.patch_seed))
-                rec["timings"]["cell_s"] = time.perf_counter() - t0
-                old = None
-        keep = {} if old is None else old["sources"]
-        save_cell(path, rec, fingerprint_of(cell), {**keep, **sources})
-        records[cell.key] = {**rec, "methods": {k: rec["methods"][k] for k in methods}}
         sig = {k: (round(v["embedded"]["dr_signed"], 1), round(v["full"]["dr_signed"], 1))
-               for k, v in records[cell.key]["methods"].items()}
-        log(f"{tag}: signed DR (embedded, full) {sig}")
-    return records
+               for k, v in rec["methods"].items()}
+        log(f"{cell.key}: signed DR (embedded, full) {sig}")
+        return rec
+
+    return ec.run_cells(cells, methods, sources, path_of=lambda c: _cell_path(out, c),
+                        fingerprint_of=fingerprint_of, load=load_cell, save=save_cell,
+                        evaluate=evaluate, merge=merge_records, field="methods",
+                        units=lambda names: per_loc * (2 + len(names)),
+                        unit="patch features", fresh=fresh, log=log)
 
 
 def main(argv=None) -> int:

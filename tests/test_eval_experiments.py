@@ -241,6 +241,54 @@ def test_model_method_outputs_unit_normals_inside_the_mask_only(model):
     assert timings["network_patches"] == 3 and timings["compile_s"] > 0
 
 
+def test_run_cells_reuses_by_source_adds_missing_methods_and_upgrades_legacy_files(tmp_path):
+    cells = ec.table_cells(["dress"], ["silk_charmeuse"], ["dance", "walk"])
+    a, b = cells
+    store = {  # a: legacy file with m1 only; b: current file with m1 from another source
+        a.key: {"loss": {"m1": 1}, "sources": {"m1": "m1"}, "legacy": True, "timings": {}},
+        b.key: {"loss": {"m1": 1, "m2": 2}, "sources": {"m1": "old", "m2": "m2"},
+                "legacy": False, "timings": {"cell_s": 5.0}}}
+    saved, evaluated = {}, []
+
+    def evaluate(cell, names, progress):
+        evaluated.append((cell.key, list(names)))
+        if progress is not None:
+            progress(1, "step")
+        return {"loss": {n: 10 for n in names}, "timings": {}}
+
+    def merge(old, new, order):
+        if new.get("bad"):
+            raise ValueError
+        return {**old, "loss": {**old["loss"], **new["loss"]}, "timings": dict(old["timings"])}
+
+    common = dict(path_of=lambda c: tmp_path / c.key.replace("/", "_"),
+                  fingerprint_of=lambda c: {}, load=lambda p, f: next(
+                      v for k, v in store.items() if k.replace("/", "_") == p.name),
+                  save=lambda p, r, f, src: saved.__setitem__(p.name, (r, src)),
+                  evaluate=evaluate, merge=merge, field="loss", units=lambda n: 1, unit="x",
+                  log=lambda m: None)
+    got = ec.run_cells(cells, {"m1": None}, None, **common)
+    assert evaluated == [(b.key, ["m1"])]  # b's m1 came from another source
+    assert got[a.key]["loss"] == {"m1": 1} and got[b.key]["loss"] == {"m1": 10}
+    name_a = a.key.replace("/", "_")
+    assert saved[name_a][1] == {"m1": "m1"}  # the legacy file was rewritten with its sources
+    evaluated.clear()
+    got = ec.run_cells(cells, {"m1": None, "m3": None}, {"m1": "m1", "m3": "s3"}, **common)
+    assert (a.key, ["m3"]) in evaluated and got[a.key]["loss"] == {"m1": 1, "m3": 10}
+    assert saved[name_a][1] == {"m1": "m1", "m3": "s3"}
+    evaluated.clear()
+    ec.run_cells(cells, {"m1": None}, None, **common, fresh=True)
+    assert evaluated == [(a.key, ["m1"]), (b.key, ["m1"])]
+    # Patches that no longer match the stored ones: every method is evaluated again.
+    evaluated.clear()
+
+    def refuse(old, new, order):
+        raise ValueError("different patches")
+
+    ec.run_cells(cells[:1], {"m1": None, "m4": None}, None, **{**common, "merge": refuse})
+    assert evaluated == [(a.key, ["m4"]), (a.key, ["m1", "m4"])]
+
+
 def test_legacy_cell_sources_trust_an_unchanged_model_file_only(tmp_path):
     f = tmp_path / "m.npz"
     f.write_bytes(b"weights")

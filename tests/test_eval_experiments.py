@@ -343,6 +343,19 @@ def test_wrong_material_swaps_the_table_materials_and_the_method_tells_the_model
     assert np.abs(wrong - right(ps)).max() > 1e-3
 
 
+def _spy_on_evaluate_cell(monkeypatch, module) -> list:
+    """Record the method names of every `module.evaluate_cell` call (still evaluating)."""
+    calls = []
+    real = module.evaluate_cell
+
+    def spy(fine, coarse, material, methods, *a, **k):
+        calls.append(list(methods))
+        return real(fine, coarse, material, methods, *a, **k)
+
+    monkeypatch.setattr(module, "evaluate_cell", spy)
+    return calls
+
+
 def _write_cell_files(root, garment, motion, material, frames=3):
     """Tiny fine/coarse sheet files that `eval_common.cell_sequences` accepts for a cell."""
     sc = ec.scene_for(garment, motion)
@@ -397,14 +410,7 @@ def test_table1_main_writes_results_and_resumes_from_stored_cells(tmp_path, monk
     # An extra model is scored alone on the stored patches; the other methods are reused.
     monkeypatch.undo()
     monkeypatch.setattr(table1.vgg, "load_vgg19", lambda *a, **k: tiny_vgg)
-    calls = []
-    real = table1.evaluate_cell
-
-    def spy(fine, coarse, material, methods, *a, **k):
-        calls.append(list(methods))
-        return real(fine, coarse, material, methods, *a, **k)
-
-    monkeypatch.setattr(table1, "evaluate_cell", spy)
+    calls = _spy_on_evaluate_cell(monkeypatch, table1)
     other = tmp_path / "other.npz"
     params = jax.tree.map(lambda x: x * 0.5, model.params)
     enhancer.save_enhancer(other, params, model.config)
@@ -732,14 +738,7 @@ def test_table2_main_uses_table1_patches_writes_results_and_resumes(tmp_path, mo
     # An extra model is computed alone on the stored sets; the others keep their numbers.
     monkeypatch.undo()
     monkeypatch.setattr(table2.vgg, "load_vgg19", lambda *a, **k: tiny_vgg)
-    calls = []
-    real = table2.evaluate_cell
-
-    def spy(fine, coarse, material, methods, *a, **k):
-        calls.append(list(methods))
-        return real(fine, coarse, material, methods, *a, **k)
-
-    monkeypatch.setattr(table2, "evaluate_cell", spy)
+    calls = _spy_on_evaluate_cell(monkeypatch, table2)
     other = tmp_path / "other.npz"
     enhancer.save_enhancer(other, jax.tree.map(lambda x: x * 0.5, model.params), model.config)
     assert table2.main(argv + ["--extra", f"half={other}"]) == 0

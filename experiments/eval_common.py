@@ -105,9 +105,8 @@ def model_methods(specs: list[str], batch_size: int) -> tuple[dict, dict]:
         if not sep or not name or not path:
             raise ValueError(f"expected NAME=PATH, got {spec!r}")
         enh = enhancer_lib.load_enhancer(path)
-        names = enh.config.materials
-        if len(names) == 1:
-            def material_of(_, names=names):
+        if len(enh.config.materials) == 1:
+            def material_of(_):
                 return 0
         else:
             def material_of(i, enh=enh):

@@ -280,6 +280,21 @@ def cell_sequences(cell: Cell, frames: int, seed: int = TEST_SEED,
     return out
 
 
+def merge_methods(old: dict, new: dict, order: list[str]) -> dict:
+    """Union of two per-method maps (`new` wins), methods in `order`, then any others stored."""
+    both = {**old, **new}
+    return {k: both[k] for k in [*order, *[k for k in both if k not in order]]}
+
+
+def merge_timings(old: dict, new: dict, summed: Iterable[str]) -> dict:
+    """A stored cell's timings plus a rescoring run's: per-method seconds merged, `summed`
+    counters (seconds, VGG passes) added, everything else kept from `old`."""
+    out = {**old, "methods_s": {**old.get("methods_s", {}), **new["methods_s"]}}
+    for k in summed:
+        out[k] = old.get(k, 0) + new.get(k, 0)
+    return out
+
+
 def run_cells(cells: list[Cell], methods: dict, sources: dict[str, str] | None, *,
               path_of: Callable[[Cell], Path], fingerprint_of: Callable[[Cell], dict],
               load: Callable, save: Callable, evaluate: Callable, merge: Callable,

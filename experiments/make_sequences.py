@@ -1,7 +1,7 @@
 """Generate the simulated training and test sequences (resumable, background-friendly).
 
     nohup nice -n 10 python -m experiments.make_sequences [--out data/sequences] \
-        [--train-frames 600] [--test-frames 300] [--tiny] > /dev/null 2>&1 &
+        [--train-frames 600] [--test-frames 300] [--tiny] [--only SCENE,...] > /dev/null 2>&1 &
     python -m experiments.make_sequences --previews experiments/results/sim
 
 Writes `<out>/<scene>/<material>_<resolution>_s<seed>.npz` (`scenes.save_simulation`: frames
@@ -55,6 +55,21 @@ def plan(train_frames: int, test_frames: int) -> list[dict]:
                 jobs.append({"scene": name, "resolution": res, "material": mat, "seed": 1,
                              "frames": test_frames})
     return jobs
+
+
+def select(jobs: list[dict], only: str | None) -> list[dict]:
+    """The jobs of the comma-separated scenes `only` (all jobs when None), in plan order.
+
+    Raises:
+      ValueError: `only` names a scene that does not exist.
+    """
+    if not only:
+        return jobs
+    keep = set(only.split(","))
+    unknown = keep - set(scenes.SCENES)
+    if unknown:
+        raise ValueError(f"unknown scenes: {sorted(unknown)}")
+    return [j for j in jobs if j["scene"] in keep]
 
 
 def job_path(out: Path, job: dict) -> Path:
@@ -136,6 +151,9 @@ def main(argv=None) -> int:
     ap.add_argument("--train-frames", type=int, default=600)
     ap.add_argument("--test-frames", type=int, default=300)
     ap.add_argument("--tiny", action="store_true", help="3 frames each, coarse only (smoke test)")
+    ap.add_argument("--only", default=None,
+                    help="comma-separated scene names (e.g. the sheet and the test scenes first, "
+                         "so a sheet-only run can start early); the manifest still lists all")
     ap.add_argument("--previews", default=None, metavar="DIR",
                     help="only write fine-vs-coarse preview PNGs into DIR (from --out data)")
     args = ap.parse_args(argv)
@@ -154,14 +172,18 @@ def main(argv=None) -> int:
                 t = dict(j, frames=3, resolution="coarse")
                 tiny[job_path(out, t)] = t
         jobs = list(tiny.values())
+    try:
+        selected = select(jobs, args.only)
+    except ValueError as e:
+        ap.error(str(e))
 
     def log(msg: str) -> None:
         line = f"{time.strftime('%Y-%m-%d %H:%M:%S')} {msg}"
         with open(log_path, "a", encoding="utf-8") as fh:
             fh.write(line + "\n")
 
-    todo = [j for j in jobs if not job_path(out, j).exists()]
-    log(f"start: {len(jobs)} jobs, {len(jobs) - len(todo)} already done, "
+    todo = [j for j in selected if not job_path(out, j).exists()]
+    log(f"start: {len(selected)} jobs, {len(selected) - len(todo)} already done, "
         f"estimated {sum(estimate_s(j) for j in todo) / 60:.0f} min on an idle machine")
     manifest_path = out / "manifest.json"
     t_start = time.perf_counter()

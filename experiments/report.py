@@ -126,12 +126,19 @@ def headline(rep: Report, t1, t2, timing, temporal) -> None:
     rows = []
     if t1:
         k = t1["by_kind"].get("unseen garment", {})
-        best = max((m for m in k if m not in (MODEL, WRONG, "identity")),
-                   key=lambda m: k[m]["signed_mean"], default=None)
+        others = [m for m in k if m not in (MODEL, WRONG, "identity")]
+        # The signed mean and the paper's |.| form can crown different baselines (a method
+        # that barely changes the input scores ~0 signed but low in |.|): name both.
+        by_signed = max(others, key=lambda m: k[m]["signed_mean"], default=None)
+        by_abs = max(others, key=lambda m: k[m]["improvement_mean"], default=None)
+        best = (f"best baseline by signed mean {by_signed} {_score(k.get(by_signed))} "
+                f"(|.| {_score(k.get(by_signed), False)})")
+        if by_abs != by_signed:
+            best += (f", by |.| {by_abs} {_score(k.get(by_abs), False)} (signed "
+                     f"{_score(k.get(by_abs))})")
         rows.append(f"- Table 1, unseen garments ({k.get(MODEL, {}).get('n', 0)} patches): "
                     f"model signed mean {_score(k.get(MODEL))} (paper's |.| form "
-                    f"{_score(k.get(MODEL), False)}); best baseline {best} "
-                    f"{_score(k.get(best))} (|.| {_score(k.get(best), False)}).")
+                    f"{_score(k.get(MODEL), False)}); {best}.")
         a = t1["all"]
         if WRONG in a:
             diff = a[MODEL]["signed_mean"] - a[WRONG]["signed_mean"]

@@ -279,12 +279,8 @@ def merge_cell(cached: dict, new: dict, order: list[str]) -> dict:
             or not np.array_equal(cached["origin"], new["origin"])
             or not np.allclose(cached["loss_input"], new["loss_input"], rtol=1e-4)):
         raise ValueError("stored cell and rescored methods are not on the same patches")
-    loss = {**cached["loss"], **new["loss"]}
-    loss = {k: loss[k] for k in [*order, *[k for k in loss if k not in order]]}
-    t_old, t_new = cached["timings"], new["timings"]
-    timings = {**t_old, "methods_s": {**t_old.get("methods_s", {}), **t_new["methods_s"]},
-               "score_s": t_old.get("score_s", 0.0) + t_new["score_s"],
-               "vgg_passes": t_old.get("vgg_passes", 0) + t_new["vgg_passes"]}
+    loss = ec.merge_methods(cached["loss"], new["loss"], order)
+    timings = ec.merge_timings(cached["timings"], new["timings"], ("score_s", "vgg_passes"))
     return {**cached, "loss": loss, "timings": timings}
 
 

@@ -437,12 +437,9 @@ def merge_records(old: dict, new: dict, order: list[str]) -> dict:
         np.isclose(old["scales"][k], new["scales"][k], rtol=1e-4) for k in old["scales"])
     if not (same and scales_ok):
         raise ValueError("stored cell and new methods are not on the same sets a and c")
-    methods = {**old["methods"], **new["methods"]}
-    methods = {k: methods[k] for k in [*order, *[k for k in methods if k not in order]]}
-    t_old, t_new = old["timings"], new["timings"]
-    timings = {**t_old, "methods_s": {**t_old.get("methods_s", {}), **t_new["methods_s"]}}
-    for k in ("features_s", "distances_s", "compare_s", "vgg_passes"):
-        timings[k] = t_old.get(k, 0) + t_new.get(k, 0)
+    methods = ec.merge_methods(old["methods"], new["methods"], order)
+    timings = ec.merge_timings(old["timings"], new["timings"],
+                               ("features_s", "distances_s", "compare_s", "vgg_passes"))
     return {**old, "methods": methods, "timings": timings}
 
 

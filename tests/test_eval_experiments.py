@@ -20,6 +20,7 @@ import pytest
 from experiments import eval_common as ec
 from experiments import report, stride, table1, table2, temporal, timing
 from wrinkle_jax import (
+    MATERIALS,
     enhancer,
     evaluation,
     material_index,
@@ -895,3 +896,19 @@ def test_report_assembles_stored_results_and_names_what_is_missing(tmp_path, mon
     unseen = card["methods"]["model"]["heldout"]["by_kind"]["unseen garment"]["signed_mean"]
     assert f"| sheet only | {unseen:+.1f} |" in text
     assert report.main(["--results", str(results), "--out", str(out), "--strict"]) == 1
+
+
+def test_make_sequences_only_selects_the_named_scenes_in_plan_order():
+    from experiments import make_sequences
+
+    jobs = make_sequences.plan(6, 3)
+    assert make_sequences.select(jobs, None) == jobs
+    got = make_sequences.select(jobs, "cape_walk,sheet_balls_wind")
+    assert {j["scene"] for j in got} == {"cape_walk", "sheet_balls_wind"}
+    assert got == [j for j in jobs if j["scene"] in ("cape_walk", "sheet_balls_wind")]
+    # the sheet trains (fine only, seed 0); the cape is test-only (fine and coarse, seed 1)
+    n = len(MATERIALS)
+    assert len(got) == n + 2 * n
+    assert all(j["seed"] == (0 if j["scene"] == "sheet_balls_wind" else 1) for j in got)
+    with pytest.raises(ValueError, match="unknown scenes"):
+        make_sequences.select(jobs, "sheet_balls_wind,no_such_scene")

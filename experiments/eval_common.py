@@ -522,10 +522,12 @@ def unsharp_setting(path: Path = MODEL_CARD_RESULTS, order: int = 1
         mine = [key for key, kv in parsed.items() if int(kv.get("order", 0)) == order]
         best = max(mine, key=sweep.get)
         kv = parsed[best]
-        return float(kv["sigma"]), float(kv["amount"]), f"{path}: unsharp_sweep best {best}"
+        return (float(kv["sigma"]), float(kv["amount"]),
+                f"{portable_path(path)}: unsharp_sweep best {best}")
     except (OSError, KeyError, ValueError, json.JSONDecodeError):
         s, a = DEFAULT_UNSHARP
-        return s, a, f"default order={order},sigma={s:g},amount={a:g} (no sweep in {path})"
+        return s, a, (f"default order={order},sigma={s:g},amount={a:g} "
+                      f"(no sweep in {portable_path(path)})")
 
 
 def enhancer_method(enh: enhancer_lib.Enhancer, batch_size: int = 16,

@@ -1,19 +1,27 @@
-"""Equal-wall-clock short training runs: the residual-vs-plain comparison and the width study.
+"""Short training runs of one recipe, varying one knob: residual vs plain, and network width.
 
     python -m experiments.short_runs residual [--minutes 6]   # width 32, residual vs plain
-    python -m experiments.short_runs width [--minutes 6] [--residual 1|0]   # widths 16, 32, 64
-        [--residual-base unsharp --unsharp-sigma S --unsharp-amount A --tag unsharp]
+    python -m experiments.short_runs width [--widths 8,16,32] [--minutes 6 | --steps N \
+        --minutes 1000] [--tag shipped] [recipe flags of experiments.train_default]
 
-Every variant trains from scratch on `data/patches` (train split, `experiments.make_dataset`)
-for the same wall-clock budget with the same seed, data order, loss and optimizer
-(`train.TrainConfig` defaults otherwise), then is scored on the same fixed held-out patches
-(test-only garments and motion) with `evaluation.score_patches` on `evaluation.EVAL_LAYERS`, and
-its inference speed is timed (ms/patch, batch 16, `conv_impl="im2col_bf16"`, best of 5).
-Runs go to `outputs/short_runs/<study>/<variant>/` (checkpoints: a later, longer run can resume
-from them); results to `experiments/results/<study>_study/{results.json,pareto.png}`.
+The recipe is `experiments.train_default`'s (same flags, same defaults: the shipped model's);
+the study changes only the width (or residual). Every variant trains from scratch on
+`data/patches` (train split, `experiments.make_dataset`) with the same seed, data order, loss
+and optimizer until `--steps` or `--minutes` of wall time, whichever comes first, then is scored
+on the same fixed held-out patches (test-only garments and motion) with
+`evaluation.score_patches` on `evaluation.EVAL_LAYERS`, and its inference speed is timed
+(ms/patch, batch 16, `conv_impl="im2col_bf16"`, best of 5). Runs go to
+`outputs/short_runs/<study>/<variant>/` (checkpoints: a later, longer run can resume from them);
+results to `experiments/results/<study>_study/{results.json,pareto.png}`.
 
-Caveat: the machine is shared, so the step rate of a run depends on the load while it ran; the
-number of steps each variant reached is recorded next to its score.
+An equal-step budget (`--steps`) does not depend on the machine's load; an equal wall-clock
+budget (`--minutes`) charges wider networks for their cost but is only fair on an idle machine:
+the steps each variant reached and its wall time are recorded next to its score.
+
+The session-2 study `width_unsharp2_study` used an older recipe, reproduced by
+`--residual-base unsharp --unsharp-sigma 8 --style-layers relu2_2,relu3_1,relu3_2
+--normalize-channels 1 --w-c 1 --relative-floor 0.01 --blur-order 0 --residual-highpass 0
+--widths 16,32,64 --minutes 5 --tag unsharp2`.
 """
 
 from __future__ import annotations
@@ -28,23 +36,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from experiments import train_default
 from wrinkle_jax import data, enhancer, evaluation, train
 from wrinkle_jax.nn import vgg
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def variants(study: str, residual: bool, **recipe) -> dict[str, train.TrainConfig]:
-    # The default model's recipe (experiments.train_default): selected style layers and the
-    # per-patch relative style loss; `recipe` overrides TrainConfig fields (e.g. the base).
-    base = train.TrainConfig(steps=100_000, eval_every=100, checkpoint_every=100,
-                             style_layers=("relu2_2", "relu3_1", "relu3_2"), w_s=10.0,
-                             relative_floor=0.01, learning_rate=2e-4)
-    base = dataclasses.replace(base, **recipe)
+def variants(study: str, base: train.TrainConfig,
+             widths: tuple[int, ...] = (16, 32, 64)) -> dict[str, train.TrainConfig]:
+    """The study's configurations: `base` with only the width (or residual) changed."""
     if study == "residual":
         return {"residual": dataclasses.replace(base, width=32, residual=True),
                 "plain": dataclasses.replace(base, width=32, residual=False)}
-    return {f"w{w}": dataclasses.replace(base, width=w, residual=residual) for w in (16, 32, 64)}
+    return {f"w{w}": dataclasses.replace(base, width=w) for w in widths}
 
 
 def heldout_eval_set(root, n: int = 96) -> dict:
@@ -80,19 +85,13 @@ def enhance(config: train.TrainConfig, params, batch, size: int = 16) -> np.ndar
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("study", choices=("residual", "width"))
-    ap.add_argument("--minutes", type=float, default=6.0)
-    ap.add_argument("--residual", type=int, default=1)
+    ap.add_argument("--minutes", type=float, default=6.0, help="wall-clock budget per variant")
+    ap.add_argument("--widths", default="16,32,64", help="the width study's widths")
     ap.add_argument("--data", default=str(ROOT / "data" / "patches"))
     ap.add_argument("--only", default=None,
                     help="comma-separated variant names, in run order ('none': no training)")
-    ap.add_argument("--residual-base", default="input", choices=("input", "unsharp"))
-    ap.add_argument("--unsharp-sigma", type=float, default=8.0)
-    ap.add_argument("--unsharp-amount", type=float, default=1.0)
-    ap.add_argument("--style-layers", default="relu2_2,relu3_1,relu3_2")
-    ap.add_argument("--normalize-channels", type=int, default=1)
-    ap.add_argument("--w-c", type=float, default=1.0, help="content weight")
-    ap.add_argument("--relative-floor", type=float, default=0.01)
     ap.add_argument("--tag", default="", help="suffix of the run and results folders")
+    train_default.add_recipe_args(ap)
     args = ap.parse_args(argv)
     study = args.study + (f"_{args.tag}" if args.tag else "")
     runs_dir = ROOT / "outputs" / "short_runs" / study
@@ -105,19 +104,15 @@ def main(argv=None) -> None:
     if args.residual_base == "unsharp" and "unsharp base (untrained)" not in results:
         # The starting point every variant must beat: the base alone, on the same patches.
         out = evaluation.unsharp_mask(held["input"], held["mask"], args.unsharp_sigma,
-                                      args.unsharp_amount)
+                                      args.unsharp_amount, args.blur_order)
         sc = evaluation.score_patches(vgg_params, held["input"], out, held["target"],
                                       held["mask"])
         results["unsharp base (untrained)"] = {
             "steps": 0, "infer_ms_per_patch": 0.0,
             "heldout": evaluation.summarize(sc, held["scene"])}
         results_path.write_text(json.dumps(results, indent=1) + "\n")
-    recipe = {"residual_base": args.residual_base, "unsharp_sigma": args.unsharp_sigma,
-              "unsharp_amount": args.unsharp_amount,
-              "style_layers": tuple(args.style_layers.split(",")),
-              "normalize_channels": bool(args.normalize_channels), "w_c": args.w_c,
-              "relative_floor": args.relative_floor}
-    configs = variants(args.study, bool(args.residual), **recipe)
+    base = train_default.config_from_args(args)
+    configs = variants(args.study, base, tuple(int(w) for w in args.widths.split(",")))
     for name in (args.only.split(",") if args.only else configs):  # --only also sets the order
         if name == "none":  # --only none: just the untrained base on the eval patches
             continue
@@ -133,6 +128,7 @@ def main(argv=None) -> None:
         summary = evaluation.summarize(sc, held["scene"])
         results[name] = {"config": cfg.to_json(), "steps": int(got["state"].step),
                          "wall_s": round(wall, 1), "minutes_budget": args.minutes,
+                         "steps_budget": args.steps,
                          "infer_ms_per_patch": round(infer_ms_per_patch(cfg, params), 2),
                          "heldout": summary, "last_train": got["last"]}
         results_path.write_text(json.dumps(results, indent=1) + "\n")
@@ -150,7 +146,7 @@ def main(argv=None) -> None:
                     fontsize=8, xytext=(4, 4), textcoords="offset points")
     ax.set_xlabel("inference ms / 128^2 patch (2 cores, bf16)")
     ax.set_ylabel("held-out improvement (signed %, higher better)")
-    ax.set_title(f"{study} study, {args.minutes:g} min each")
+    ax.set_title(f"{study} study, up to {args.steps} steps / {args.minutes:g} min each")
     fig.tight_layout()
     fig.savefig(res_dir / "pareto.png", dpi=100)
 

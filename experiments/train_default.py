@@ -79,11 +79,9 @@ def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None,
     return enhancer.save_enhancer(out, jax.device_get(state.params), econf, meta)
 
 
-def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", default=str(ROOT / "data" / "patches"))
-    ap.add_argument("--run", default=str(ROOT / "outputs" / "default_run"))
-    ap.add_argument("--out", default=str(enhancer.DEFAULT_PATH))
+def add_recipe_args(ap: argparse.ArgumentParser) -> None:
+    """The training recipe's flags (defaults: the shipped model's), read by `config_from_args`;
+    shared with `experiments.short_runs` so its studies vary one knob of the same recipe."""
     ap.add_argument("--width", type=int, default=16,
                     help="the width study's choice (experiments/results/width_unsharp2_study)")
     ap.add_argument("--residual", type=int, default=1)
@@ -108,6 +106,14 @@ def main(argv=None) -> None:
     ap.add_argument("--blur-order", type=int, default=1, choices=(0, 1),
                     help="masked blur of the unsharp base and the high-pass: 1 = local plane "
                          "(flat tilted panels pass unchanged), 0 = local mean (pre-session-4)")
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=str(ROOT / "data" / "patches"))
+    ap.add_argument("--run", default=str(ROOT / "outputs" / "default_run"))
+    ap.add_argument("--out", default=str(enhancer.DEFAULT_PATH))
+    add_recipe_args(ap)
     ap.add_argument("--init-from", default=None,
                     help="start a fresh run from another run's last checkpoint (warm start)")
     ap.add_argument("--minutes", type=float, default=40.0)

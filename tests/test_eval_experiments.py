@@ -912,3 +912,25 @@ def test_make_sequences_only_selects_the_named_scenes_in_plan_order():
     assert all(j["seed"] == (0 if j["scene"] == "sheet_balls_wind" else 1) for j in got)
     with pytest.raises(ValueError, match="unknown scenes"):
         make_sequences.select(jobs, "sheet_balls_wind,no_such_scene")
+
+
+def test_recipe_flag_defaults_are_the_shipped_recipe_and_the_width_study_changes_width_only():
+    import argparse
+
+    from experiments import short_runs, train_default
+
+    ap = argparse.ArgumentParser()
+    train_default.add_recipe_args(ap)
+    cfg = train_default.config_from_args(ap.parse_args([]))
+    shipped = enhancer.load_enhancer().meta["train_config"]
+    got = cfg.to_json()
+    differ = {k for k in shipped if k in got and list(np.atleast_1d(got[k]))
+              != list(np.atleast_1d(shipped[k]))}
+    assert differ == set()
+    studies = short_runs.variants("width", cfg, (8, 32))
+    assert list(studies) == ["w8", "w32"]
+    for name, c in studies.items():
+        assert c.width == int(name[1:])
+        assert dataclasses.replace(c, width=cfg.width) == cfg
+    res = short_runs.variants("residual", cfg)
+    assert not res["plain"].residual and res["residual"].residual

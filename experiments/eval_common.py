@@ -680,6 +680,18 @@ def script_parser(doc: str) -> argparse.ArgumentParser:
                                    epilog="\n".join(doc.splitlines()[1:]))
 
 
+def add_sequence_args(ap: argparse.ArgumentParser) -> None:
+    """The flags that choose the evaluation cells and where their simulations live (shared by
+    Tables 1 and 2, the stride ablation and the flicker study)."""
+    ap.add_argument("--garments", default=",".join(GARMENTS))
+    ap.add_argument("--materials", default=",".join(TABLE_MATERIALS))
+    ap.add_argument("--motions", default=",".join(MOTIONS))
+    ap.add_argument("--sequences", default=str(SEQUENCES),
+                    help="folder of existing simulations to reuse")
+    ap.add_argument("--sim-out", default=str(TABLE1_SEQUENCES),
+                    help="folder for the simulations made here (shared by the suite)")
+
+
 def load_model_or_usage_error(ap: argparse.ArgumentParser, path) -> enhancer_lib.Enhancer:
     """The enhancer at `path`, or a usage error (exit 2) naming the file and the `--model` flag."""
     try:

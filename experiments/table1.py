@@ -393,13 +393,7 @@ def add_cell_args(ap, out_default: Path, frame_stride_help: str = "score every k
     ap.add_argument("--min-coverage", type=float, default=0.5,
                     help="minimum fraction of patch texels covered by both meshes")
     ap.add_argument("--seed", type=int, default=0, help="seed of the patch draw")
-    ap.add_argument("--garments", default=",".join(ec.GARMENTS))
-    ap.add_argument("--materials", default=",".join(ec.TABLE_MATERIALS))
-    ap.add_argument("--motions", default=",".join(ec.MOTIONS))
-    ap.add_argument("--sequences", default=str(ec.SEQUENCES),
-                    help="folder of existing simulations to reuse")
-    ap.add_argument("--sim-out", default=str(ec.TABLE1_SEQUENCES),
-                    help="folder for the simulations made here (shared by the suite)")
+    ec.add_sequence_args(ap)
     ap.add_argument("--out", default=str(out_default))
     ap.add_argument("--fresh", action="store_true", help="ignore stored cells and recompute")
     ap.add_argument("--extra", action="append", default=[], metavar="NAME=PATH",

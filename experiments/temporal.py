@@ -146,14 +146,8 @@ def main(argv=None) -> int:
                     help="enhancer .npz (default: the shipped model)")
     ap.add_argument("--frames", type=int, default=60, help="consecutive frames per sequence")
     ap.add_argument("--start", type=int, default=0, help="first frame")
-    ap.add_argument("--garments", default=",".join(ec.GARMENTS))
-    ap.add_argument("--materials", default=",".join(ec.TABLE_MATERIALS))
-    ap.add_argument("--motions", default=",".join(ec.MOTIONS))
     ap.add_argument("--batch-size", type=int, default=8, help="patches per network call")
-    ap.add_argument("--sequences", default=str(ec.SEQUENCES),
-                    help="folder of existing simulations to reuse")
-    ap.add_argument("--sim-out", default=str(ec.TABLE1_SEQUENCES),
-                    help="folder for simulations made here (shared with table1)")
+    ec.add_sequence_args(ap)
     ap.add_argument("--table-frames", type=int, default=200,
                     help="length of the simulations to make when missing (as table1)")
     ap.add_argument("--out", default=str(ec.RESULTS / "temporal"))

@@ -124,8 +124,9 @@ def main(argv=None) -> None:
         "lanczos x2 down/up": lambda b: evaluation.resample(b["input"], b["mask"], 2.0,
                                                             up=cv2.INTER_LANCZOS4),
     }
-    results = {"model": str(args.model), "model_meta": enh.meta, "unsharp_sweep": sweep,
-               "n_heldout": len(held["input"]), "n_seen": len(seen["input"]), "methods": {}}
+    results = {"model": eval_common.portable_path(args.model), "model_meta": enh.meta,
+               "unsharp_sweep": sweep, "n_heldout": len(held["input"]),
+               "n_seen": len(seen["input"]), "methods": {}}
     for split, batch in (("heldout", held), ("seen", seen)):
         groups = np.array([
             f"{'unseen garment' if sc in UNSEEN_GARMENT else 'seen garment'}|{sc}|"

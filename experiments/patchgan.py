@@ -243,7 +243,7 @@ def main(argv=None) -> int:
     gan_path = enhancer.save_enhancer(out / "patchgan.npz", got["state"].g_params, ecfg, meta={
         "baseline": "DeepWrinkles-style conditional PatchGAN (wrinkle_jax.nn.patchgan)",
         "gan_config": config.to_json(), "steps": got["steps"],
-        "train_minutes": round(got["train_s"] / 60, 2), "data": str(args.data),
+        "train_minutes": round(got["train_s"] / 60, 2), "data": ec.portable_path(args.data),
         "train_scenes": sorted({e["scene"] for e in ds.entries})})
     gan = enhancer.load_enhancer(gan_path)
     model = enhancer.load_enhancer(args.model)
@@ -264,14 +264,14 @@ def main(argv=None) -> int:
             scores.setdefault(name, {})[split] = r
         print(split, {k: round(v[split]["all"]["signed_mean"], 1) for k, v in scores.items()},
               flush=True)
-    res = {"config": config.to_json(), "data": str(args.data), "steps": got["steps"],
+    res = {"config": config.to_json(), "data": ec.portable_path(args.data), "steps": got["steps"],
            "train_scenes": sorted({e["scene"] for e in ds.entries}),
            "train_s": got["train_s"], "minutes_budget": args.minutes,
-           "model": str(args.model), "model_meta": {k: v for k, v in model.meta.items()
+           "model": ec.portable_path(args.model), "model_meta": {k: v for k, v in model.meta.items()
                                                     if not isinstance(v, dict | list)},
            "unsharp": {"sigma": sigma, "amount": amount, "source": src},
            "n_heldout": len(held["input"]), "n_seen": len(seen["input"]),
-           "scores": scores, "ms_per_patch": ms, "weights": str(gan_path),
+           "scores": scores, "ms_per_patch": ms, "weights": ec.portable_path(gan_path),
            "machine": ec.machine_info(),
            "command": "python -m experiments.patchgan " + " ".join(
                sys.argv[1:] if argv is None else argv)}

@@ -283,7 +283,7 @@ def main(argv=None) -> int:
     pooled = summarize(results, strides)
     per_cell = {k: summarize({k: r}, strides) for k, r in results.items()}
     res = {
-        "model": str(args.model), "strides": strides, "frames": frames,
+        "model": ec.portable_path(args.model), "strides": strides, "frames": frames,
         "sampling": dataclasses.asdict(sampling),
         "sampling_text": (
             f"Table 1's cells ({len(cells)}), frames {', '.join(map(str, frames))} of each, "

@@ -515,8 +515,8 @@ def main(argv=None) -> int:
             "material": cell.material, "kind": cell.kind, "n_patches": int(len(r["frame"])),
             "n_candidates_per_frame": r["n_candidates"],
             "frames_scored": sorted(set(r["frame"].tolist())),
-            "fine": str(sequences[cell.key]["fine"]),
-            "coarse": str(sequences[cell.key]["coarse"]),
+            "fine": ec.portable_path(sequences[cell.key]["fine"]),
+            "coarse": ec.portable_path(sequences[cell.key]["coarse"]),
             "sequence_source": {res: sequences[cell.key][f"{res}_info"]["source"]
                                 for res in ("fine", "coarse")},
             "methods": {k: summary(v) for k, v in sc.items()}, "timings": r["timings"]}
@@ -536,7 +536,7 @@ def main(argv=None) -> int:
         f"mesh. Input: coarse simulation (PD 30 mm); target: fine simulation (PD 10 mm) of the "
         f"same frame. Unsharp: {unsharp_src}.")
     results = {
-        "model": str(args.model), "model_config": enh.config.to_json(),
+        "model": ec.portable_path(args.model), "model_config": enh.config.to_json(),
         "model_meta": {k: v for k, v in enh.meta.items() if not isinstance(v, dict | list)},
         "methods": list(methods), "method_sources": sources,
         "unsharp": {f"order {o}": {"sigma": u[0], "amount": u[1], "source": u[2]}

@@ -632,8 +632,8 @@ def main(argv=None) -> int:
             "n_candidates_per_frame": r["n_candidates"],
             "frames_a": sorted(set(r["frame"].tolist())),
             "frames_c": sorted(set(r["frame_c"].tolist())),
-            "fine": str(sequences[cell.key]["fine"]),
-            "coarse": str(sequences[cell.key]["coarse"]),
+            "fine": ec.portable_path(sequences[cell.key]["fine"]),
+            "coarse": ec.portable_path(sequences[cell.key]["coarse"]),
             "sequence_source": {res: sequences[cell.key][f"{res}_info"]["source"]
                                 for res in ("fine", "coarse")},
             "layer_scales": r["scales"],
@@ -657,7 +657,7 @@ def main(argv=None) -> int:
         f"{', '.join(evaluation.EVAL_LAYERS)}, each layer divided by its median norm over a "
         f"and c. Unsharp: {unsharp_src}.")
     results = {
-        "model": str(args.model), "model_config": enh.config.to_json(),
+        "model": ec.portable_path(args.model), "model_config": enh.config.to_json(),
         "model_meta": {k: v for k, v in enh.meta.items() if not isinstance(v, dict | list)},
         "methods": list(methods), "method_sources": sources,
         "unsharp": {f"order {o}": {"sigma": u[0], "amount": u[1], "source": u[2]}

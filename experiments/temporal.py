@@ -184,8 +184,8 @@ def main(argv=None) -> int:
         per_sequence[cell.key] = {
             "scene": cell.scene.name, "garment": cell.garment, "motion": cell.motion,
             "material": cell.material, "kind": cell.kind,
-            "coarse_file": str(sequences[cell.key]["coarse"]),
-            "fine_file": str(sequences[cell.key]["fine"]),
+            "coarse_file": ec.portable_path(sequences[cell.key]["coarse"]),
+            "fine_file": ec.portable_path(sequences[cell.key]["fine"]),
             "patches_per_frame": res["patches_per_frame"], "texels": res["texels"],
             "summary": summ, "series": {k: res[k] for k in SERIES if k in res},
             "timings": res["timings"]}
@@ -195,7 +195,7 @@ def main(argv=None) -> int:
     ratios = [v["summary"]["output_over_fine"] for v in per_sequence.values()
               if v["summary"].get("output_over_fine") is not None]
     results = {
-        "model": str(args.model), "material_given": True,
+        "model": ec.portable_path(args.model), "material_given": True,
         "measure": "mean over garment texels of the angle (deg) between the unit normals of "
                    "consecutive frames; output = pipeline N* (no lift), coarse = its baked "
                    "input, fine = fine simulation baked at the model's texel size",

@@ -201,7 +201,8 @@ def main(argv=None) -> int:
     print(f"  {fine_info['ms_per_frame']:.1f} ms/frame", flush=True)
     results = {
         "scene": args.scene, "material": args.material, "frames": args.frames,
-        "seed": ec.TEST_SEED, "model": str(args.model), "model_width": enh.config.width,
+        "seed": ec.TEST_SEED, "model": ec.portable_path(args.model),
+        "model_width": enh.config.width,
         "coarse_sim": coarse_info, "pipeline": pipe_info, "fine_sim": fine_info,
         "ratio": ratios(coarse_info["ms_per_frame"], fine_info["ms_per_frame"],
                         pipe_info["ms_per_frame"]),

@@ -67,12 +67,19 @@ class Report:
         self.missing: list[tuple[str, str]] = []
         self.machines: dict[str, dict] = {}
         self.commands: dict[str, str] = {}
+        self._loaded: dict[str, dict | None] = {}
 
     def add(self, *lines: str) -> None:
         self.lines.extend(lines)
 
     def load(self, name: str, rel: str) -> dict | None:
-        """JSON at `<results>/<rel>`, remembering its command and machine; None if missing."""
+        """JSON at `<results>/<rel>`, remembering its command and machine; None if missing.
+        Read once per report (sections share results)."""
+        if rel not in self._loaded:
+            self._loaded[rel] = self._read(name, rel)
+        return self._loaded[rel]
+
+    def _read(self, name: str, rel: str) -> dict | None:
         path = self.results / rel
         if not path.exists():
             self.missing.append((name, COMMANDS.get(name) or "no script yet"))
@@ -125,7 +132,38 @@ def _drop(right: dict, wrong: dict, key: str) -> float | None:
 # --------------------------------------------------------------------------------------------
 
 
-def headline(rep: Report, t1, t2, timing, temporal) -> None:
+def _card_headline(card: dict | None, pg: dict | None, sheet: dict | None) -> list[str]:
+    """Headline rows from the model card's held-out patches (downsampled fine maps as input):
+    the model against its best baseline, the PatchGAN and the sheet-only ablation."""
+    rows = []
+    if card:
+        held = {m: d["heldout"]["all"] for m, d in card["methods"].items()}
+        others = [m for m in held if m not in ("model", "identity")]
+        best = max(others, key=lambda m: held[m]["signed_mean"], default=None)
+        if "model" in held and best:
+            rows.append(f"- Model card, held-out scenes ({held['model']['n']} patches, "
+                        f"downsampled fine maps as input): model signed mean "
+                        f"{_score(held['model'])} (|.| {_score(held['model'], False)}); best "
+                        f"baseline {best} {_score(held[best])} (|.| "
+                        f"{_score(held[best], False)}).")
+    if pg and "patchgan" in pg.get("summary", {}):
+        s = pg["summary"]
+        rows.append(f"- PatchGAN baseline ({pg['steps']} steps in {pg['train_s'] / 60:.0f} min, "
+                    f"the model's data and budget), model card's unseen-garment patches: "
+                    f"{s['patchgan']['unseen garment']:+.1f} against the model's "
+                    f"{s['model']['unseen garment']:+.1f} (signed).")
+    if card and sheet:
+        kind = "unseen garment"
+        a = card["methods"]["model"]["heldout"]["by_kind"].get(kind, {})
+        b = sheet["methods"]["model"]["heldout"]["by_kind"].get(kind, {})
+        if a.get("n") and b.get("n"):
+            rows.append(f"- Sheet-only training (paper Fig. 8), model card's unseen-garment "
+                        f"patches: {_score(b)} against {_score(a)} when trained on all "
+                        f"training scenes (signed).")
+    return rows
+
+
+def headline(rep: Report, t1, t2, timing, temporal, card=None, pg=None, sheet=None) -> None:
     rep.add("## Headline numbers", "")
     rows = []
     if t1:
@@ -143,6 +181,9 @@ def headline(rep: Report, t1, t2, timing, temporal) -> None:
         rows.append(f"- Table 1, unseen garments ({k.get(MODEL, {}).get('n', 0)} patches): "
                     f"model signed mean {_score(k.get(MODEL))} (paper's |.| form "
                     f"{_score(k.get(MODEL), False)}); {best}.")
+        if "patchgan" in k:
+            rows.append(f"- Table 1, unseen garments: PatchGAN signed mean "
+                        f"{_score(k['patchgan'])} (|.| {_score(k['patchgan'], False)}).")
         a = t1["all"]
         if WRONG in a:
             diff = a[MODEL]["signed_mean"] - a[WRONG]["signed_mean"]
@@ -159,6 +200,7 @@ def headline(rep: Report, t1, t2, timing, temporal) -> None:
                     f"{m['embedded']['dr']:.1f} (signed {m['embedded']['dr_signed']:+.1f}); "
                     f"full space DR {m['full']['dr']:.1f} (signed "
                     f"{m['full']['dr_signed']:+.1f}).")
+    rows += _card_headline(card, pg, sheet)
     if timing:
         r = timing["ratio"]
         rows.append(f"- Timing ({timing['scene']}, {timing['material']}): ours "
@@ -499,7 +541,9 @@ def build(results: Path) -> Report:
             "matrices of relu1_2 ... relu5_1 (100 = the fine simulation's style, 0 = the "
             "coarse input's, < 0 = further away; the paper's form takes |.|, which counts "
             "overshoot as improvement).", "")
-    headline(rep, t1, t2, timing, temporal)
+    headline(rep, t1, t2, timing, temporal, card=rep.load("model_card", "model_card/results.json"),
+             pg=rep.load("patchgan", "patchgan/results.json"),
+             sheet=rep.load("sheet_only", "sheet_only/results.json"))
     table1_section(rep, t1)
     table2_section(rep, t2)
     baselines_section(rep, t1)

@@ -895,6 +895,13 @@ def test_report_assembles_stored_results_and_names_what_is_missing(tmp_path, mon
     card = json.loads((ec.RESULTS / "model_card" / "results.json").read_text())
     unseen = card["methods"]["model"]["heldout"]["by_kind"]["unseen garment"]["signed_mean"]
     assert f"| sheet only | {unseen:+.1f} |" in text
+    # ... and the headline compares it, and the model with its best baseline, in one line each
+    assert (f"Sheet-only training (paper Fig. 8), model card's unseen-garment patches: "
+            f"{unseen:+.1f} against {unseen:+.1f}") in text
+    held = {m: d["heldout"]["all"]["signed_mean"] for m, d in card["methods"].items()}
+    best = max((m for m in held if m not in ("model", "identity")), key=held.get)
+    assert f"best baseline {best} {held[best]:+.1f}" in text
+    assert text.count("- patchgan: `python -m experiments.patchgan`") == 1  # read once
     assert report.main(["--results", str(results), "--out", str(out), "--strict"]) == 1
 
 

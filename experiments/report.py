@@ -420,16 +420,21 @@ def pareto_section(rep: Report, stride) -> None:
              else rep.load("width_old", "width_unsharp2_study/results.json"))
     if width:
         pts = [(k, v["infer_ms_per_patch"], v["heldout"]["all"]["signed_mean"],
-                v["heldout"]["all"]["n"], v["steps"]) for k, v in width.items()
-               if "heldout" in v]
+                v["heldout"]["all"]["n"], v["steps"],
+                v["heldout"]["all"]["signed_std"] / max(v["heldout"]["all"]["n"], 1) ** 0.5)
+               for k, v in width.items() if "heldout" in v]
         budget = ("equal step budget, the shipped recipe" if shipped
                   else "5-min training budget each")
         _plot(out / "pareto_width.png",
               lambda ax: _label_points(ax, [p[1] for p in pts], [p[2] for p in pts],
                                        [p[0] for p in pts]),
               "inference ms per 128x128 patch", "held-out signed score", f"width ({budget})")
-        rep.add("| model | ms/patch | held-out signed score | n | steps |", "|---|---|---|---|---|",
-                *[f"| {k} | {ms:.1f} | {s:+.1f} | {n} | {st} |" for k, ms, s, n, st in pts], "")
+        # Unpaired standard error of each mean (every width scores the same patches, so the
+        # gaps between widths are less noisy than this).
+        rep.add("| model | ms/patch | held-out signed score ± s.e. | n | steps |",
+                "|---|---|---|---|---|",
+                *[f"| {k} | {ms:.1f} | {s:+.1f} ± {se:.1f} | {n} | {st} |"
+                  for k, ms, s, n, st, se in pts], "")
         if not shipped:
             rep.add("Caveat: a session-2 study (5-minute training budget per width, order-0 "
                     "unsharp base at sigma 8), not the shipped recipe; the study at the shipped "

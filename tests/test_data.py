@@ -169,3 +169,60 @@ def test_batch_iterator_resumes_exactly(built):
     assert not np.array_equal(p0, it._perm(1))
     with pytest.raises(ValueError, match="fewer than one batch"):
         data.BatchIterator(ds, 100)
+
+
+def _pair(frames=5):
+    """A fine and a coarse 'simulation' of one 0.3 m sheet: the coarse one has the large fold
+    only, slightly shifted (coarse and fine simulations diverge), the fine one also wrinkles."""
+    meta = dict(material="denim_light", scene="sheet_x", scene_config=json.dumps(
+        {"garment": "sheet", "motion": "wind", "test_only": False}))
+    out = {}
+    for res, n, wr in (("fine", 48, 0.0015), ("coarse", 16, 0.0)):
+        g = primitives.grid_sheet(n, n, size=(0.3, 0.3))
+        xy = g.vertices[:, :2]
+        fr = [np.c_[xy, 0.02 * np.sin(12 * xy[:, 1] + t + (0.2 if res == "coarse" else 0))
+                    + wr * np.sin(140 * xy[:, 0] + 0.5 * t) * np.cos(90 * xy[:, 1])]
+              for t in range(frames)]
+        out[res] = make_sequence(np.asarray(fr, np.float32), g, metadata=meta)
+    return out["fine"], out["coarse"]
+
+
+def test_pair_dataset_holds_real_coarse_inputs_and_a_val_split(tmp_path):
+    fine, coarse = _pair()
+    cfg = dataclasses.replace(CONFIG, augment=False)
+    entries = data.build_pair_sequence(fine, coarse, "sheet_x__denim", tmp_path, cfg,
+                                       val_fraction=0.4)
+    assert [e["split"] for e in entries] == ["train", "val"]
+    assert [sorted({f for s in e["shards"] for f in s["frames"]}) for e in entries] == \
+        [[0, 1, 2], [3, 4]]  # the val split is the last frames
+    tr, val = data.PatchDataset(tmp_path, "train"), data.PatchDataset(tmp_path, "val")
+    assert len(tr) == 3 * cfg.crops_per_frame and len(val) == 2 * cfg.crops_per_frame
+    assert len(data.PatchDataset(tmp_path, "heldout")) == 0
+    b = tr.get(np.arange(len(tr)))
+    m = b["mask"][..., 0] > 0
+    for key in ("input", "target"):
+        np.testing.assert_allclose(np.linalg.norm(b[key][m] * 2 - 1, axis=-1), 1.0, atol=2e-3)
+        assert not b[key][~m].any()
+    # Input = the coarse simulation baked on the fine grid: same large fold (shifted a little),
+    # no wrinkles; the target keeps its own wrinkles.
+    d_in = np.abs(np.diff(b["input"], axis=2)).sum(-1)[m[:, :, 1:] & m[:, :, :-1]].mean()
+    d_tg = np.abs(np.diff(b["target"], axis=2)).sum(-1)[m[:, :, 1:] & m[:, :, :-1]].mean()
+    assert d_in < 0.5 * d_tg
+    assert np.corrcoef(b["input"][m][:, 1], b["target"][m][:, 1])[0, 1] > 0.7
+    # A held-out garment ignores val_fraction.
+    held = dataclasses.replace(fine, metadata={**fine.metadata, "scene_config": json.dumps(
+        {"garment": "dress", "motion": "wind", "test_only": True})})
+    e = data.build_pair_sequence(held, coarse, "dress_x", tmp_path / "h", cfg, val_fraction=0.4)
+    assert [x["split"] for x in e] == ["heldout"]
+
+
+def test_batch_iterator_origins_are_seeded_by_position(built):
+    root, _ = built
+    ds = data.PatchDataset(root, "heldout")
+    a = data.BatchIterator(ds, 4, seed=3, origins=True)
+    got = [next(a)["origins"] for _ in range(3)]
+    assert got[0].shape == (4, 2) and got[0].dtype == np.int32
+    assert not np.array_equal(got[0], got[1])
+    b = data.BatchIterator(ds, 4, seed=3, origins=True, state=data.IteratorState(0, 4))
+    np.testing.assert_array_equal(next(b)["origins"], got[1])
+    assert "origins" not in next(data.BatchIterator(ds, 4, seed=3))

@@ -242,6 +242,101 @@ def build_dataset(sources: Iterable[str | os.PathLike], root: str | os.PathLike,
     return entries
 
 
+@functools.lru_cache(maxsize=8)
+def _make_pair_crop_fn(config: PatchDataConfig):
+    """Jitted (key, (H, W, 7) stacked coarse RGB | fine RGB | mask) -> (n, S, S, 7) crops."""
+
+    def crops(key, stacked):
+        out, _, _ = patches.random_crops(key, stacked, stacked[..., 6:7],
+                                         config.crops_per_frame, config.patch_size,
+                                         config.min_coverage, augment=config.augment)
+        return out
+
+    return jax.jit(crops)
+
+
+def build_pair_sequence(fine: GarmentSequence, coarse: GarmentSequence, name: str, root: Path,
+                        config: PatchDataConfig, val_fraction: float = 0.0) -> list[dict]:
+    """Cut REAL coarse-input / fine-target pairs of one simulated frame range into shards.
+
+    Unlike `build_sequence` (input = the fine map downsampled, pixel-aligned with its target),
+    the input here is the coarse simulation of the same scene, material, seed and frame, baked
+    on the fine map's grid (`aligned.aligned_pair`), so the network sees what users give it.
+    Input and target then agree only up to the simulations' divergence; losses meant for such
+    pairs compare statistics (Gram matrices of detail maps), not pixels. The mask is where both
+    meshes cover the texel. The shard format and index are `build_sequence`'s (7 channels), so
+    `PatchDataset` reads both kinds.
+
+    Args:
+      fine, coarse: sequences of the same pattern and motion (frames (T, V, 3) meters; the
+        shorter length is used).
+      name: sequence name in the data set.
+      root: data set folder.
+      config: PatchDataConfig (its `coarse_pd` is unused: the input is not synthesized).
+      val_fraction: the last fraction of the frames of a TRAIN-split sequence goes to a "val"
+        split entry (`<name>__val`): data from training scenes set aside for recipe choices,
+        so that held-out scenes never influence them. Held-out sequences ignore it.
+    Returns:
+      the index entries written (one, or two with a val part).
+    """
+    from wrinkle_jax import aligned
+
+    info = sequence_info(fine, name)
+    split = split_of(info, config)
+    size = config.patch_size
+    pair = aligned.aligned_pair(fine.garment, coarse.garment, config.texel_size)
+    mask = np.asarray(patches.pad_to_patch(pair.mask, size)[0])
+    counts = np.asarray(patches.crop_mask_counts(jnp.asarray(mask), size))
+    if counts.max() < config.min_coverage * size * size:
+        raise ValueError(f"{name}: no {size}x{size} patch reaches {config.min_coverage:.0%} "
+                         f"coverage by both meshes at texel size {config.texel_size} m")
+    crop = _make_pair_crop_fn(config)
+    key = jax.random.key(_seed_for(name, config.seed))
+    frames = np.arange(0, min(len(fine), len(coarse)), config.frame_stride)
+    n_val = int(round(len(frames) * val_fraction)) if split == "train" else 0
+    parts = [(name, split, frames[:len(frames) - n_val])]
+    if n_val:
+        parts.append((f"{name}__val", "val", frames[len(frames) - n_val:]))
+    shard_dir = root / "shards"
+    shard_dir.mkdir(parents=True, exist_ok=True)
+    entries = []
+    for part_name, part_split, part_frames in parts:
+        shards, buf, buf_frames = [], [], []
+
+        def flush(shards=shards, buf=buf, buf_frames=buf_frames, part_name=part_name):
+            if not buf:
+                return
+            out = io.BytesIO()
+            np.save(out, np.concatenate(buf))
+            path = shard_dir / f"{part_name}_{len(shards):05d}.npy"
+            atomic_write_bytes(path, out.getvalue())
+            shards.append({"file": path.name, "frames": [int(f) for f in buf_frames]})
+            buf.clear()
+            buf_frames.clear()
+
+        for t in part_frames:
+            f_map = patches.pad_to_patch(aligned.bake_map(pair.fine, fine.frames[t]), size)[0]
+            c_map = patches.pad_to_patch(aligned.bake_map(pair.coarse, coarse.frames[t]),
+                                         size)[0]
+            stacked = np.concatenate([np.asarray(normalmap.to_rgb(c_map)) * mask,
+                                      np.asarray(normalmap.to_rgb(f_map)) * mask, mask], -1)
+            key, sub = jax.random.split(key)
+            out = _to_uint16(np.asarray(crop(sub, jnp.asarray(stacked, jnp.float32))))
+            buf.append(out)
+            buf_frames.extend([int(t)] * len(out))
+            if sum(len(b) for b in buf) >= config.shard_size:
+                flush()
+        flush()
+        entry = {"sequence": part_name, "split": part_split, **info,
+                 "material_id": material_index(info["material"]), "input": "coarse_sim",
+                 "patch_size": size, "texel_size": config.texel_size,
+                 "config": dataclasses.asdict(config), "shards": shards}
+        (root / "index").mkdir(parents=True, exist_ok=True)
+        atomic_write_text(root / "index" / f"{part_name}.json", json.dumps(entry))
+        entries.append(entry)
+    return entries
+
+
 # --------------------------------------------------------------------------------------------
 # Reading
 # --------------------------------------------------------------------------------------------
@@ -331,14 +426,17 @@ class BatchIterator:
     """Deterministic shuffled batches: epoch e visits a permutation seeded by (seed, e).
 
     The state is two integers, so a resumed run draws exactly the batches the uninterrupted
-    run would have drawn.
+    run would have drawn. With `origins`, each batch also holds "origins" (B, 2) int32: random
+    positions of the patches in a texel-noise field (`nn.unet.texel_noise`), seeded by the
+    position in the data, so a noise-driven model sees fresh noise every step.
     """
 
     def __init__(self, dataset: PatchDataset, batch_size: int, seed: int = 0,
-                 state: IteratorState = IteratorState()):
+                 state: IteratorState = IteratorState(), origins: bool = False):
         if len(dataset) < batch_size:
             raise ValueError(f"{len(dataset)} patches are fewer than one batch of {batch_size}")
         self.dataset, self.batch_size, self.seed, self.state = dataset, batch_size, seed, state
+        self.origins = origins
 
     def _perm(self, epoch: int) -> np.ndarray:
         return np.random.default_rng([self.seed, epoch]).permutation(len(self.dataset))
@@ -352,4 +450,8 @@ class BatchIterator:
             epoch, cursor = epoch + 1, 0
         idx = self._perm(epoch)[cursor:cursor + self.batch_size]
         self.state = IteratorState(epoch, cursor + self.batch_size)
-        return self.dataset.get(idx)
+        batch = self.dataset.get(idx)
+        if self.origins:
+            rng = np.random.default_rng([self.seed, epoch, cursor, 1])
+            batch["origins"] = rng.integers(0, 2**20, (len(idx), 2)).astype(np.int32)
+        return batch

@@ -60,6 +60,8 @@ class EnhancerConfig:
       coarse_pd: particle distance (m) of the coarse inputs it was trained for.
       residual_base, unsharp_sigma, unsharp_amount, residual_highpass, blur_order: the
         residual's base and its high-pass (`nn.unet.CINUNet`).
+      detail_sigma, noise_channels: the detail representation the model works in and its
+        fixed per-texel noise inputs (`nn.unet.CINUNet`); 0 for models without them.
     """
 
     width: int = 32
@@ -74,6 +76,8 @@ class EnhancerConfig:
     unsharp_amount: float = 1.0
     residual_highpass: float = 0.0
     blur_order: int = 1
+    detail_sigma: float = 0.0
+    noise_channels: int = 0
 
     def model(self, conv_impl: str = "im2col_bf16") -> unet.CINUNet:
         return unet.CINUNet(num_materials=len(self.materials), width=self.width,
@@ -82,7 +86,9 @@ class EnhancerConfig:
                             unsharp_sigma=self.unsharp_sigma,
                             unsharp_amount=self.unsharp_amount,
                             residual_highpass=self.residual_highpass,
-                            blur_order=self.blur_order, conv_impl=conv_impl)
+                            blur_order=self.blur_order, conv_impl=conv_impl,
+                            detail_sigma=self.detail_sigma,
+                            noise_channels=self.noise_channels)
 
     def material_id(self, name: str) -> int:
         if name not in self.materials:
@@ -175,7 +181,9 @@ def load_enhancer(path: str | os.PathLike | None = None,
 
 
 def make_apply(enhancer: Enhancer, clip: bool = True):
-    """Jitted ``(params, x (N, H, W, 3) RGB-form patches, material (N,) int) -> (N, H, W, 3)``.
+    """Jitted ``(params, x (N, H, W, 3) RGB-form patches, material (N,) int[, origins (N, 2)
+    int]) -> (N, H, W, 3)``; `origins` (the patches' texel positions in their UV layout) feed
+    the texel noise of models that have it, and are ignored otherwise.
 
     With `clip`, outputs are clipped to [0, 1] (the RGB form of unit normals); the parameters
     are an argument (not a closed-over constant), so one compile serves any weights of the same
@@ -184,15 +192,15 @@ def make_apply(enhancer: Enhancer, clip: bool = True):
     model = enhancer.model
 
     @jax.jit
-    def apply(params, x, material):
-        out = model.apply({"params": params}, x, material)
+    def apply(params, x, material, origins=None):
+        out = model.apply({"params": params}, x, material, origins)
         return jnp.clip(out, 0.0, 1.0) if clip else out
 
     return apply
 
 
 def enhance_patches(apply, params, inputs, materials, mask, batch_size: int = 16,
-                    timings: dict | None = None) -> np.ndarray:
+                    timings: dict | None = None, origins=None) -> np.ndarray:
     """Run a model over patches in fixed-shape batches; unit normals inside the mask.
 
     Args:
@@ -205,6 +213,7 @@ def enhance_patches(apply, params, inputs, materials, mask, batch_size: int = 16
       mask: (N, S, S, 1) garment mask (1 inside).
       batch_size: patches per call.
       timings: accumulates "network_s" (seconds in the network) and "network_patches".
+      origins: optional (N, 2) int texel positions of the patches (for texel-noise models).
     Returns:
       (N, S, S, 3) float32 RGB form: the output renormalized to unit normals inside the mask
       (as the pipeline's merge does), 0 outside.
@@ -216,7 +225,11 @@ def enhance_patches(apply, params, inputs, materials, mask, batch_size: int = 16
     t0 = time.perf_counter()
     for s in range(0, n, batch_size):
         idx = np.resize(np.arange(s, min(s + batch_size, n)), batch_size)
-        o = apply(params, jnp.asarray(inputs[idx]), jnp.asarray(mats[idx]))
+        if origins is None:
+            o = apply(params, jnp.asarray(inputs[idx]), jnp.asarray(mats[idx]))
+        else:
+            o = apply(params, jnp.asarray(inputs[idx]), jnp.asarray(mats[idx]),
+                      jnp.asarray(np.asarray(origins, np.int32)[idx]))
         outs.append(np.asarray(o)[:min(batch_size, n - s)])
     if timings is not None:
         timings["network_s"] = timings.get("network_s", 0.0) + time.perf_counter() - t0

@@ -335,8 +335,9 @@ def _compile(pipe: Pipeline) -> float:
                       _padded_mask(pipe), smooth=cfg.smooth,
                       padded_shape=pipe.padded_shape).compile()
     _extract_chunk.lower(spec((c, hp, wp, 3), f32), pipe.origins, size=size).compile()
+    noise = (spec((cfg.batch_size, 2), jnp.int32),) if enh.config.noise_channels else ()
     _network_apply(enh).lower(enh.params, spec((cfg.batch_size, size, size, 3), f32),
-                              spec((cfg.batch_size,), jnp.int32)).compile()
+                              spec((cfg.batch_size,), jnp.int32), *noise).compile()
     _merge_chunk.lower(spec((c, p, size, size, 3), f32), pipe.origins, _padded_mask(pipe),
                        spec((c, hp, wp, 3), f32), window=cfg.window, shape=pipe.shape).compile()
     if cfg.lift:
@@ -372,7 +373,8 @@ def _run_network(pipe: Pipeline, inputs, material_id: int, counts: dict):
     """U-Net over the patches of n frames, (n, P, S, S, 3) -> same shape, RGB form.
 
     Every batch holds patches of a single frame at fixed positions (a frame's last batch is
-    zero-padded), so a patch's result never depends on its neighbours in the chunk.
+    zero-padded), so a patch's result never depends on its neighbours in the chunk. Models
+    with texel noise get each patch's origin, so the noise is fixed to the cloth.
     """
     apply = _network_apply(pipe.enhancer)
     b, p = pipe.config.batch_size, pipe.num_patches
@@ -381,7 +383,12 @@ def _run_network(pipe: Pipeline, inputs, material_id: int, counts: dict):
     x = jnp.pad(inputs, ((0, 0), (0, nb * b - p), (0, 0), (0, 0), (0, 0)))
     x = x.reshape(n * nb, b, *inputs.shape[2:])
     material = jnp.full((b,), material_id, jnp.int32)
-    outs = [apply(pipe.enhancer.params, x[i], material) for i in range(n * nb)]
+    extra = [()] * nb
+    if pipe.enhancer.config.noise_channels:
+        o = np.zeros((nb * b, 2), np.int32)
+        o[:p] = pipe.origins
+        extra = [(jnp.asarray(o[k * b:(k + 1) * b]),) for k in range(nb)]
+    outs = [apply(pipe.enhancer.params, x[i], material, *extra[i % nb]) for i in range(n * nb)]
     out = jnp.stack(outs).reshape(n, nb * b, *inputs.shape[2:])[:, :p]
     counts["network"] += n * p
     counts["padding"] += n * (nb * b - p)

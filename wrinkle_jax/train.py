@@ -36,6 +36,7 @@ import optax
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from wrinkle_jax import detail
 from wrinkle_jax import metrics as metrics_lib
 from wrinkle_jax.data import BatchIterator, IteratorState, PatchDataset
 from wrinkle_jax.fileio import atomic_write_text
@@ -61,6 +62,13 @@ class TrainConfig:
       residual_base, unsharp_sigma, unsharp_amount, residual_highpass, blur_order: the
         residual's base (`nn.unet.CINUNet`:
         "input", or "unsharp" to start from unsharp masking with a learnable per-material gain).
+      detail_sigma: 0 (object space, the paper's), or the low-pass radius in texels of the
+        detail representation (`wrinkle_jax.detail`) that the model works in AND the loss is
+        taken on: style and content compare detail maps (input, output and target each with
+        its own large scale removed, on the input's branch), so coarse-input/fine-target pairs
+        whose large scales diverge can be used without pixel alignment.
+      noise_channels: fixed per-texel noise channels of the model's input (`nn.unet`); the
+        batches' random "origins" place each patch in a noise field.
       zero_init_output: with `residual`, start the output conv at zero so the untrained
         network is the identity (improvement 0) instead of input + random noise, whose style
         loss starts ~40x above the input's.
@@ -93,6 +101,8 @@ class TrainConfig:
     blur_order: int = 1
     zero_init_output: bool = True
     relative_floor: float | None = None
+    detail_sigma: float = 0.0
+    noise_channels: int = 0
     seed: int = 0
     eval_every: int = 50
     eval_batches: int = 4
@@ -106,7 +116,9 @@ class TrainConfig:
                             unsharp_sigma=self.unsharp_sigma,
                             unsharp_amount=self.unsharp_amount,
                             residual_highpass=self.residual_highpass,
-                            blur_order=self.blur_order, conv_impl=self.conv_impl)
+                            blur_order=self.blur_order, conv_impl=self.conv_impl,
+                            detail_sigma=self.detail_sigma,
+                            noise_channels=self.noise_channels)
 
     @property
     def vgg_conv_impl(self) -> str:
@@ -151,15 +163,27 @@ def create_train_state(config: TrainConfig, key, patch_size: int = 128) -> Train
 
 def _forward(config: TrainConfig, params, batch):
     """Network output in the RGB form, cut to the garment mask."""
-    out = config.model().apply({"params": params}, batch["input"], batch["material"])
+    out = config.model().apply({"params": params}, batch["input"], batch["material"],
+                               batch.get("origins"))
     return out * batch["mask"]
+
+
+def loss_images(config: TrainConfig, batch: dict, out):
+    """(input, output, target) in the representation the loss compares: the RGB forms
+    themselves, or with `detail_sigma` their detail maps on the input's branch."""
+    if config.detail_sigma <= 0:
+        return batch["input"], out, batch["target"]
+    mask = batch["mask"]
+    _, _, branch = detail.decompose(batch["input"] * 2.0 - 1.0, mask, config.detail_sigma)
+    return tuple(detail.to_detail_rgb(x, mask, config.detail_sigma, branch)
+                 for x in (batch["input"], out, batch["target"]))
 
 
 def loss_fn(params, batch, vgg_params, config: TrainConfig):
     """Scalar objective and per-sample parts (content, style, total)."""
-    out = _forward(config, params, batch)
+    inp, out, target = loss_images(config, batch, _forward(config, params, batch))
     return losses.enhancer_loss(
-        vgg_params, out, batch["input"], batch["target"], batch["mask"],
+        vgg_params, out, inp, target, batch["mask"],
         style_layers=config.style_layers, content_layer=config.content_layer,
         w_c=config.w_c, w_s=config.w_s, pool=config.pool,
         normalize_channels=config.normalize_channels, conv_impl=config.vgg_conv_impl,
@@ -211,9 +235,9 @@ def make_eval_step(config: TrainConfig, vgg_params):
     layers = tuple(sorted(set(config.style_layers) | {config.content_layer}))
 
     def eval_fn(params, batch):
-        out = _forward(config, params, batch)
+        inp, out, target = loss_images(config, batch, _forward(config, params, batch))
         n = out.shape[0]
-        feats = vgg.features(vgg_params, jnp.concatenate([batch["input"], out, batch["target"]]),
+        feats = vgg.features(vgg_params, jnp.concatenate([inp, out, target]),
                              layers=layers, pool=config.pool, conv_impl=config.vgg_conv_impl)
         f_in, f_out, f_tgt = ({k: v[i * n:(i + 1) * n] for k, v in feats.items()}
                               for i in range(3))
@@ -355,7 +379,7 @@ def plot_curves(metrics_path: Path, out_png: Path) -> None:
 def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.PathLike,
           resume: bool = False, vgg_params=None, progress: bool = True,
           time_limit_s: float | None = None, init_params=None,
-          train_scenes: tuple[str, ...] | None = None) -> dict:
+          train_scenes: tuple[str, ...] | None = None, eval_split: str = "heldout") -> dict:
     """Train (or resume training) the enhancer; returns the last metrics.
 
     Writes `out_dir/checkpoints/<step>/`, `out_dir/metrics.jsonl` (one JSON object per logged
@@ -369,6 +393,8 @@ def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.P
         run, e.g. the shipped model's; ignored when resuming from a checkpoint.
       train_scenes: train on these scenes' patches only (e.g. the sheet-only ablation); the
         held-out evaluation keeps every held-out scene.
+      eval_split: the split the periodic evaluation reads ("heldout", or "val": frames of the
+        training scenes set aside, so that recipe choices never see held-out data).
     """
     from tqdm import tqdm
 
@@ -378,11 +404,12 @@ def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.P
     out_dir.mkdir(parents=True, exist_ok=True)
     vgg_params = vgg.load_vgg19() if vgg_params is None else vgg_params
     train_set = PatchDataset(data_root, "train", scenes=train_scenes)
-    held_set = PatchDataset(data_root, "heldout")
+    held_set = PatchDataset(data_root, eval_split)
     mesh = data_mesh()
     if config.batch_size % mesh.size:
         raise ValueError(f"batch_size {config.batch_size} is not divisible by {mesh.size} devices")
-    iterator = BatchIterator(train_set, config.batch_size, seed=config.seed)
+    iterator = BatchIterator(train_set, config.batch_size, seed=config.seed,
+                             origins=config.noise_channels > 0)
     manager = _manager(out_dir / "checkpoints", config)
     # rbg keys: threefry initialization compiles ~8x slower on CPU (see unet.init_params).
     key = jax.random.key(config.seed, impl="rbg")

@@ -35,6 +35,15 @@ transposed-conv gradient) a training step ~5x faster than "xla" without any bflo
 have the same parameters (names, shapes, init), so converted weights and checkpoints work with
 any of them.
 
+Detail space and texel noise (the session-6 recipe, `experiments/results/fidelity/`): with
+`detail_sigma` > 0 the network sees and writes the *detail representation* of its input
+(`wrinkle_jax.detail`: the input's own large scale rotated to +z) and its output is rotated back
+onto the input's large scale, so it works on detail relative to the coarse simulation's shape;
+with `residual_highpass` above `detail_sigma` its residual cannot tilt that shape either. With `noise_channels` k > 0, k channels of fixed per-texel noise
+(`texel_noise`, a hash of the texel's absolute position in the UV layout, given by the patch
+`origins`) join the input: a source for wrinkle texture the coarse input lacks that is the same
+at the same cloth texel in every frame and in overlapping patches, so frames stay coherent.
+
 Interop: `from_torch_state_dict` converts the authors' PyTorch state dict (modules
 `E1_Conv2d`..`E4_Conv2d`, `D1_Deconv2d`..`D4_Deconv2d`, `D{1..4}_CIN.inns.{k}.weight|bias`,
 `out_Conv2d`) into our parameters; `load_torch_checkpoint` reads their `torch.save` file through
@@ -53,7 +62,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax import sharpen
+from wrinkle_jax import detail, sharpen
 from wrinkle_jax.nn import fastconv
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -118,6 +127,11 @@ class CINUNet(nn.Module):
       norm: the conditional normalization layer factory (called with num_materials).
       dtype: computation dtype of the "xla" convolutions (parameters stay float32).
       conv_impl: "xla", "im2col_bf16" (fast on CPU) or "im2col_f32" (see the module docstring).
+      detail_sigma: 0, or the low-pass radius (texels) of the detail representation the network
+        works in (see the module docstring); the output is then unit normals on the input's
+        large scale, 0 outside the mask.
+      noise_channels: number of fixed per-texel noise channels appended to the input
+        (`texel_noise`; needs the patches' `origins` for UV-coherent noise).
     """
 
     num_materials: int = 5
@@ -132,26 +146,40 @@ class CINUNet(nn.Module):
     norm: Callable[..., nn.Module] = CIN
     dtype: jnp.dtype = jnp.float32
     conv_impl: str = "xla"
+    detail_sigma: float = 0.0
+    noise_channels: int = 0
 
     @nn.compact
-    def __call__(self, x, material):
+    def __call__(self, x, material, origins=None):
         """Enhance patches.
 
         Args:
           x: (N, H, W, 3) float, RGB form of normal-map patches in [0, 1]; H and W divisible
             by 16 (128 in the paper).
           material: (N,) int material ids (see `wrinkle_jax.MATERIALS`).
+          origins: (N, 2) int (row, col) texel position of each patch in its UV layout, for
+            the texel noise (`noise_channels` > 0); None puts every patch at (0, 0).
         Returns:
           (N, H, W, 3) float32 enhanced patches in the same RGB form (not clipped).
         """
         if x.shape[1] % 16 or x.shape[2] % 16:
             raise ValueError(f"patch size must be divisible by 16, got {x.shape[1:3]}")
         material = jnp.asarray(material, jnp.int32).reshape(x.shape[0])
-        h = x.astype(jnp.float32)
+        x = x.astype(jnp.float32)
+        mask = sharpen.mask_from_rgb(x)  # one mask for detail, high-pass and unsharp base
+        if self.detail_sigma > 0:
+            d, large, branch = detail.decompose(x * 2.0 - 1.0, mask, self.detail_sigma)
+            x = (d + 1.0) * 0.5 * mask
+        h = x
         if self.input_norm == "imagenet":
             h = (h - jnp.asarray(IMAGENET_MEAN)) / jnp.asarray(IMAGENET_STD)
         elif self.input_norm != "none":
             raise ValueError(f"unknown input_norm {self.input_norm!r}")
+        if self.noise_channels > 0:
+            if origins is None:
+                origins = jnp.zeros((x.shape[0], 2), jnp.int32)
+            noise = texel_noise(origins, x.shape[1], x.shape[2], self.noise_channels)
+            h = jnp.concatenate([h, noise * mask], axis=-1)
         if self.conv_impl not in CONV_IMPLS:
             raise ValueError(f"unknown conv_impl {self.conv_impl!r}; expected one of "
                              f"{', '.join(CONV_IMPLS)}")
@@ -189,20 +217,52 @@ class CINUNet(nn.Module):
         if compute is not None:  # 1% of the FLOPs: keep the output's last rounding float32
             conv = functools.partial(conv, compute_dtype=jnp.float32)
         out = conv(3, name="out")(h).astype(jnp.float32)
-        if not self.residual:
-            return out
-        base = x.astype(jnp.float32)
-        mask = sharpen.mask_from_rgb(base)  # one mask for the high-pass and the unsharp base
-        if self.residual_highpass > 0:
-            out = out - sharpen.masked_blur(out, mask, self.residual_highpass, self.blur_order)
-        if self.residual_base == "unsharp":
-            gain = self.param("unsharp_amount", nn.initializers.constant(self.unsharp_amount),
-                              (self.num_materials,), jnp.float32)
-            base = sharpen.unsharp_rgb(base, self.unsharp_sigma, gain[material], mask,
-                                      self.blur_order)
-        elif self.residual_base != "input":
-            raise ValueError(f"unknown residual_base {self.residual_base!r}")
-        return base + out
+        if self.residual:
+            base = x
+            if self.residual_highpass > 0:
+                out = out - sharpen.masked_blur(out, mask, self.residual_highpass,
+                                                self.blur_order)
+            if self.residual_base == "unsharp":
+                gain = self.param("unsharp_amount",
+                                  nn.initializers.constant(self.unsharp_amount),
+                                  (self.num_materials,), jnp.float32)
+                base = sharpen.unsharp_rgb(base, self.unsharp_sigma, gain[material], mask,
+                                          self.blur_order)
+            elif self.residual_base != "input":
+                raise ValueError(f"unknown residual_base {self.residual_base!r}")
+            out = base + out
+        if self.detail_sigma > 0:
+            out = detail.from_detail_rgb(out, large, branch, mask)
+        return out
+
+
+def texel_noise(origins, height: int, width: int, channels: int, seed: int = 0):
+    """Fixed per-texel noise: a hash of each texel's absolute (row, col) and the channel.
+
+    The same texel of a UV layout gets the same values in every frame and in every patch that
+    covers it, so noise-driven detail neither flickers nor disagrees between overlapping
+    patches.
+
+    Args:
+      origins: (N, 2) int (row, col) of each patch's top-left texel in the layout.
+      height, width, channels: patch size and number of noise channels.
+      seed: selects another noise field.
+    Returns:
+      (N, height, width, channels) float32, uniform with zero mean and unit variance.
+    """
+    o = jnp.asarray(origins).astype(jnp.uint32)
+    r = o[:, 0, None, None, None] + jnp.arange(height, dtype=jnp.uint32)[None, :, None, None]
+    c = o[:, 1, None, None, None] + jnp.arange(width, dtype=jnp.uint32)[None, None, :, None]
+    k = jnp.arange(channels, dtype=jnp.uint32)[None, None, None, :] + jnp.uint32(seed * 977 + 1)
+    # Integer mixing (multiply-xorshift, "lowbias32"); uint32 arithmetic wraps modulo 2^32.
+    v = r * jnp.uint32(0x8DA6B343) ^ c * jnp.uint32(0xD8163841) ^ k * jnp.uint32(0xCB1AB31F)
+    v = v ^ (v >> 16)
+    v = v * jnp.uint32(0x7FEB352D)
+    v = v ^ (v >> 15)
+    v = v * jnp.uint32(0x846CA68B)
+    v = v ^ (v >> 16)
+    u = (v >> 8).astype(jnp.float32) * (1.0 / 2**24)  # [0, 1), 24 bits
+    return (u - 0.5) * np.float32(np.sqrt(12.0))
 
 
 def _max_pool2(x):

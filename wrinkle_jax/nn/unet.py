@@ -39,7 +39,8 @@ Detail space and texel noise (the session-6 recipe, `experiments/results/fidelit
 `detail_sigma` > 0 the network sees and writes the *detail representation* of its input
 (`wrinkle_jax.detail`: the input's own large scale rotated to +z) and its output is rotated back
 onto the input's large scale, so it works on detail relative to the coarse simulation's shape;
-with `residual_highpass` above `detail_sigma` its residual cannot tilt that shape either. With `noise_channels` k > 0, k channels of fixed per-texel noise
+with `residual_highpass` above `detail_sigma` its residual cannot tilt that shape either.
+With `noise_channels` k > 0, k channels of fixed per-texel noise
 (`texel_noise`, a hash of the texel's absolute position in the UV layout, given by the patch
 `origins`) join the input: a source for wrinkle texture the coarse input lacks that is the same
 at the same cloth texel in every frame and in overlapping patches, so frames stay coherent.

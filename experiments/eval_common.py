@@ -427,15 +427,18 @@ def enhancer_method(enh: enhancer_lib.Enhancer, batch_size: int = 16,
     apply = enhancer_lib.make_apply(enh)
     timings = {} if timings is None else timings
     size = enh.config.patch_size
+    noise = bool(enh.config.noise_channels)  # texel-noise models read the patch origins
     t0 = time.perf_counter()
     apply(enh.params, jnp.zeros((batch_size, size, size, 3), jnp.float32),
-          jnp.zeros((batch_size,), jnp.int32)).block_until_ready()
+          jnp.zeros((batch_size,), jnp.int32),
+          *((jnp.zeros((batch_size, 2), jnp.int32),) if noise else ())).block_until_ready()
     timings["compile_s"] = time.perf_counter() - t0
 
     def run(p: PatchSet) -> np.ndarray:
         mid = p.material_id if material_of is None else material_of(p.material_id)
         return enhancer_lib.enhance_patches(apply, enh.params, p.input, mid, p.mask,
-                                            batch_size, timings)
+                                            batch_size, timings,
+                                            origins=p.origins if noise else None)
 
     return run
 

@@ -132,3 +132,33 @@ def test_paired_difference_and_bootstrap():
     assert evaluation.paired_difference(a, b, valid)["n"] == 10
     assert evaluation.paired_difference(a[:0], b[:0])["n"] == 0
     assert np.isnan(evaluation.bootstrap_ci([])[0])
+
+
+def _ripple_rgb(wavelength, amp=0.1, size=64):
+    x = np.arange(size)
+    nx = amp * np.sin(2 * np.pi * x / wavelength)
+    n = np.zeros((1, size, size, 3))
+    n[..., 0] = nx[None, None, :]
+    n[..., 2] = 1
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return ((n + 1) / 2).astype(np.float32)
+
+
+def test_band_rms_puts_each_wavelength_in_its_band():
+    mask = np.ones((1, 64, 64, 1), np.float32)
+    fine = evaluation.band_rms(_ripple_rgb(4.0), mask)     # 8 mm at 2 mm texels
+    mid = evaluation.band_rms(_ripple_rgb(16.0), mask)     # 32 mm
+    amp_rms = 0.1 / np.sqrt(2)
+    assert fine["lt16mm"][0] > 0.8 * amp_rms and fine["16_64mm"][0] < 0.2 * amp_rms
+    assert mid["16_64mm"][0] > 0.6 * amp_rms and mid["lt16mm"][0] < 0.2 * amp_rms
+
+
+def test_checker_rms_sees_the_two_texel_checkerboard_only():
+    mask = np.ones((1, 32, 32, 1), np.float32)
+    smooth = _ripple_rgb(16.0, size=32)
+    n = smooth * 2 - 1
+    i, j = np.mgrid[0:32, 0:32]
+    n[..., 0] += 0.02 * (-1.0) ** (i + j)
+    checker = ((n / np.linalg.norm(n, axis=-1, keepdims=True) + 1) / 2).astype(np.float32)
+    assert evaluation.checker_rms(smooth, mask)[0] < 2e-3
+    np.testing.assert_allclose(evaluation.checker_rms(checker, mask)[0], 0.02, rtol=0.1)

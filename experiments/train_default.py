@@ -47,7 +47,8 @@ def config_from_args(args) -> train.TrainConfig:
                              residual_base=args.residual_base, unsharp_sigma=args.unsharp_sigma,
                              unsharp_amount=args.unsharp_amount,
                              residual_highpass=args.residual_highpass,
-                             blur_order=args.blur_order)
+                             blur_order=args.blur_order, detail_sigma=args.detail_sigma,
+                             noise_channels=args.noise_channels, batch_size=args.batch_size)
 
 
 def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None,
@@ -66,7 +67,8 @@ def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None,
                                     unsharp_sigma=cfg.unsharp_sigma,
                                     unsharp_amount=cfg.unsharp_amount,
                                     residual_highpass=cfg.residual_highpass,
-                                    blur_order=cfg.blur_order)
+                                    blur_order=cfg.blur_order, detail_sigma=cfg.detail_sigma,
+                                    noise_channels=cfg.noise_channels)
     rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if x]
     train_s = float(sum(r.get("step_s", 0.0) for r in rows if r["kind"] == "train"))
     evals = [r for r in rows if r["kind"] == "eval"]
@@ -106,6 +108,12 @@ def add_recipe_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--blur-order", type=int, default=1, choices=(0, 1),
                     help="masked blur of the unsharp base and the high-pass: 1 = local plane "
                          "(flat tilted panels pass unchanged), 0 = local mean (pre-session-4)")
+    ap.add_argument("--detail-sigma", type=float, default=0.0,
+                    help="texels; > 0: the model and the loss work on detail maps "
+                         "(wrinkle_jax.detail), for real coarse/fine pairs (data/pairs)")
+    ap.add_argument("--noise-channels", type=int, default=0,
+                    help="fixed per-texel noise inputs (nn.unet.texel_noise)")
+    ap.add_argument("--batch-size", type=int, default=8)
 
 
 def main(argv=None) -> None:
@@ -119,6 +127,9 @@ def main(argv=None) -> None:
     ap.add_argument("--minutes", type=float, default=40.0)
     ap.add_argument("--warm-start", action="store_true")
     ap.add_argument("--export-only", action="store_true")
+    ap.add_argument("--eval-split", default="heldout",
+                    help="split of the periodic evaluation: heldout, or val (pair data: frames "
+                         "of the training scenes, so no held-out data guides the recipe)")
     ap.add_argument("--train-scenes", default=None,
                     help="train on these scenes only (comma-separated; e.g. sheet_balls_wind "
                          "for the sheet-only ablation, paper Fig. 8)")
@@ -143,7 +154,7 @@ def main(argv=None) -> None:
             init = restore_params(Path(args.init_from))[1].params
         train.train(cfg, data_root, run, resume=True, vgg_params=vgg.load_vgg19(),
                     progress=False, time_limit_s=60 * args.minutes, init_params=init,
-                    train_scenes=scenes)
+                    train_scenes=scenes, eval_split=args.eval_split)
     path = export(run, Path(args.out), data_root, round(time.time() - t0, 1), scenes)
     size = path.stat().st_size
     print(json.dumps({"exported": str(path), "bytes": size,

@@ -1,0 +1,285 @@
+"""Detail-only evaluation on real coarse simulations: ceilings, baselines and models.
+
+    python -m experiments.fidelity sweep [--data data/pairs]     # unsharp settings, val split
+    python -m experiments.fidelity score [--model NAME=PATH ...] [--cells unseen|all]
+    python -m experiments.fidelity report                         # results.json + README.md
+
+`sweep` picks the unsharp mask (order 1; sigma x amount grid) with the best median detail-only
+score on the VAL split of the pair data set (`experiments.make_pair_dataset`: last frames of
+the training scenes), so the baseline is tuned without held-out data.
+
+`score` draws Table 1's patches (`eval_common`: first 200 frames, seed 1, every
+`--frame-stride`-th frame, 8 patches per frame among grid patches >= 50 % covered by both
+meshes; the same origins as Table 1 for the frames it shares) from the coarse and fine
+simulations of each cell and scores, against the fine patch of the same frame:
+
+  identity, unsharp       the input, and the swept unsharp mask
+  shipped, NAME ...       the shipped enhancer and every --model
+  oracle_detail           the coarse patch's own large scale + the fine patch's exact detail
+                          (`wrinkle_jax.detail`): the ceiling of a detail enhancer
+  oracle_downsampled      the fine map downsampled as in the old training data (D): fine
+                          large scale, no detail
+  oracle_next_frame       the fine patch of the next frame (t + 1)
+
+with the detail-only score (primary; `evaluation.score_patches(detail_sigma=...)`) and, for
+the non-oracle methods and oracle_detail, the paper's object-space score; plus the band RMS of
+each output's detail (< 16 mm, 16-64 mm; `evaluation.band_rms`) and the 2-texel checkerboard
+RMS (`evaluation.checker_rms`). Cells are cached under `experiments/results/fidelity/cells/`
+method by method (models by file digest), so adding a model scores only it.
+
+`report` pools the cells: per method the signed median and mean, the paired median difference
+against unsharp with its 95 % bootstrap interval, per-cell medians, band-energy ratios to the
+fine simulation's and the checkerboard level.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from experiments import eval_common as ec
+from wrinkle_jax import data, detail, enhancer, evaluation, material_index, normalmap, patches
+from wrinkle_jax.nn import vgg
+
+OUT = ec.RESULTS / "fidelity"
+SIGMA = detail.DEFAULT_SIGMA
+SWEEP = [(s, a) for s in (2.0, 4.0, 8.0, 16.0) for a in (0.5, 1.0, 2.0, 3.0)]
+ORACLES = ("oracle_detail", "oracle_downsampled", "oracle_next_frame")
+OBJECT_SPACE = ("identity", "unsharp", "oracle_detail")  # + every model
+
+
+def sweep(args, vgg_params) -> dict:
+    ds = data.PatchDataset(args.data, "val")
+    idx = np.linspace(0, len(ds) - 1, min(args.sweep_patches, len(ds))).round().astype(int)
+    b = ds.get(np.unique(idx))
+    inp, tgt, mask = b["input"], b["target"], b["mask"]
+    _, _, branch = detail.decompose(inp * 2.0 - 1.0, mask, SIGMA)
+
+    def det(x):
+        return np.asarray(detail.to_detail_rgb(x, mask, SIGMA, branch))
+
+    outs = {f"sigma={s:g},amount={a:g}": det(evaluation.unsharp_mask(inp, mask, s, a, order=1))
+            for s, a in SWEEP}
+    losses = ec.method_losses(vgg_params, det(inp), det(tgt), mask, outs)
+    res = {}
+    for k in outs:
+        sc = evaluation.scores_from_losses(losses["input"], losses[k])
+        res[k] = float(np.median(sc["improvement_signed"][sc["valid"]]))
+        print(f"unsharp {k}: median detail score {res[k]:+.1f}", flush=True)
+    best = max(res, key=res.get)
+    got = {"split": "val", "patches": int(len(inp)), "detail_sigma": SIGMA,
+           "median_detail_score": res, "best": best, "data": ec.portable_path(args.data)}
+    ec.write_json(OUT / "unsharp_sweep.json", got)
+    return got
+
+
+def unsharp_best() -> tuple[float, float]:
+    best = json.loads((OUT / "unsharp_sweep.json").read_text())["best"]
+    kv = dict(p.split("=") for p in best.split(","))
+    return float(kv["sigma"]), float(kv["amount"])
+
+
+def _cell_file(cell: ec.Cell) -> Path:
+    return OUT / "cells" / f"{cell.scene.name}__{cell.material}.npz"
+
+
+def _load_cell(path: Path) -> dict:
+    if not path.exists():
+        return {}
+    with np.load(path, allow_pickle=False) as z:
+        return json.loads(str(z["json"]))
+
+
+def score_cell(cell: ec.Cell, methods: dict, sources: dict, vgg_params, args) -> dict:
+    """Scores of `methods` (name -> callable(PatchSet, extras) -> outputs) on one cell, merged
+    into the cached ones (a method is recomputed only when its source changed)."""
+    path = _cell_file(cell)
+    cached = _load_cell(path)
+    frames = list(range(0, args.frames - 1, args.frame_stride))
+    fp = {"frames": frames, "patches_per_frame": args.patches, "sigma": SIGMA}
+    if cached.get("fingerprint") != fp:
+        cached = {}
+    todo = {k: f for k, f in methods.items()
+            if k not in cached.get("methods", {}) or cached["sources"].get(k) != sources[k]}
+    if not todo and cached:
+        return cached
+    seqs = ec.cell_sequences(cell, args.frames, log=lambda m: print(m, flush=True))
+    fine = ec.load_first_frames(seqs["fine"], args.frames)  # t + 1 <= the last frame
+    coarse = ec.load_first_frames(seqs["coarse"], args.frames)
+    size = 128
+    pair = ec.aligned_pair(fine.garment, coarse.garment, normalmap.DEFAULT_TEXEL_SIZE)
+    mask_full = np.asarray(patches.pad_to_patch(pair.mask, size)[0])
+    cand, _ = ec.candidate_origins(mask_full, size, size // 2, 0.5)
+    mid = material_index(cell.material)
+    got = {k: {"detail": [], "object": [], "lt16mm": [], "16_64mm": [], "checker": []}
+           for k in [*todo, "input", "target"]}
+    for t in frames:
+        sel = ec.choose_origins(cand, args.patches, (0, *cell.patch_seed, t))
+        ps = ec.aligned_patches(pair, fine.frames[t], coarse.frames[t], sel, size, mid)
+        extras = {"next": ec.aligned_patches(pair, fine.frames[t + 1], coarse.frames[t], sel,
+                                             size, mid).target,
+                  "fine_map": fine.frames[t], "pair": pair}
+        outs = {k: np.asarray(f(ps, extras), np.float32) * ps.mask for k, f in todo.items()}
+        _, _, branch = detail.decompose(ps.input * 2.0 - 1.0, ps.mask, SIGMA)
+        d = {k: np.asarray(detail.to_detail_rgb(v, ps.mask, SIGMA, branch))
+             for k, v in {"input": ps.input, "target": ps.target, **outs}.items()}
+        det = ec.method_losses(vgg_params, d["input"], d["target"], ps.mask,
+                               {k: d[k] for k in outs})
+        obj_names = [k for k in outs if k in OBJECT_SPACE or k not in (*ORACLES, "unsharp")]
+        obj = ec.method_losses(vgg_params, ps.input, ps.target, ps.mask,
+                               {k: outs[k] for k in obj_names})
+        for k in [*outs, "input", "target"]:
+            bands = evaluation.band_rms(d[k], ps.mask)
+            img = {"input": ps.input, "target": ps.target, **outs}[k]
+            got[k]["lt16mm"] += bands["lt16mm"].tolist()
+            got[k]["16_64mm"] += bands["16_64mm"].tolist()
+            got[k]["checker"] += evaluation.checker_rms(img, ps.mask).tolist()
+        got["input"]["detail"] += det["input"].tolist()
+        got["input"]["object"] += obj["input"].tolist()
+        for k in outs:
+            got[k]["detail"] += det[k].tolist()
+            got[k]["object"] += obj[k].tolist() if k in obj else []
+        print(f"  {cell.key} frame {t}: " + ", ".join(
+            f"{k} {np.median(100 * (1 - det[k] / det['input'])):+.0f}" for k in outs),
+            flush=True)
+    result = {"cell": cell.key, "kind": cell.kind, "fingerprint": fp,
+              "sources": {**cached.get("sources", {}), **{k: sources[k] for k in todo}},
+              "loss_input": {"detail": got["input"]["detail"], "object": got["input"]["object"]},
+              "bands": {k: {b: got[k][b] for b in ("lt16mm", "16_64mm", "checker")}
+                        for k in ("input", "target")},
+              "methods": {**cached.get("methods", {}), **{k: got[k] for k in todo}}}
+    if cached.get("bands"):  # keep the stored input/target bands (same patches)
+        result["bands"] = cached["bands"]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    import io
+
+    buf = io.BytesIO()
+    np.savez_compressed(buf, json=np.asarray(json.dumps(result)))
+    from wrinkle_jax.fileio import atomic_write_bytes
+
+    atomic_write_bytes(path, buf.getvalue())
+    return result
+
+
+def build_methods(args) -> tuple[dict, dict]:
+    s, a = unsharp_best()
+    methods = {
+        "identity": lambda p, e: p.input,
+        "unsharp": lambda p, e: evaluation.unsharp_mask(p.input, p.mask, s, a, order=1),
+    }
+    sources = {"identity": "identity", "unsharp": f"order=1,sigma={s:g},amount={a:g}"}
+    models = {"shipped": str(enhancer.DEFAULT_PATH)}
+    for spec in args.model:
+        name, path = spec.split("=", 1)
+        models[name] = path
+    for name, path in models.items():
+        enh = enhancer.load_enhancer(path)
+        methods[name] = (lambda fn: (lambda p, e: fn(p)))(ec.enhancer_method(enh))
+        sources[name] = ec.file_digest(path)
+    if args.ceilings:
+        def oracle_detail(p, e):
+            d_in, large, branch = detail.decompose(p.input * 2.0 - 1.0, p.mask, SIGMA)
+            d_f = detail.to_detail_rgb(p.target, p.mask, SIGMA, branch)
+            return detail.from_detail_rgb(d_f, large, branch, p.mask)
+
+        def oracle_down(p, e):
+            fmap = ec.bake_map(e["pair"].fine, e["fine_map"])
+            m = np.asarray(e["pair"].mask)
+            down = normalmap.downsample_like_coarse(fmap, m, 0.03 / normalmap.DEFAULT_TEXEL_SIZE)
+            img = normalmap.to_rgb(patches.pad_to_patch(np.asarray(down), 128)[0])
+            return ec.cut(np.asarray(img), p.origins, 128)
+
+        methods.update({"oracle_detail": oracle_detail, "oracle_downsampled": oracle_down,
+                        "oracle_next_frame": lambda p, e: e["next"]})
+        sources.update({k: k for k in ORACLES})
+    return methods, sources
+
+
+def summarize(cells: list[dict]) -> dict:
+    out = {}
+    kinds = {"unseen garment": [c for c in cells if c["kind"] == "unseen garment"],
+             "seen garment": [c for c in cells if c["kind"] != "unseen garment"]}
+    for kind, cs in kinds.items():
+        if not cs:
+            continue
+        names = [k for k in cs[0]["methods"] if all(k in c["methods"] for c in cs)]
+        res = {"cells": [c["cell"] for c in cs], "methods": {}}
+        for space in ("detail", "object"):
+            li = np.concatenate([c["loss_input"][space] for c in cs])
+            scores = {}
+            for k in names:
+                lo = np.concatenate([c["methods"][k][space] for c in cs])
+                if len(lo) != len(li):
+                    continue
+                scores[k] = evaluation.scores_from_losses(li, lo)
+            for k, sc in scores.items():
+                v = sc["valid"]
+                entry = res["methods"].setdefault(k, {})
+                entry[space] = {"n": int(v.sum()),
+                                "signed_median": float(np.median(sc["improvement_signed"][v])),
+                                "signed_mean": float(np.mean(sc["improvement_signed"][v])),
+                                "abs_mean": float(np.mean(sc["improvement"][v]))}
+                if "unsharp" in scores and k != "unsharp":
+                    entry[space]["vs_unsharp"] = evaluation.paired_difference(
+                        sc["improvement_signed"], scores["unsharp"]["improvement_signed"],
+                        v & scores["unsharp"]["valid"])
+                per_cell, start = {}, 0
+                for c in cs:
+                    n = len(c["loss_input"][space])
+                    sl = slice(start, start + n)
+                    per_cell[c["cell"]] = float(np.median(sc["improvement_signed"][sl][v[sl]]))
+                    start += n
+                entry[space]["cell_medians"] = per_cell
+        tgt = {b: np.concatenate([c["bands"]["target"][b] for c in cs])
+               for b in ("lt16mm", "16_64mm", "checker")}
+        res["fine_bands"] = {b: float(np.mean(v)) for b, v in tgt.items()}
+        for k in ["input", *names]:
+            src = [c["bands"]["input"] if k == "input" else c["methods"][k] for c in cs]
+            e = res["methods"].setdefault(k, {})
+            e["bands"] = {b: float(np.mean(np.concatenate([s[b] for s in src])))
+                          for b in ("lt16mm", "16_64mm", "checker")}
+            e["band_ratio_to_fine"] = {b: e["bands"][b] / max(res["fine_bands"][b], 1e-12)
+                                       for b in ("lt16mm", "16_64mm", "checker")}
+        out[kind] = res
+    return out
+
+
+def main(argv=None) -> int:
+    ap = ec.script_parser(__doc__)
+    ap.add_argument("command", choices=("sweep", "score", "report"))
+    ap.add_argument("--data", default=str(ec.ROOT / "data" / "pairs"))
+    ap.add_argument("--sweep-patches", type=int, default=96)
+    ap.add_argument("--model", action="append", default=[], metavar="NAME=PATH")
+    ap.add_argument("--cells", default="unseen", choices=("unseen", "all"))
+    ap.add_argument("--frames", type=int, default=200)
+    ap.add_argument("--frame-stride", type=int, default=40)
+    ap.add_argument("--patches", type=int, default=8)
+    ap.add_argument("--ceilings", type=int, default=1)
+    args = ap.parse_args(argv)
+    if args.command == "report":
+        cells = [_load_cell(p) for p in sorted((OUT / "cells").glob("*.npz"))]
+        summary = summarize([c for c in cells if c])
+        ec.write_json(OUT / "results.json", summary)
+        print(json.dumps({k: {m: {s: v[s]["signed_median"] for s in ("detail", "object")
+                                  if s in v} for m, v in r["methods"].items()}
+                          for k, r in summary.items()}, indent=1))
+        return 0
+    vgg_params = vgg.load_vgg19()
+    if args.command == "sweep":
+        print(json.dumps(sweep(args, vgg_params)["best"]))
+        return 0
+    methods, sources = build_methods(args)
+    cells = [c for c in ec.table_cells()
+             if args.cells == "all" or c.kind == "unseen garment"]
+    t0 = time.perf_counter()
+    for cell in cells:
+        score_cell(cell, methods, sources, vgg_params, args)
+        print(f"{cell.key} done at {time.perf_counter() - t0:.0f} s", flush=True)
+    return main(["report"])
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

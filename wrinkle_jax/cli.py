@@ -188,7 +188,7 @@ def _run_enhance(input_path: Path, out: Path, args, model: Path | None = None,
         outdir.check_out_dir(out, args.force)
         enh = enhancer_lib.load_enhancer(model)
         notes = []
-        if getattr(args, "texel_size", None) and not demo:
+        if getattr(args, "texel_size", None) is not None and not demo:
             if not args.texel_size > 0:
                 raise _UsageError(f"--texel-size must be positive, got {args.texel_size}")
             notes.append(f"texel size {args.texel_size} m instead of the model's "

@@ -90,8 +90,8 @@ def _unit_hint(diagonal: float) -> str:
     fits = [(abs(math.log10(diagonal * f)), u, f) for u, f in UNIT_SCALES.items()
             if u in names and lo <= diagonal * f <= hi]
     if fits and diagonal > hi:
-        _, unit, factor = min(fits)
-        return f"it is probably in {names[unit]}: pass --units {unit} (or --scale {factor:g})"
+        guesses = " or ".join(f"{names[u]} (--units {u})" for _, u, _ in sorted(fits))
+        return f"it is probably in {guesses}; or pass --scale S to convert it to meters"
     factor = 10.0 ** round(math.log10(1.0 / max(diagonal, 1e-30)))
     return f"if it is not in meters, pass --scale S to convert it (e.g. --scale {factor:g})"
 
@@ -179,7 +179,9 @@ def check_budget(garment, texel_size: float, patch_size: int | None, stride: int
         patches, e.g. a bake);
       lift: whether the lift runs; target_edge: its mean edge length, meters.
     Returns:
-      {"map_shape": (H, W), "patches_per_frame": upper bound, "lift_vertices": estimate}.
+      {"map_shape": (H, W), "patches_per_frame": upper bound (0 without patches),
+      "lift_vertices": estimate (0 without lift)}, plus "warning" when the garment is smaller
+      than one patch (a likely unit mistake, but a glove can be that small).
     Raises:
       InputError: over `MAX_MAP_TEXELS`, `MAX_PATCHES_PER_FRAME` or `MAX_LIFT_VERTICES`; the
         message gives the numbers and the fixes (units, --texel-size).
@@ -215,8 +217,15 @@ def check_budget(garment, texel_size: float, patch_size: int | None, stride: int
         raise InputError(f"{source}: {area:.3g} m^2 of cloth at {texel_size * 1e3:g} mm per "
                          f"texel needs {' and '.join(over)}; is the garment in meters (--units, "
                          f"--scale)? Otherwise use a larger --texel-size or --no-lift")
-    return {"map_shape": (h, w), "patches_per_frame": rows * cols,
-            "lift_vertices": lift_vertices}
+    budget = {"map_shape": (h, w), "patches_per_frame": rows * cols,
+              "lift_vertices": lift_vertices}
+    inner = (h - 2 * layout.margin, w - 2 * layout.margin)
+    if patch_size and max(inner) < patch_size:
+        budget["warning"] = (f"{source}: the garment covers only {inner[0]}x{inner[1]} texels "
+                             f"at {texel_size * 1e3:g} mm, less than one {patch_size}-texel patch "
+                             f"({patch_size * texel_size:g} m); if it is not in meters, pass "
+                             f"--units or --scale")
+    return budget
 
 
 _FRAMES = re.compile(r"^\s*(-?\d+)?\s*(?::\s*(-?\d+)?\s*(?::\s*(-?\d+)?\s*)?)?$")
@@ -284,10 +293,12 @@ def load_checked(input_path: Path, args, texel_size: float, patch_size: int | No
                                    {**seq.metadata, "unit_scale": factor}, str(input_path))
     g = seq.garment
     src = str(input_path)
-    check_scale(g.vertices, g.faces, src)
     warnings = check_faces(g.vertices, g.faces, g.uvs, g.uv_faces, src)
+    check_scale(g.vertices, g.faces, src)
     sel = list(parse_frames(args.frames, len(seq)))
     budget = check_budget(g, texel_size, patch_size, stride or patch_size, lift, lift_edge, src)
+    if budget.get("warning"):
+        warnings.append(budget.pop("warning"))
     return seq, sel, warnings, budget
 
 

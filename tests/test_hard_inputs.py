@@ -24,6 +24,7 @@ import pytest
 from wrinkle_jax import cli, meshio, normalmap, outdir, primitives, validate
 
 ROOT = Path(__file__).resolve().parents[1]
+DEMO = ROOT / "wrinkle_jax" / "assets" / "demo_skirt.npz"
 FAIL_WITHIN_S = 10.0
 
 
@@ -213,6 +214,12 @@ FAILING = [
     ("x0.001", _npz_case(scale=0.001), [], 1, ["in.npz", "too small", "--scale 10000"]),
     ("x30", _npz_case(scale=30.0), [], 1, ["in.npz", "6 units across", "too large",
                                            "--scale 0.1"]),
+    # The bundled skirt (1.1 m across) as a user would scale it by mistake; the old code spent
+    # minutes and gigabytes in set-up on x10 and crashed or silently made a tiny map on x0.001.
+    ("skirt x10", lambda d: str(DEMO), ["--scale", "10"], 1,
+     ["demo_skirt.npz", "11.06 units across", "too large", "centimetres (--units cm)"]),
+    ("skirt x0.001", lambda d: str(DEMO), ["--scale", "0.001"], 1,
+     ["demo_skirt.npz", "0.001106 units across", "too small", "--scale 1000"]),
     ("map over budget", None, ["--texel-size", "0.00002"], 1,
      ["seq.npz", "M texels", "larger --texel-size"]),
     ("zero-area faces", _degenerate(10), ["--material", "wool_melton"], 1,

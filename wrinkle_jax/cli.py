@@ -428,27 +428,13 @@ def _cmd_train_enhancer(args) -> int:
 
 
 def _print_report(report: dict, args, cmd: str, out: Path) -> None:
-    """The report as JSON on stdout with --json; otherwise a few lines on stderr (the full
-    report is `out`/report.json)."""
+    """The report as JSON on stdout with --json; otherwise a one-screen summary on stderr."""
+    from wrinkle_jax.outdir import summary
+
     if getattr(args, "json", False):
         print(json.dumps(report, indent=2))
-        return
-    lines = [f"wrinkle-jax {cmd}: wrote {out}/ ({report['frames']} frames of "
-             f"{report['input']}; report.json holds the details)"]
-    mat = report.get("material")
-    if mat:
-        lift = f"lifted to {report['detailed_vertices']} vertices" if report["lift"] else "no lift"
-        lines.append(f"  material {mat} ({report.get('material_source')}); "
-                     f"{report['patches']['per_frame']} patches per frame; {lift}")
-    h, w = report["map_shape"]
-    lines.append(f"  normal maps {h}x{w} texels at {report['texel_size_m'] * 1e3:g} mm")
-    t = report.get("timings_s")
-    if t:
-        lines.append(f"  {t['wall']:.1f} s: setup {t['setup']:.1f}, compile {t['compile']:.1f}, "
-                     + ", ".join(f"{k} {v:.0f} ms/frame"
-                                 for k, v in report["ms_per_frame"].items() if v >= 0.5))
-    lines += [f"  note: {n}" for n in report.get("notes", [])]
-    print("\n".join(lines), file=sys.stderr)
+    else:
+        print(summary(report, cmd, out), file=sys.stderr)
 
 
 def _add_material(p) -> None:
@@ -468,8 +454,9 @@ def _add_units(p) -> None:
 
 def _add_frames_out(p) -> None:
     p.add_argument("--frames", default=None, metavar="A:B[:S]",
-                   help="frames as a Python slice: 2:10, -3: (last three), ::2, 5; never "
-                   "clipped: a range outside the sequence is an error (default: all)")
+                   help="frames as a Python slice: 2:10, ::2, 5, --frames=-3: (the last three; "
+                   "write a leading minus with =); never clipped: a range outside the sequence "
+                   "is an error (default: all)")
     p.add_argument("--force", action="store_true", help="replace the output folder even if "
                    "it holds files wrinkle-jax did not write (they are deleted)")
     p.add_argument("--json", action="store_true",

@@ -7,6 +7,8 @@ file in it is one the tool writes (`foreign_files`); otherwise the command refus
 the other files, unless forced. The replacement keeps the old folder's permissions (a new
 folder gets the usual ones, umask applied, not `mkdtemp`'s 0700).
 
+`summary` is the few lines a command prints about a finished output folder.
+
 SIGTERM is turned into a `Terminated` exception while a command runs (`terminate_as_exception`),
 so the same cleanup runs for SIGTERM as for Ctrl-C (KeyboardInterrupt).
 """
@@ -113,19 +115,26 @@ def _replace_dir(tmp: Path, out: Path) -> None:
     usual ones for a new folder)."""
     mode = stat.S_IMODE(out.stat().st_mode) if out.is_dir() else 0o777 & ~_UMASK
     os.chmod(tmp, mode)
-    old = None
-    if out.exists():
-        old = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
-        os.replace(out, old / out.name)
+    # No interrupt between moving the old folder aside and deleting it (a signal arriving
+    # meanwhile is delivered right after).
+    signals = {signal.SIGINT, signal.SIGTERM}
+    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, signals)
     try:
-        os.replace(tmp, out)
-    except BaseException:
-        if old is not None:  # put the previous output back
-            os.replace(old / out.name, out)
+        old = None
+        if out.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
+            os.replace(out, old / out.name)
+        try:
+            os.replace(tmp, out)
+        except BaseException:
+            if old is not None:  # put the previous output back
+                os.replace(old / out.name, out)
+                shutil.rmtree(old, ignore_errors=True)
+            raise
+        if old is not None:
             shutil.rmtree(old, ignore_errors=True)
-        raise
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
 
 
 @contextlib.contextmanager
@@ -154,3 +163,23 @@ def display_path(path) -> str:
         return Path(path).resolve().relative_to(root).as_posix()
     except ValueError:
         return str(path)
+
+
+def summary(report: dict, cmd: str, out: Path) -> str:
+    """A few lines about a finished run (what was written where, material, sizes, time per
+    stage, notes); the full report is `out`/report.json."""
+    lines = [f"wrinkle-jax {cmd}: wrote {out}/ ({report['frames']} frames of "
+             f"{report['input']}; report.json holds the details)"]
+    if report.get("material"):
+        lift = f"lifted to {report['detailed_vertices']} vertices" if report["lift"] else "no lift"
+        lines.append(f"  material {report['material']} ({report.get('material_source')}); "
+                     f"{report['patches']['per_frame']} patches per frame; {lift}")
+    h, w = report["map_shape"]
+    lines.append(f"  normal maps {h}x{w} texels at {report['texel_size_m'] * 1e3:g} mm")
+    t = report.get("timings_s")
+    if t:
+        lines.append(f"  {t['wall']:.1f} s: setup {t['setup']:.1f}, compile {t['compile']:.1f}, "
+                     + ", ".join(f"{k} {v:.0f} ms/frame"
+                                 for k, v in report["ms_per_frame"].items() if v >= 0.5))
+    lines += [f"  note: {n}" for n in report.get("notes", [])]
+    return "\n".join(lines)

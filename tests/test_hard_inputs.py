@@ -474,3 +474,13 @@ def test_parse_frames_is_python_slicing_without_clipping():
     for spec in ("17:40", "-21:", "20:", "3:3"):
         with pytest.raises(validate.UsageError):
             validate.parse_frames(spec, n)
+
+
+def test_layout_names_zero_3d_area_and_zero_uv_area_apart():
+    from wrinkle_jax.mesh import GarmentError
+
+    g = _sheet()
+    with pytest.raises(GarmentError, match="zero 3D area"):
+        normalmap.make_plan(g.replace(vertices=np.zeros_like(np.asarray(g.vertices))))
+    with pytest.raises(GarmentError, match="UV layout has zero area"):
+        normalmap.make_plan(g.replace(uvs=np.zeros_like(np.asarray(g.uvs))))

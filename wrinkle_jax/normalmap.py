@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax.fileio import atomic_write_bytes
-from wrinkle_jax.mesh import Garment, face_normals, global_uv_scale, vertex_normals
+from wrinkle_jax.mesh import Garment, GarmentError, face_normals, global_uv_scale, vertex_normals
 from wrinkle_jax.numerics import BARY_EPS, UV_AREA_EPS, normalize, safe_div
 
 DEFAULT_TEXEL_SIZE = 0.002  # meters of cloth per texel (paper: fixed physical pixel size)
@@ -113,7 +113,7 @@ def layout_for(garment: Garment, texel_size: float = DEFAULT_TEXEL_SIZE, margin:
 
 
 def _check_areas(garment: Garment) -> None:
-    """Raise NormalMapError if the garment has no 3D area or its UV layout has none (the texel
+    """Raise GarmentError if the garment has no 3D area or its UV layout has none (the texel
     scale, sqrt(3D area / UV area), needs both), saying which."""
     v = np.asarray(garment.vertices, np.float64)[np.asarray(garment.faces)]
     a3 = np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1).sum()
@@ -121,10 +121,10 @@ def _check_areas(garment: Garment) -> None:
     e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
     a2 = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
     if not a2 > 0:
-        raise NormalMapError("the UV layout has zero area (all UVs on one point or line); "
+        raise GarmentError("the UV layout has zero area (all UVs on one point or line); "
                              "cannot derive a texel size")
     if not a3 > 0:
-        raise NormalMapError("the garment has zero 3D area (all vertices on one point or "
+        raise GarmentError("the garment has zero 3D area (all vertices on one point or "
                              "line); cannot derive a texel size")
 
 

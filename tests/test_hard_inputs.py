@@ -484,3 +484,18 @@ def test_layout_names_zero_3d_area_and_zero_uv_area_apart():
         normalmap.make_plan(g.replace(vertices=np.zeros_like(np.asarray(g.vertices))))
     with pytest.raises(GarmentError, match="UV layout has zero area"):
         normalmap.make_plan(g.replace(uvs=np.zeros_like(np.asarray(g.uvs))))
+
+
+def test_bake_never_writes_into_a_folder_with_user_files(root, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "mine.txt").write_text("x")
+    code, seconds = _run(root, tmp_path, ["--texel-size", "0.004"], command="bake")
+    _assert_failed_cleanly(capsys, tmp_path, code, 1, ["wrinkle-jax bake: error:", "mine.txt",
+                                                       "--force"], seconds, before=["out"])
+    assert sorted(p.name for p in out.iterdir()) == ["mine.txt"]  # nothing added or lost
+    (out / "mine.txt").unlink()
+    assert _run(root, tmp_path, ["--texel-size", "0.004"], command="bake")[0] == 0
+    assert _run(root, tmp_path, ["--texel-size", "0.004", "--frames", "1"],
+                command="bake")[0] == 0  # a previous bake is replaced, not merged into
+    assert sorted(p.name for p in out.iterdir()) == ["normal_map_00001.png", "report.json"]

@@ -217,7 +217,8 @@ FAILING = [
     # The bundled skirt (1.1 m across) as a user would scale it by mistake; the old code spent
     # minutes and gigabytes in set-up on x10 and crashed or silently made a tiny map on x0.001.
     ("skirt x10", lambda d: str(DEMO), ["--scale", "10"], 1,
-     ["demo_skirt.npz", "11.06 units across", "too large", "centimetres (--units cm)"]),
+     ["demo_skirt.npz (scaled by 10)", "11.06 units across", "too large",
+      "centimetres (--units cm)"]),
     ("skirt x0.001", lambda d: str(DEMO), ["--scale", "0.001"], 1,
      ["demo_skirt.npz", "0.001106 units across", "too small", "--scale 1000"]),
     ("map over budget", None, ["--texel-size", "0.00002"], 1,

@@ -294,7 +294,7 @@ def load_checked(input_path: Path, args, texel_size: float, patch_size: int | No
     g = seq.garment
     src = str(input_path)
     warnings = check_faces(g.vertices, g.faces, g.uvs, g.uv_faces, src)
-    check_scale(g.vertices, g.faces, src)
+    check_scale(g.vertices, g.faces, src if factor == 1.0 else f"{src} (scaled by {factor:g})")
     sel = list(parse_frames(args.frames, len(seq)))
     budget = check_budget(g, texel_size, patch_size, stride or patch_size, lift, lift_edge, src)
     if budget.get("warning"):

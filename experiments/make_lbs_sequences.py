@@ -13,9 +13,12 @@ garment frames (T, V, 3) meters with its UVs, plus extra arrays
     times           (T,) float32 animation frame of each output frame
 
 and a preview PNG of a few frames of the skinned skirt over the body, plus a JSON report with
-timings (pose stage and skinning stage, compile and run separately).
+timings (pose stage and skinning stage, compile and run separately). Both go to
+`outputs/character/` (git-ignored); `--refresh-results` writes them over the committed
+`experiments/results/character/` instead.
 
     python -m experiments.make_lbs_sequences [--frames 100] [--out data/lbs] [--tiny]
+                                             [--refresh-results]
 
 The assets are fetched on first use (`wrinkle-jax assets fetch makehuman`).
 """
@@ -52,7 +55,8 @@ class LBSConfig:
       garments: helper groups to skin.
       walk: walk cycle file stem (None: the first one).
       out_dir: where the .npz sequences go (git-ignored).
-      preview: the preview PNG (None: no preview).
+      preview: the preview PNG, relative to the repository; its folder also receives
+        lbs_report.json (None: neither).
       preview_frames: how many frames the preview shows.
     """
 
@@ -62,10 +66,12 @@ class LBSConfig:
     garments: tuple[str, ...] = character.GARMENT_GROUPS
     walk: str | None = None
     out_dir: str = "data/lbs"
-    preview: str | None = "experiments/results/character/walk_skirt_lbs.png"
+    preview: str | None = "outputs/character/walk_skirt_lbs.png"
     preview_frames: int = 4
 
 
+# The committed preview and report (`--refresh-results`).
+RESULTS_PREVIEW = "experiments/results/character/walk_skirt_lbs.png"
 TINY = LBSConfig(num_frames=6, garments=("helper-skirt",), out_dir="data/lbs/tiny",
                  preview=None)
 
@@ -224,8 +230,13 @@ def main(argv=None) -> None:
                     help=f"output folder, relative to the repository (default {LBSConfig.out_dir}"
                          f", {TINY.out_dir} with --tiny)")
     ap.add_argument("--tiny", action="store_true", help="a 6-frame skirt-only smoke run")
+    ap.add_argument("--refresh-results", action="store_true",
+                    help=f"write the preview and report over the committed {RESULTS_PREVIEW} "
+                         f"(default: {LBSConfig.preview})")
     args = ap.parse_args(argv)
     cfg = TINY if args.tiny else LBSConfig(num_frames=args.frames)
+    if args.refresh_results and not args.tiny:
+        cfg = dataclasses.replace(cfg, preview=RESULTS_PREVIEW)
     if args.out:
         cfg = dataclasses.replace(cfg, out_dir=args.out)
     print(json.dumps(make_sequences(cfg), indent=2))

@@ -14,7 +14,7 @@ def test_demo_writes_normal_maps_and_report(tmp_path, capsys, monkeypatch):
     # Without a shipped model the demo bakes only, and says so.
     monkeypatch.setattr(cli, "_shipped_model_path", lambda: tmp_path / "no_model.npz")
     out = tmp_path / "demo"
-    assert cli.main(["demo", "--out", str(out), "--texel-size", "0.006"]) == 0
+    assert cli.main(["demo", "--out", str(out), "--texel-size", "0.006", "--json"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["frames"] == 12 and len(report["outputs"]) == 12
     assert report["timings"]["bake_ms_per_frame"] > 0
@@ -41,7 +41,9 @@ def test_bake_obj_and_frame_range(tmp_path):
     assert cli.main(["bake", str(tmp_path / "s.npz"), "--out", str(tmp_path / "r"),
                      "--frames", "1:3", "--batch", "4"]) == 0
     assert sorted(p.name for p in (tmp_path / "r").iterdir()) == [
-        "normal_map_00001.png", "normal_map_00002.png"]
+        "normal_map_00001.png", "normal_map_00002.png", "report.json"]
+    report = json.loads((tmp_path / "r" / "report.json").read_text())
+    assert report["frame_indices"] == [1, 2] and report["outputs"][0] == "normal_map_00001.png"
 
 
 def test_bad_inputs_exit_nonzero_with_a_message(tmp_path, capsys):
@@ -117,7 +119,7 @@ def test_enhance_writes_maps_meshes_npz_and_report(inputs, tmp_path, capsys):
     out = tmp_path / "out"
     assert _enhance(inputs, out, "--material", "wool_melton") == 0
     report = json.loads((out / "report.json").read_text())
-    assert report["material"] == "wool_melton" and report["material_source"] == "given"
+    assert report["material"] == "wool_melton" and report["material_source"] == "flag"
     assert report["frames"] == 3 and report["lift"] is True
     assert report["patches"]["per_frame"] > 0 and report["patches"]["batch_size"] == 4
     for stage in ("bake", "tile", "network", "merge", "lift", "write", "compile"):
@@ -137,7 +139,9 @@ def test_enhance_writes_maps_meshes_npz_and_report(inputs, tmp_path, capsys):
     assert list(n.shape[:2]) == report["map_shape"] and mask.sum() == report["covered_texels"]
     # No temporary sibling folders are left behind.
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
-    assert '"material": "wool_melton"' in capsys.readouterr().out
+    captured = capsys.readouterr()
+    assert captured.out == ""  # quiet: the JSON report is in the folder only
+    assert "material wool_melton (flag)" in captured.err and len(captured.err.splitlines()) < 12
 
     # Running again (into the same folder) gives identical files; only timings differ.
     assert _enhance(inputs, out, "--material", "wool_melton") == 0
@@ -248,8 +252,9 @@ def test_enhance_auto_material_without_classifier_fails_clearly(inputs, tmp_path
     from wrinkle_jax.nn import classifier
 
     monkeypatch.setattr(classifier, "DEFAULT_PATH", tmp_path / "no_classifier.npz")
-    assert _enhance(inputs, tmp_path / "out", "--material", "auto") == 1
-    assert "classifier" in capsys.readouterr().err
+    assert _enhance(inputs, tmp_path / "out", "--material", "auto") == 2
+    err = capsys.readouterr().err
+    assert "no material classifier is available" in err and "--material NAME" in err
     assert list(tmp_path.iterdir()) == []
 
 
@@ -257,7 +262,7 @@ def test_demo_runs_the_pipeline_with_a_shipped_model(inputs, tmp_path, monkeypat
     from wrinkle_jax.nn import classifier
 
     monkeypatch.setattr(cli, "_shipped_model_path", lambda: inputs["model"])
-    # No shipped classifier weights: "auto" falls back to the sequence's own material.
+    # No classifier is needed: the material defaults to the one stored in the sequence.
     monkeypatch.setattr(classifier, "DEFAULT_PATH", tmp_path / "no_classifier.npz")
     out = tmp_path / "demo"
     assert cli.main(["demo", "--out", str(out), "--frames", "0:1", "--no-lift",
@@ -265,6 +270,8 @@ def test_demo_runs_the_pipeline_with_a_shipped_model(inputs, tmp_path, monkeypat
     report = json.loads((out / "report.json").read_text())
     assert report["command"] == "demo" and report["frames"] == 1
     assert report["material"] == "silk_charmeuse"  # the demo sequence's own material
-    assert any("classifier" in note for note in report["notes"])
+    assert report["material_source"] == "stored" and report["notes"] == []
+    assert report["input"] == "wrinkle_jax/assets/demo_skirt.npz"  # no machine path
+    assert report["model"]["path"] == str(inputs["model"])  # a user's path, as given
     assert (out / "normal_maps" / "normal_map_00000.png").exists()
-    assert "classifier" in capsys.readouterr().err
+    assert "silk_charmeuse (stored)" in capsys.readouterr().err

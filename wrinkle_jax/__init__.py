@@ -18,3 +18,17 @@ def material_index(name: str) -> int:
     except ValueError:
         choices = ", ".join(MATERIALS)
         raise ValueError(f"unknown material {name!r}; expected one of {choices}") from None
+
+
+def load_enhancer(path=None, conv_impl: str = "im2col_bf16"):
+    """Load an enhancer model file; None loads the shipped default model.
+
+    The same as `wrinkle_jax.enhancer.load_enhancer` (imported on first call, so importing
+    the package stays light). Returns an `Enhancer` (model, params, config, meta).
+
+    Raises:
+      enhancer.EnhancerError: naming the file, if it is missing or not an enhancer file.
+    """
+    from wrinkle_jax.enhancer import load_enhancer as _load
+
+    return _load(path, conv_impl=conv_impl)

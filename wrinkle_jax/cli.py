@@ -1,12 +1,15 @@
 """The `wrinkle-jax` command.
 
-Exit codes: 0 success, 1 failure (bad input file, runtime error), 2 bad usage.
+Exit codes: 0 success, 1 failure (bad input file, runtime error), 2 bad usage, 130 interrupted
+(Ctrl-C), 143 terminated (SIGTERM). Every check of the input runs before any compile
+(`wrinkle_jax.validate`); output folders appear only when complete (`wrinkle_jax.outdir`).
 
     wrinkle-jax demo [--out DIR] [--frames A:B] [--no-lift]
-    wrinkle-jax enhance INPUT --material auto|NAME --out DIR [--no-lift] [--body BODY.obj]
-                        [--model PATH] [--format obj|ply] [--frames A:B] [--stride S]
-                        [--batch B] [--chunk C] [--template T.obj]
-    wrinkle-jax bake INPUT --out DIR [--texel-size M] [--frames A:B] [--flat]
+    wrinkle-jax enhance INPUT --out DIR [--material NAME|auto] [--units mm|cm|m] [--scale S]
+                        [--texel-size M] [--no-lift] [--body BODY.obj] [--model PATH]
+                        [--format obj|ply] [--frames A:B[:S]] [--stride S] [--batch B]
+                        [--chunk C] [--template T.obj] [--force] [--json]
+    wrinkle-jax bake INPUT --out DIR [--texel-size M] [--frames A:B] [--flat] [--units U]
     wrinkle-jax assets fetch makehuman [--force]
     wrinkle-jax train-enhancer --data DIR --out DIR [--steps N] [--width W] [--batch B] [--resume]
     wrinkle-jax simulate SCENE --material NAME --resolution fine|coarse --frames N --out PATH
@@ -19,9 +22,7 @@ import argparse
 import functools
 import json
 import os
-import shutil
 import sys
-import tempfile
 import time
 from importlib import resources
 from pathlib import Path
@@ -39,106 +40,97 @@ def _shipped_model_path() -> Path:
     return DEFAULT_PATH
 
 
-def _parse_frames(spec: str | None, n: int) -> range:
-    if not spec:
-        return range(n)
-    try:
-        a, sep, b = spec.partition(":")
-        start = int(a) if a else 0
-        stop = int(b) if b else (n if sep else start + 1)
-    except ValueError:
-        raise SystemExit(f"error: --frames must look like A:B, got {spec!r}") from None
-    r = range(max(start, 0), min(stop, n))
-    if len(r) == 0:
-        raise SystemExit(f"error: --frames {spec} selects no frame of {n}")
-    return r
-
-
 def bake_sequence_to_pngs(input_path: Path, out: Path, texel_size: float, frames: str | None,
-                          smooth: bool = True, batch: int = 16) -> dict:
+                          smooth: bool = True, batch: int = 16, args=None,
+                          force: bool = False, extra: dict | None = None) -> dict:
     """Bake the frames of a sequence (or one OBJ) into 16-bit PNG normal maps in `out`.
 
-    Returns a report dict (paths, sizes and per-stage timings in seconds).
+    The folder appears only when complete (with its report.json); see `wrinkle_jax.outdir`.
+    `args` may carry units/scale. Returns the report dict (paths relative to `out`, sizes
+    and per-stage timings in seconds).
     """
+    import argparse
+
     import jax
     import jax.numpy as jnp
 
-    from wrinkle_jax import meshio, normalmap
+    from wrinkle_jax import normalmap, outdir, validate
+    from wrinkle_jax.fileio import atomic_write_text
+    from wrinkle_jax.outdir import display_path
 
+    args = args or argparse.Namespace()
+    args.frames = frames
     timings = {}
+    outdir.check_out_dir(out, force)
     t0 = time.perf_counter()
-    if input_path.suffix.lower() == ".obj":
-        g = meshio.load_obj(input_path)
-        seq = meshio.make_sequence(np.asarray(g.vertices)[None], g, source=str(input_path))
-    else:
-        seq = meshio.load_sequence(input_path)
+    seq, sel, warnings, _ = validate.load_checked(input_path, args, texel_size)
+    for w in warnings:
+        print(f"wrinkle-jax bake: warning: {w}", file=sys.stderr)
     timings["load_s"] = time.perf_counter() - t0
-    if out.exists() and not out.is_dir():
-        raise meshio.GarmentError(f"{out}: output path exists and is not a folder")
 
-    t0 = time.perf_counter()
-    plan = normalmap.make_plan(seq.garment, texel_size=texel_size)
-    timings["plan_s"] = time.perf_counter() - t0
-
-    sel = list(_parse_frames(frames, len(seq)))
-    # lax.map over pairs of frames: measured faster per frame than one vmap over the whole
-    # batch on this CPU (benchmarks/bench_normalmap.py), and memory stays bounded.
-    bake_batch = jax.jit(functools.partial(normalmap.bake_frames, batch_size=2),
-                         static_argnames="smooth")
-    batch = max(1, min(batch, len(sel)))
-    # Fixed-size batches (the last one padded) so the bake compiles once.
-    t0 = time.perf_counter()
-    first = jnp.asarray(seq.frames[np.resize(sel, batch)])
-    bake_batch(plan, first, smooth=smooth).block_until_ready()
-    timings["compile_s"] = time.perf_counter() - t0
-
-    out.mkdir(parents=True, exist_ok=True)
-    paths = []
-    bake_s = write_s = 0.0
-    for i in range(0, len(sel), batch):
-        idx = sel[i:i + batch]
-        padded = idx + [idx[-1]] * (batch - len(idx))
+    with outdir.staged_folder(out) as tmp:
         t0 = time.perf_counter()
-        maps = np.asarray(bake_batch(plan, jnp.asarray(seq.frames[padded]), smooth=smooth))
-        bake_s += time.perf_counter() - t0
+        plan = normalmap.make_plan(seq.garment, texel_size=texel_size)
+        timings["plan_s"] = time.perf_counter() - t0
+        # lax.map over pairs of frames: measured faster per frame than one vmap over the whole
+        # batch on this CPU (benchmarks/bench_normalmap.py), and memory stays bounded.
+        bake_batch = jax.jit(functools.partial(normalmap.bake_frames, batch_size=2),
+                             static_argnames="smooth")
+        batch = max(1, min(batch, len(sel)))
+        # Fixed-size batches (the last one padded) so the bake compiles once.
         t0 = time.perf_counter()
-        for k, t in enumerate(idx):
-            p = out / f"normal_map_{t:05d}.png"
-            normalmap.save_normal_map_png(p, maps[k], plan.mask)
-            paths.append(str(p))
-        write_s += time.perf_counter() - t0
-    timings["bake_ms_per_frame"] = 1e3 * bake_s / len(sel)
-    timings["write_png_ms_per_frame"] = 1e3 * write_s / len(sel)
-    return {
-        "input": str(input_path),
-        "frames": len(sel),
-        "vertices": seq.garment.num_vertices,
-        "faces": seq.garment.num_faces,
-        "texel_size_m": texel_size,
-        "map_shape": list(plan.shape),
-        "covered_texels": plan.num_covered,
-        "outputs": paths,
-        "timings": timings,
-    }
+        first = jnp.asarray(seq.frames[np.resize(sel, batch)])
+        bake_batch(plan, first, smooth=smooth).block_until_ready()
+        timings["compile_s"] = time.perf_counter() - t0
+        paths = []
+        bake_s = write_s = 0.0
+        for i in range(0, len(sel), batch):
+            idx = sel[i:i + batch]
+            padded = idx + [idx[-1]] * (batch - len(idx))
+            t0 = time.perf_counter()
+            maps = np.asarray(bake_batch(plan, jnp.asarray(seq.frames[padded]), smooth=smooth))
+            bake_s += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            for k, t in enumerate(idx):
+                name = f"normal_map_{t:05d}.png"
+                normalmap.save_normal_map_png(tmp / name, maps[k], plan.mask)
+                paths.append(name)
+            write_s += time.perf_counter() - t0
+        timings["bake_ms_per_frame"] = 1e3 * bake_s / len(sel)
+        timings["write_png_ms_per_frame"] = 1e3 * write_s / len(sel)
+        report = {
+            "input": display_path(input_path),
+            "frames": len(sel),
+            "frame_indices": sel,
+            "vertices": seq.garment.num_vertices,
+            "faces": seq.garment.num_faces,
+            "texel_size_m": texel_size,
+            "map_shape": list(plan.shape),
+            "covered_texels": plan.num_covered,
+            "outputs": paths,
+            "timings": timings,
+            "warnings": warnings,
+            **(extra or {}),
+        }
+        atomic_write_text(tmp / "report.json", json.dumps(report, indent=2))
+    return report
 
 
 def _cmd_demo(args) -> int:
+    from wrinkle_jax.outdir import display_path
+
     model = _shipped_model_path()
     if model.is_file():
-        # The whole pipeline with the shipped model; "auto" falls back to the sequence's own
-        # material (recorded in its metadata) when no classifier is available.
+        # The whole pipeline with the shipped model on the sequence's stored material.
         return _run_enhance(_demo_sequence_path(), Path(args.out), args, model=model,
                             demo=True)
+    note = (f"demo: no shipped enhancer model at {display_path(model)} yet, so only the bake stage "
+            f"ran (16-bit normal maps of the bundled coarse skirt); with the model, `demo` "
+            f"runs the whole pipeline (enhance, merge, lift)")
     report = bake_sequence_to_pngs(_demo_sequence_path(), Path(args.out), args.texel_size,
-                                   args.frames, batch=args.batch)
-    note = (f"demo: no shipped enhancer model at {model} yet, so only the bake stage ran "
-            f"(16-bit normal maps of the bundled coarse skirt); with the model, `demo` runs "
-            f"the whole pipeline (enhance, merge, lift)")
-    report["note"] = note
-    from wrinkle_jax.fileio import atomic_write_text
-
-    atomic_write_text(Path(args.out) / "report.json", json.dumps(report, indent=2))
-    _print_report(report)
+                                   args.frames, batch=args.batch, args=args, force=args.force,
+                                   extra={"note": note})
+    _print_report(report, args, "demo", Path(args.out))
     print(note, file=sys.stderr)
     return 0
 
@@ -148,25 +140,10 @@ def _cmd_demo(args) -> int:
 # --------------------------------------------------------------------------------------------
 
 
-class _UsageError(Exception):
-    """Bad usage detected after parsing (exit code 2)."""
-
-
 def _cmd_enhance(args) -> int:
     model = Path(args.model) if args.model else None
     template = Path(args.template) if args.template else None
     return _run_enhance(Path(args.input), Path(args.out), args, model=model, template=template)
-
-
-def _check_out_dir(out: Path) -> None:
-    """The output folder may not exist yet, be empty, or hold a previous wrinkle-jax output."""
-    from wrinkle_jax.mesh import GarmentError
-
-    if out.exists() and not out.is_dir():
-        raise GarmentError(f"{out}: output path exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not (out / "report.json").is_file():
-        raise GarmentError(f"{out}: output folder exists, is not empty and holds no "
-                           f"wrinkle-jax report.json; choose another --out")
 
 
 def _load_body(path: Path):
@@ -188,30 +165,47 @@ def _load_body(path: Path):
 
 def _run_enhance(input_path: Path, out: Path, args, model: Path | None = None,
                  template: Path | None = None, demo: bool = False) -> int:
-    """`enhance` (and the full `demo`): load, validate, run the pipeline into a temporary
-    sibling folder, write the report, then rename the folder to `out`."""
-    from types import SimpleNamespace
+    """`enhance` (and the full `demo`): load, check everything up front (before any compile),
+    run the pipeline into a temporary sibling folder, write the report, then rename the
+    folder to `out` (`wrinkle_jax.outdir`)."""
+    import dataclasses
 
     from tqdm import tqdm
 
     from wrinkle_jax import enhancer as enhancer_lib
-    from wrinkle_jax import meshio, pipeline
+    from wrinkle_jax import outdir, pipeline, validate
     from wrinkle_jax.bodies import BodyError
+    from wrinkle_jax.outdir import display_path
+    from wrinkle_jax.validate import UsageError as _UsageError
 
     cmd = "demo" if demo else "enhance"
     t_wall = time.perf_counter()
     try:
-        _check_out_dir(out)
-        t0 = time.perf_counter()
-        seq = meshio.load_sequence(input_path, template=template)
-        load_s = time.perf_counter() - t0
+        for flag in ("batch", "chunk", "stride"):
+            value = getattr(args, flag)
+            if value is not None and value < 1:
+                raise _UsageError(f"--{flag} must be >= 1, got {value}")
+        outdir.check_out_dir(out, args.force)
         enh = enhancer_lib.load_enhancer(model)
-        material = args.material
-        if material != "auto" and material not in enh.config.materials:
-            raise _UsageError(f"unknown material {material!r}; expected auto or one of "
-                              f"{', '.join(enh.config.materials)}")
+        notes = []
+        if getattr(args, "texel_size", None) is not None and not demo:
+            if not args.texel_size > 0:
+                raise _UsageError(f"--texel-size must be positive, got {args.texel_size}")
+            notes.append(f"texel size {args.texel_size} m instead of the model's "
+                         f"{enh.config.texel_size} m (patches cover another cloth area than "
+                         f"in training)")
+            enh = enh._replace(config=dataclasses.replace(enh.config,
+                                                          texel_size=args.texel_size))
+        t0 = time.perf_counter()
+        size = enh.config.patch_size
+        seq, sel, warnings, budget = validate.load_checked(
+            input_path, args, enh.config.texel_size, size, args.stride or size // 2,
+            not args.no_lift, template, pipeline.PipelineConfig().target_edge)
+        load_s = time.perf_counter() - t0
+        material, material_source = validate.choose_material(
+            args.material, seq.metadata.get("material"), enh.config.materials,
+            display_path(input_path))
         body = _load_body(Path(args.body)) if getattr(args, "body", None) else None
-        sel = list(_parse_frames(args.frames, len(seq)))
         config = pipeline.PipelineConfig(batch_size=args.batch, chunk_size=args.chunk,
                                          stride=args.stride, lift=not args.no_lift)
     except _UsageError as e:
@@ -220,57 +214,30 @@ def _run_enhance(input_path: Path, out: Path, args, model: Path | None = None,
     except (enhancer_lib.EnhancerError, BodyError, pipeline.PipelineError, ValueError) as e:
         print(f"wrinkle-jax {cmd}: error: {e}", file=sys.stderr)
         return 1
+    for w in warnings:
+        print(f"wrinkle-jax {cmd}: warning: {w}", file=sys.stderr)
 
-    notes = []
-    classify_fn = None
-    if demo and material == "auto" and seq.metadata.get("material") in enh.config.materials:
-        fallback = seq.metadata["material"]
-
-        def classify_fn(frames, garment, key):
-            try:
-                return pipeline.classify_material(frames, garment, key)
-            except ValueError as e:  # no classifier, or it cannot answer on this garment
-                notes.append(f"material: {e}; used the demo sequence's own material "
-                             f"{fallback!r}")
-                return SimpleNamespace(material=fallback, scores={})
-
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
     try:
-        report = _enhance_into(tmp, seq, enh, model, material, body, sel, config, classify_fn,
-                               getattr(args, "format", "obj"), tqdm, notes,
-                               not args.no_previews)
-        report["command"] = cmd
-        report["input"] = str(input_path)
-        report["timings_s"]["load"] = load_s
-        report["timings_s"]["wall"] = time.perf_counter() - t_wall
-        from wrinkle_jax.fileio import atomic_write_text
+        with outdir.staged_folder(out) as tmp:
+            report = _enhance_into(tmp, seq, enh, model, material, body, sel, config, None,
+                                   getattr(args, "format", "obj"), tqdm, notes,
+                                   not args.no_previews)
+            report["command"] = cmd
+            report["input"] = display_path(input_path)
+            report["material_source"] = material_source
+            report["warnings"] = warnings
+            report["budget"] = {k: list(v) if isinstance(v, tuple) else v
+                                for k, v in budget.items()}
+            report["timings_s"]["load"] = load_s
+            report["timings_s"]["wall"] = time.perf_counter() - t_wall
+            from wrinkle_jax.fileio import atomic_write_text
 
-        atomic_write_text(tmp / "report.json", json.dumps(report, indent=2))
-        _replace_dir(tmp, out)
+            atomic_write_text(tmp / "report.json", json.dumps(report, indent=2))
     except (pipeline.PipelineError, enhancer_lib.EnhancerError, BodyError, ValueError) as e:
-        shutil.rmtree(tmp, ignore_errors=True)
         print(f"wrinkle-jax {cmd}: error: {e}", file=sys.stderr)
         return 1
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    short = {k: v for k, v in report.items() if k not in ("frame_indices",)}
-    print(json.dumps(short, indent=2))
-    for note in notes:
-        print(f"note: {note}", file=sys.stderr)
+    _print_report(report, args, cmd, out)
     return 0
-
-
-def _replace_dir(tmp: Path, out: Path) -> None:
-    """Move the finished folder into place (replacing a previous output folder)."""
-    old = None
-    if out.exists():
-        old = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
-        os.replace(out, old / out.name)
-    os.replace(tmp, out)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
 
 
 def _enhance_into(folder: Path, seq, enh, model: Path | None, material: str, body, sel: list,
@@ -278,7 +245,9 @@ def _enhance_into(folder: Path, seq, enh, model: Path | None, material: str, bod
     """Run the pipeline, writing every frame into `folder` as it comes; returns the report."""
     import jax
 
+    from wrinkle_jax import enhancer as enhancer_lib
     from wrinkle_jax import meshio, normalmap, pipeline
+    from wrinkle_jax.outdir import display_path
 
     pipe = pipeline.make_pipeline(seq.garment, enh, config, body)
     maps_dir, mesh_dir = folder / "normal_maps", folder / "meshes"
@@ -339,12 +308,11 @@ def _enhance_into(folder: Path, seq, enh, model: Path | None, material: str, bod
     timings["previews"] = preview["seconds"] + time.perf_counter() - t0
     return {
         "command": "enhance",
-        "model": {"path": str(model) if model else "shipped default",
+        "model": {"path": display_path(model or enhancer_lib.DEFAULT_PATH),
                   "config": enh.config.to_json(),
                   "meta": {k: v for k, v in enh.meta.items() if k != "format"}},
         "material": result.material,
         "material_scores": result.scores,
-        "material_source": "given" if material != "auto" else "classified",
         "frames": n,
         "frame_indices": list(result.frame_indices),
         "fps": seq.fps,
@@ -419,8 +387,9 @@ def _finish_previews(folder: Path, ctx: dict) -> None:
 
 def _cmd_bake(args) -> int:
     report = bake_sequence_to_pngs(Path(args.input), Path(args.out), args.texel_size,
-                                   args.frames, smooth=not args.flat, batch=args.batch)
-    _print_report(report)
+                                   args.frames, smooth=not args.flat, batch=args.batch,
+                                   args=args, force=args.force)
+    _print_report(report, args, "bake", Path(args.out))
     return 0
 
 
@@ -458,11 +427,40 @@ def _cmd_train_enhancer(args) -> int:
     return 0
 
 
-def _print_report(report: dict) -> None:
-    short = dict(report)
-    outs = short.pop("outputs")
-    short["first_output"] = outs[0] if outs else None
-    print(json.dumps(short, indent=2))
+def _print_report(report: dict, args, cmd: str, out: Path) -> None:
+    """The report as JSON on stdout with --json; otherwise a one-screen summary on stderr."""
+    from wrinkle_jax.outdir import summary
+
+    if getattr(args, "json", False):
+        print(json.dumps(report, indent=2))
+    else:
+        print(summary(report, cmd, out), file=sys.stderr)
+
+
+def _add_material(p) -> None:
+    from wrinkle_jax import MATERIALS
+
+    p.add_argument("--material", default=None, metavar="NAME",
+                   help=f"fabric: {', '.join(MATERIALS)}, or auto (needs a classifier; none "
+                   f"ships); default: the material stored in the sequence")
+
+
+def _add_units(p) -> None:
+    p.add_argument("--units", choices=["mm", "cm", "m"], default=None,
+                   help="unit of the input's coordinates (converted to meters; default m)")
+    p.add_argument("--scale", type=float, default=None,
+                   help="multiply the input's coordinates by this to get meters")
+
+
+def _add_frames_out(p) -> None:
+    p.add_argument("--frames", default=None, metavar="A:B[:S]",
+                   help="frames as a Python slice: 2:10, ::2, 5, --frames=-3: (the last three; "
+                   "write a leading minus with =); never clipped: a range outside the sequence "
+                   "is an error (default: all)")
+    p.add_argument("--force", action="store_true", help="replace the output folder even if "
+                   "it holds files wrinkle-jax did not write (they are deleted)")
+    p.add_argument("--json", action="store_true",
+                   help="print the JSON report to stdout (it is always in --out/report.json)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -484,9 +482,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--texel-size", type=float, default=DEFAULT_TEXEL_SIZE,
                    help="meters of cloth per texel of the bake-only demo (the full pipeline "
                    "uses the model's) (default: %(default)s)")
-    p.add_argument("--material", default="auto",
-                   help="material name or auto (default: %(default)s)")
-    p.add_argument("--frames", default=None, help="frame range A:B (default: all)")
+    _add_material(p)
+    _add_frames_out(p)
     p.add_argument("--no-lift", action="store_true", help="stop at the enhanced normal maps")
     p.add_argument("--batch", type=int, default=16,
                    help="patches per U-Net call (frames per bake call in the bake-only demo)")
@@ -504,10 +501,13 @@ def build_parser() -> argparse.ArgumentParser:
                        "(or .ply), detailed.npz and report.json into --out.")
     p.add_argument("input", help="folder of OBJ frames, .npz sequence, .obj, or .pc2 point "
                    "cache (with --template)")
-    p.add_argument("--out", required=True, help="output folder (replaced if it holds a "
-                   "previous output)")
-    p.add_argument("--material", default="auto",
-                   help="material name, or auto to classify it (default: %(default)s)")
+    p.add_argument("--out", required=True, help="output folder (replaced if it holds only a "
+                   "previous output; see --force)")
+    _add_material(p)
+    _add_units(p)
+    p.add_argument("--texel-size", type=float, default=None,
+                   help="meters of cloth per texel (default: the model's, 0.002 for the "
+                   "shipped one; other values change the cloth area a patch covers)")
     p.add_argument("--template", default=None, help="template OBJ (topology, UVs) of a .pc2")
     p.add_argument("--no-lift", action="store_true", help="stop at the enhanced normal maps")
     p.add_argument("--body", default=None, help="closed body mesh (OBJ/PLY, meters) the "
@@ -515,7 +515,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", default=None, help="enhancer .npz (default: the shipped model)")
     p.add_argument("--format", choices=["obj", "ply"], default="obj",
                    help="mesh format of the detailed frames (default: %(default)s)")
-    p.add_argument("--frames", default=None, help="frame range A:B (default: all)")
+    _add_frames_out(p)
     p.add_argument("--stride", type=int, default=None,
                    help="patch stride in texels (default: half a patch)")
     p.add_argument("--batch", type=int, default=16,
@@ -532,7 +532,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--texel-size", type=float, default=DEFAULT_TEXEL_SIZE,
                    help="meters of cloth per texel (default: %(default)s)")
-    p.add_argument("--frames", default=None, help="frame range A:B (default: all)")
+    _add_units(p)
+    _add_frames_out(p)
     p.add_argument("--flat", action="store_true", help="bake flat face normals")
     p.add_argument("--batch", type=int, default=16, help="frames per jitted bake call")
     p.set_defaults(func=_cmd_bake)
@@ -578,12 +579,25 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)  # exits with code 2 on bad usage
     from wrinkle_jax.mesh import GarmentError
     from wrinkle_jax.normalmap import NormalMapError
+    from wrinkle_jax.outdir import Terminated, terminate_as_exception
+    from wrinkle_jax.validate import UsageError
 
+    name = f"wrinkle-jax {args.command}"
     try:
-        return int(args.func(args) or 0)
+        with terminate_as_exception():
+            return int(args.func(args) or 0)
+    except UsageError as e:
+        print(f"{name}: error: {e}", file=sys.stderr)
+        return 2
     except (GarmentError, NormalMapError, OSError) as e:
-        print(f"wrinkle-jax {args.command}: error: {e}", file=sys.stderr)
+        print(f"{name}: error: {e}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:
+        print(f"{name}: interrupted; no output written", file=sys.stderr)
+        return 130
+    except Terminated:
+        print(f"{name}: terminated; no output written", file=sys.stderr)
+        return 143
 
 
 if __name__ == "__main__":

@@ -48,6 +48,7 @@ def load_obj(path: str | os.PathLike) -> Garment:
     face_group: list[int] = []
     group_ids: dict[str, int] = {}
     current_group = -1
+    face_line: list[int] = []  # the line of each triangle, for messages
     missing_uv_line = 0
     for lineno, line in enumerate(text.splitlines(), 1):
         if not line or line[0] == "#":
@@ -65,11 +66,9 @@ def load_obj(path: str | os.PathLike) -> Garment:
                 vi, ti = [], []
                 for tok in parts[1:]:
                     fields = tok.split("/")
-                    a = int(fields[0])
-                    vi.append(a - 1 if a > 0 else len(verts) + a)
+                    vi.append(_obj_index(int(fields[0]), len(verts), path, lineno, "vertex"))
                     if len(fields) > 1 and fields[1]:
-                        b = int(fields[1])
-                        ti.append(b - 1 if b > 0 else len(uvs) + b)
+                        ti.append(_obj_index(int(fields[1]), len(uvs), path, lineno, "UV"))
                 if len(vi) < 3:
                     raise GarmentError(f"{path}:{lineno}: a face needs at least 3 vertices")
                 if len(ti) != len(vi):
@@ -79,12 +78,15 @@ def load_obj(path: str | os.PathLike) -> Garment:
                     faces.append((vi[0], vi[k], vi[k + 1]))
                     uv_faces.append((ti[0], ti[k], ti[k + 1]))
                     face_group.append(current_group)
+                    face_line.append(lineno)
             elif tag in ("g", "o"):
                 name = " ".join(parts[1:]) or "default"
                 if name not in group_ids:
                     m = _PANEL_NAME.match(name)
                     group_ids[name] = int(m.group(1)) if m else len(group_ids)
                 current_group = group_ids[name]
+        except GarmentError:
+            raise
         except (ValueError, IndexError):
             raise GarmentError(
                 f"{path}:{lineno}: malformed '{tag}' line: {line.strip()!r}"
@@ -94,6 +96,8 @@ def load_obj(path: str | os.PathLike) -> Garment:
     if missing_uv_line or not uvs:
         where = f" (first at line {missing_uv_line})" if missing_uv_line else ""
         raise GarmentError(f"{path}: faces without UV coordinates{where}; a UV layout is required")
+    _check_obj_range(np.asarray(faces, np.int64), len(verts), face_line, path, "vertex")
+    _check_obj_range(np.asarray(uv_faces, np.int64), len(uvs), face_line, path, "UV")
     panels = None
     if group_ids:
         panels = np.asarray(face_group, dtype=np.int32)
@@ -106,6 +110,28 @@ def load_obj(path: str | os.PathLike) -> Garment:
         panels,
         source=str(path),
     )
+
+
+def _obj_index(k: int, count: int, path: Path, lineno: int, what: str) -> int:
+    """0-based index of OBJ index `k` (1-based, or negative: relative to the `count` read so
+    far); 0 and relative indices before the first element are errors naming the line."""
+    if k == 0:
+        raise GarmentError(f"{path}:{lineno}: {what} index 0 is invalid (OBJ indices start at 1)")
+    if k < 0 and count + k < 0:
+        raise GarmentError(f"{path}:{lineno}: relative {what} index {k} points before the first "
+                           f"{what} ({count} read so far)")
+    return k - 1 if k > 0 else count + k
+
+
+def _check_obj_range(faces: np.ndarray, count: int, face_line: list[int], path: Path,
+                     what: str) -> None:
+    """Raise naming the first face line whose 1-based `what` index exceeds `count`."""
+    bad = np.flatnonzero((faces >= count).any(1)) if faces.size else []
+    if len(bad):
+        i = int(bad[0])
+        plural = {"vertex": "vertices"}.get(what, what + "s")
+        raise GarmentError(f"{path}:{face_line[i]}: {what} index {int(faces[i].max()) + 1} is "
+                           f"out of range (the file has {count} {plural}: indices 1 to {count})")
 
 
 def save_obj(path: str | os.PathLike, garment: Garment, vertices=None) -> None:

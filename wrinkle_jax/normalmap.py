@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax.fileio import atomic_write_bytes
-from wrinkle_jax.mesh import Garment, face_normals, global_uv_scale, vertex_normals
+from wrinkle_jax.mesh import Garment, GarmentError, face_normals, global_uv_scale, vertex_normals
 from wrinkle_jax.numerics import BARY_EPS, UV_AREA_EPS, normalize, safe_div
 
 DEFAULT_TEXEL_SIZE = 0.002  # meters of cloth per texel (paper: fixed physical pixel size)
@@ -95,6 +95,8 @@ def layout_for(garment: Garment, texel_size: float = DEFAULT_TEXEL_SIZE, margin:
     """
     if not texel_size > 0:
         raise NormalMapError(f"texel_size must be positive, got {texel_size}")
+    if meters_per_uv is None:
+        _check_areas(garment)
     scale = global_uv_scale(garment) if meters_per_uv is None else float(meters_per_uv)
     ppu = scale / texel_size
     uv = np.asarray(garment.uvs, np.float64)[np.unique(np.asarray(garment.uv_faces))]
@@ -108,6 +110,22 @@ def layout_for(garment: Garment, texel_size: float = DEFAULT_TEXEL_SIZE, margin:
         )
     return UVLayout(float(ppu), float(u_min), float(v_max), int(margin), height, width,
                     float(texel_size))
+
+
+def _check_areas(garment: Garment) -> None:
+    """Raise GarmentError if the garment has no 3D area or its UV layout has none (the texel
+    scale, sqrt(3D area / UV area), needs both), saying which."""
+    v = np.asarray(garment.vertices, np.float64)[np.asarray(garment.faces)]
+    a3 = np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1).sum()
+    uv = np.asarray(garment.uvs, np.float64)[np.asarray(garment.uv_faces)]
+    e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    a2 = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
+    if not a2 > 0:
+        raise GarmentError("the UV layout has zero area (all UVs on one point or line); "
+                             "cannot derive a texel size")
+    if not a3 > 0:
+        raise GarmentError("the garment has zero 3D area (all vertices on one point or "
+                             "line); cannot derive a texel size")
 
 
 @jax.tree_util.register_dataclass

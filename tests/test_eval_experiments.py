@@ -941,3 +941,44 @@ def test_recipe_flag_defaults_are_the_shipped_recipe_and_the_width_study_changes
         assert dataclasses.replace(c, width=cfg.width) == cfg
     res = short_runs.variants("residual", cfg)
     assert not res["plain"].residual and res["residual"].residual
+
+
+def _fake_fidelity_cell(name, kind, seed):
+    rng = np.random.default_rng(seed)
+    n = 40
+    li = rng.uniform(1, 2, n)
+
+    def method(frac):  # output loss = frac * input loss (score = 100 (1 - frac))
+        return {"detail": (li * frac).tolist(), "object": (li * (frac + 0.5)).tolist(),
+                "lt16mm": [0.01] * n, "16_64mm": [0.05] * n, "checker": [0.001] * n}
+
+    bands = {"lt16mm": [0.02] * n, "16_64mm": [0.06] * n, "checker": [0.001] * n}
+    return {"cell": name, "kind": kind, "loss_input": {"detail": li.tolist(),
+                                                       "object": li.tolist()},
+            "bands": {"input": bands, "target": bands},
+            "methods": {"identity": method(1.0), "unsharp": method(0.6),
+                        "new": method(0.3)}}
+
+
+def test_fidelity_summary_and_report_section():
+    from experiments import fidelity
+
+    cells = [_fake_fidelity_cell("dress_dance/silk_charmeuse", "unseen garment", 0),
+             _fake_fidelity_cell("cape_walk/silk_charmeuse", "unseen garment", 1)]
+    got = fidelity.summarize(cells)["unseen garment"]
+    m = got["methods"]
+    assert m["identity"]["detail"]["signed_median"] == pytest.approx(0.0, abs=1e-4)
+    assert m["unsharp"]["detail"]["signed_median"] == pytest.approx(40.0, abs=1e-3)
+    assert m["new"]["detail"]["signed_median"] == pytest.approx(70.0, abs=1e-3)
+    vs = m["new"]["detail"]["vs_unsharp"]
+    assert vs["n"] == 80 and vs["median_diff"] == pytest.approx(30.0, abs=1e-3)
+    assert vs["median_diff_ci"][0] == pytest.approx(30.0, abs=1e-3)
+    assert m["new"]["object"]["signed_median"] == pytest.approx(20.0, abs=1e-3)
+    assert m["new"]["band_ratio_to_fine"]["16_64mm"] == pytest.approx(0.05 / 0.06)
+    assert set(m["new"]["detail"]["cell_medians"]) == {c["cell"] for c in cells}
+    rep = report.Report(ec.RESULTS)
+    report.fidelity_section(rep, {"unseen garment": got})
+    text = "\n".join(rep.lines)
+    assert "| new | +70.0 (+70.0) | +30.0 [+30.0, +30.0] | +20.0 (+20.0) |" in text
+    rows = report.fidelity_headline({"unseen garment": got})
+    assert len(rows) == 1 and "**+70.0**" in rows[0] and "unsharp +40.0" in rows[0]

@@ -154,6 +154,34 @@ def _make_crop_fn(config: PatchDataConfig):
     return jax.jit(crops)
 
 
+class _ShardWriter:
+    """Buffers a sequence's crops and writes them as shards of >= `shard_size` patches
+    (a frame's crops are never split), atomically; `shards` lists the written files."""
+
+    def __init__(self, shard_dir: Path, name: str, shard_size: int):
+        self.shard_dir, self.name, self.shard_size = shard_dir, name, shard_size
+        self.shards: list[dict] = []
+        self._buf: list[np.ndarray] = []
+        self._frames: list[int] = []
+
+    def add(self, crops: np.ndarray, frame: int) -> None:
+        self._buf.append(crops)
+        self._frames.extend([int(frame)] * len(crops))
+        if sum(len(b) for b in self._buf) >= self.shard_size:
+            self.flush()
+
+    def flush(self) -> None:
+        if not self._buf:
+            return
+        out = io.BytesIO()
+        np.save(out, np.concatenate(self._buf))
+        path = self.shard_dir / f"{self.name}_{len(self.shards):05d}.npy"
+        atomic_write_bytes(path, out.getvalue())
+        self.shards.append({"file": path.name, "frames": list(self._frames)})
+        self._buf.clear()
+        self._frames.clear()
+
+
 def build_sequence(seq: GarmentSequence, name: str, root: Path, config: PatchDataConfig) -> dict:
     """Cut one sequence into shards under `root`; returns (and writes) its index entry."""
     info = sequence_info(seq, name)
@@ -174,19 +202,7 @@ def build_sequence(seq: GarmentSequence, name: str, root: Path, config: PatchDat
     frames = np.arange(0, len(seq), config.frame_stride)
     shard_dir = root / "shards"
     shard_dir.mkdir(parents=True, exist_ok=True)
-    shards, buf, buf_frames = [], [], []
-
-    def flush():
-        if not buf:
-            return
-        arr = np.concatenate(buf)
-        path = shard_dir / f"{name}_{len(shards):05d}.npy"
-        out = io.BytesIO()
-        np.save(out, arr)
-        atomic_write_bytes(path, out.getvalue())
-        shards.append({"file": path.name, "frames": [int(f) for f in buf_frames]})
-        buf.clear()
-        buf_frames.clear()
+    writer = _ShardWriter(shard_dir, name, config.shard_size)
 
     for start in range(0, len(frames), config.bake_batch):
         idx = frames[start:start + config.bake_batch]
@@ -197,16 +213,12 @@ def build_sequence(seq: GarmentSequence, name: str, root: Path, config: PatchDat
             if fine.shape[:2] != mask.shape[:2]:
                 fine = jnp.asarray(patches.pad_to_patch(np.asarray(fine), size)[0])
             key, sub = jax.random.split(key)
-            out = _to_uint16(np.asarray(crop(sub, fine, mask)))
-            buf.append(out)
-            buf_frames.extend([int(t)] * len(out))
-            if sum(len(b) for b in buf) >= config.shard_size:
-                flush()
-    flush()
+            writer.add(_to_uint16(np.asarray(crop(sub, fine, mask))), t)
+    writer.flush()
     entry = {"sequence": name, "split": split, **info,
              "material_id": material_index(info["material"]),
              "patch_size": size, "texel_size": config.texel_size,
-             "config": dataclasses.asdict(config), "shards": shards}
+             "config": dataclasses.asdict(config), "shards": writer.shards}
     (root / "index").mkdir(parents=True, exist_ok=True)
     atomic_write_text(root / "index" / f"{name}.json", json.dumps(entry))
     return entry
@@ -301,19 +313,7 @@ def build_pair_sequence(fine: GarmentSequence, coarse: GarmentSequence, name: st
     shard_dir.mkdir(parents=True, exist_ok=True)
     entries = []
     for part_name, part_split, part_frames in parts:
-        shards, buf, buf_frames = [], [], []
-
-        def flush(shards=shards, buf=buf, buf_frames=buf_frames, part_name=part_name):
-            if not buf:
-                return
-            out = io.BytesIO()
-            np.save(out, np.concatenate(buf))
-            path = shard_dir / f"{part_name}_{len(shards):05d}.npy"
-            atomic_write_bytes(path, out.getvalue())
-            shards.append({"file": path.name, "frames": [int(f) for f in buf_frames]})
-            buf.clear()
-            buf_frames.clear()
-
+        writer = _ShardWriter(shard_dir, part_name, config.shard_size)
         for t in part_frames:
             f_map = patches.pad_to_patch(aligned.bake_map(pair.fine, fine.frames[t]), size)[0]
             c_map = patches.pad_to_patch(aligned.bake_map(pair.coarse, coarse.frames[t]),
@@ -321,16 +321,12 @@ def build_pair_sequence(fine: GarmentSequence, coarse: GarmentSequence, name: st
             stacked = np.concatenate([np.asarray(normalmap.to_rgb(c_map)) * mask,
                                       np.asarray(normalmap.to_rgb(f_map)) * mask, mask], -1)
             key, sub = jax.random.split(key)
-            out = _to_uint16(np.asarray(crop(sub, jnp.asarray(stacked, jnp.float32))))
-            buf.append(out)
-            buf_frames.extend([int(t)] * len(out))
-            if sum(len(b) for b in buf) >= config.shard_size:
-                flush()
-        flush()
+            writer.add(_to_uint16(np.asarray(crop(sub, jnp.asarray(stacked, jnp.float32)))), t)
+        writer.flush()
         entry = {"sequence": part_name, "split": part_split, **info,
                  "material_id": material_index(info["material"]), "input": "coarse_sim",
                  "patch_size": size, "texel_size": config.texel_size,
-                 "config": dataclasses.asdict(config), "shards": shards}
+                 "config": dataclasses.asdict(config), "shards": writer.shards}
         (root / "index").mkdir(parents=True, exist_ok=True)
         atomic_write_text(root / "index" / f"{part_name}.json", json.dumps(entry))
         entries.append(entry)

@@ -180,7 +180,7 @@ def test_detail_noise_recipe_trains_and_scores_detail(data_root, tiny_vgg):
     np.testing.assert_allclose(start["improvement_signed"][start["valid"]], 0.0, atol=1e-2)
     step = train.make_train_step(cfg, tiny_vgg)
     losses = []
-    for _ in range(30):
+    for _ in range(12):
         state, m = step(state, batch)
         losses.append(float(m["loss"]))
     assert np.isfinite(losses).all() and losses[-1] < 0.8 * losses[0], losses

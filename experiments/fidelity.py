@@ -57,14 +57,12 @@ def sweep(args, vgg_params) -> dict:
     idx = np.linspace(0, len(ds) - 1, min(args.sweep_patches, len(ds))).round().astype(int)
     b = ds.get(np.unique(idx))
     inp, tgt, mask = b["input"], b["target"], b["mask"]
-    _, _, branch = detail.decompose(inp * 2.0 - 1.0, mask, SIGMA)
-
-    def det(x):
-        return np.asarray(detail.to_detail_rgb(x, mask, SIGMA, branch))
-
-    outs = {f"sigma={s:g},amount={a:g}": det(evaluation.unsharp_mask(inp, mask, s, a, order=1))
-            for s, a in SWEEP}
-    losses = ec.method_losses(vgg_params, det(inp), det(tgt), mask, outs)
+    names = [f"sigma={s:g},amount={a:g}" for s, a in SWEEP]
+    d_in, d_tgt, *d_outs = (np.asarray(x) for x in detail.on_reference_branch_rgb(
+        inp, (tgt, *(evaluation.unsharp_mask(inp, mask, s, a, order=1) for s, a in SWEEP)),
+        mask, SIGMA))
+    outs = dict(zip(names, d_outs, strict=True))
+    losses = ec.method_losses(vgg_params, d_in, d_tgt, mask, outs)
     res = {}
     for k in outs:
         sc = evaluation.scores_from_losses(losses["input"], losses[k])
@@ -124,9 +122,9 @@ def score_cell(cell: ec.Cell, methods: dict, sources: dict, vgg_params, args) ->
                                              size, mid).target,
                   "fine_map": fine.frames[t], "pair": pair}
         outs = {k: np.asarray(f(ps, extras), np.float32) * ps.mask for k, f in todo.items()}
-        _, _, branch = detail.decompose(ps.input * 2.0 - 1.0, ps.mask, SIGMA)
-        d = {k: np.asarray(detail.to_detail_rgb(v, ps.mask, SIGMA, branch))
-             for k, v in {"input": ps.input, "target": ps.target, **outs}.items()}
+        imgs = {"target": ps.target, **outs}
+        d = dict(zip(["input", *imgs], (np.asarray(x) for x in detail.on_reference_branch_rgb(
+            ps.input, tuple(imgs.values()), ps.mask, SIGMA)), strict=True))
         det = ec.method_losses(vgg_params, d["input"], d["target"], ps.mask,
                                {k: d[k] for k in outs})
         obj_names = [k for k in outs if k in OBJECT_SPACE or k not in ORACLES]

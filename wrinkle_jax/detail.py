@@ -40,7 +40,7 @@ import jax.numpy as jnp
 from wrinkle_jax import sharpen
 
 __all__ = ["DEFAULT_SIGMA", "branch_of", "decompose", "from_detail", "from_detail_rgb",
-           "large_scale", "to_detail", "to_detail_rgb"]
+           "large_scale", "on_reference_branch_rgb", "to_detail", "to_detail_rgb"]
 
 # Low-pass radius in texels (2 mm texels: 16 mm): the wrinkle band (16-64 mm) stays in the
 # detail, the coarse/fine large-scale divergence (>= 30 mm) leaves it. Chosen by measurement
@@ -131,6 +131,20 @@ def to_detail_rgb(x, mask, sigma: float = DEFAULT_SIGMA, branch=None):
     mask = jnp.asarray(mask, x.dtype)
     d, _, _ = decompose(x * 2.0 - 1.0, mask, sigma, branch)
     return _unit_rgb(d, mask)
+
+
+def on_reference_branch_rgb(reference, others, mask, sigma: float = DEFAULT_SIGMA):
+    """Detail maps (RGB form) of `reference` and of each of `others`, all on the reference's
+    branch (e.g. input, output and target of one patch, branch from the input), each with its
+    own large scale removed; the reference is decomposed once.
+
+    Returns:
+      (reference detail, *others' details), each (N, H, W, 3) RGB form, 0 outside the mask.
+    """
+    x = jnp.asarray(reference, jnp.result_type(reference, jnp.float32))
+    mask = jnp.asarray(mask, x.dtype)
+    d, _, branch = decompose(x * 2.0 - 1.0, mask, sigma)
+    return (_unit_rgb(d, mask), *(to_detail_rgb(o, mask, sigma, branch) for o in others))
 
 
 def from_detail_rgb(d_rgb, large, branch, mask):

@@ -139,8 +139,7 @@ def _score_fn(layers, pool):
 
 @functools.partial(jax.jit, static_argnames="sigma")
 def _detail_triplet(inp, out, target, mask, sigma):
-    _, _, branch = detail.decompose(inp * 2.0 - 1.0, mask, sigma)
-    return tuple(detail.to_detail_rgb(x, mask, sigma, branch) for x in (inp, out, target))
+    return detail.on_reference_branch_rgb(inp, (out, target), mask, sigma)
 
 
 def detail_triplet(inp, out, target, mask, sigma: float = detail.DEFAULT_SIGMA):

@@ -173,10 +173,8 @@ def loss_images(config: TrainConfig, batch: dict, out):
     themselves, or with `detail_sigma` their detail maps on the input's branch."""
     if config.detail_sigma <= 0:
         return batch["input"], out, batch["target"]
-    mask = batch["mask"]
-    _, _, branch = detail.decompose(batch["input"] * 2.0 - 1.0, mask, config.detail_sigma)
-    return tuple(detail.to_detail_rgb(x, mask, config.detail_sigma, branch)
-                 for x in (batch["input"], out, batch["target"]))
+    return detail.on_reference_branch_rgb(batch["input"], (out, batch["target"]), batch["mask"],
+                                          config.detail_sigma)
 
 
 def loss_fn(params, batch, vgg_params, config: TrainConfig):

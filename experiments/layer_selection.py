@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from experiments.eval_common import portable_path
 from wrinkle_jax import data, metrics
 from wrinkle_jax.nn import losses, vgg
 
@@ -128,7 +129,7 @@ def main(argv=None) -> None:
                      "paired_ratio": round(float(np.median(paired) / np.median(across)), 4),
                      "step_ms_to_layer": round(step_cost(params, name), 1)})
         print(json.dumps(rows[-1]), flush=True)
-    result = {"n_per_set": args.n, "data": str(args.data), "gram_seconds": round(gram_s, 1),
+    result = {"n_per_set": args.n, "data": portable_path(args.data), "gram_seconds": round(gram_s, 1),
               "rows": rows}
     (out / "table.json").write_text(json.dumps(result, indent=1) + "\n")
     lines = ["| layer | kNN acc. (2D embedding) | kNN acc. (Gram space) | paired ratio "

@@ -129,8 +129,8 @@ def main(argv=None) -> None:
                      "paired_ratio": round(float(np.median(paired) / np.median(across)), 4),
                      "step_ms_to_layer": round(step_cost(params, name), 1)})
         print(json.dumps(rows[-1]), flush=True)
-    result = {"n_per_set": args.n, "data": portable_path(args.data), "gram_seconds": round(gram_s, 1),
-              "rows": rows}
+    result = {"n_per_set": args.n, "data": portable_path(args.data),
+              "gram_seconds": round(gram_s, 1), "rows": rows}
     (out / "table.json").write_text(json.dumps(result, indent=1) + "\n")
     lines = ["| layer | kNN acc. (2D embedding) | kNN acc. (Gram space) | paired ratio "
              "| VGG fwd+bwd ms |", "|---|---|---|---|---|"]

@@ -48,7 +48,8 @@ def config_from_args(args) -> train.TrainConfig:
                              unsharp_amount=args.unsharp_amount,
                              residual_highpass=args.residual_highpass,
                              blur_order=args.blur_order, detail_sigma=args.detail_sigma,
-                             noise_channels=args.noise_channels, batch_size=args.batch_size)
+                             noise_channels=args.noise_channels, batch_size=args.batch_size,
+                             noise_scale=args.noise_scale, upsample=args.upsample)
 
 
 def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None,
@@ -68,7 +69,8 @@ def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None,
                                     unsharp_amount=cfg.unsharp_amount,
                                     residual_highpass=cfg.residual_highpass,
                                     blur_order=cfg.blur_order, detail_sigma=cfg.detail_sigma,
-                                    noise_channels=cfg.noise_channels)
+                                    noise_channels=cfg.noise_channels,
+                                    noise_scale=cfg.noise_scale, upsample=cfg.upsample)
     rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if x]
     train_s = float(sum(r.get("step_s", 0.0) for r in rows if r["kind"] == "train"))
     evals = [r for r in rows if r["kind"] == "eval"]
@@ -113,6 +115,11 @@ def add_recipe_args(ap: argparse.ArgumentParser) -> None:
                          "(wrinkle_jax.detail), for real coarse/fine pairs (data/pairs)")
     ap.add_argument("--noise-channels", type=int, default=0,
                     help="fixed per-texel noise inputs (nn.unet.texel_noise)")
+    ap.add_argument("--noise-scale", type=int, default=1,
+                    help="texels between the noise's lattice points (1: per-texel noise)")
+    ap.add_argument("--upsample", default="transpose",
+                    choices=("transpose", "nearest", "bilinear"),
+                    help="decoder up-sampling (CINUNet.upsample; bilinear: no checkerboard)")
     ap.add_argument("--batch-size", type=int, default=8)
 
 

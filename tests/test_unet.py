@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from torch_checkpoint_writer import save_state_dict  # tests/ is on sys.path
 
+from wrinkle_jax import evaluation
 from wrinkle_jax.nn import unet
 
 
@@ -248,3 +249,73 @@ def test_noise_model_depends_on_origins_only_through_the_noise():
     np.testing.assert_array_equal(o1, o2)
     assert float(jnp.abs(o1 - o3).max()) > 1e-3
     np.testing.assert_array_equal(model.apply({"params": params}, x, m), o1)  # None = (0, 0)
+
+
+def test_lattice_noise_is_smooth_unit_and_fixed_to_the_texel():
+    s = 4
+    # Overlapping patches (negative origins too: floor division near the layout's border).
+    a = unet.texel_noise(jnp.array([[-6, 10]]), 24, 24, 2, scale=s)
+    b = unet.texel_noise(jnp.array([[-3, 15]]), 24, 24, 2, scale=s)
+    np.testing.assert_allclose(a[0, 3:, 5:], b[0, :21, :19], rtol=0, atol=1e-6)
+    # On the lattice the field is the white field of lattice coordinates, rescaled to unit
+    # variance; between lattice points it is the bilinear interpolation of those values.
+    white = np.asarray(unet.texel_noise(jnp.array([[0, 0]]), 8, 8, 2))
+    fine = np.asarray(unet.texel_noise(jnp.array([[0, 0]]), 29, 29, 2, scale=s))
+    t = np.arange(s) / s
+    gain = 1.0 / np.mean((1 - t) ** 2 + t**2)
+    np.testing.assert_allclose(fine[0, ::s, ::s], white[0] * gain, rtol=1e-5)
+    np.testing.assert_allclose(fine[0, 2, 0], 0.5 * (fine[0, 0, 0] + fine[0, 4, 0]), rtol=1e-5)
+    big = np.asarray(unet.texel_noise(jnp.array([[0, 0], [512, 77]]), 128, 128, 4, scale=s))
+    assert abs(big.mean()) < 0.05 and abs(big.var() - 1) < 0.06
+    # Smooth: neighbours are strongly correlated, and the 2-texel checkerboard is weak.
+    assert np.mean(big[:, 1:] * big[:, :-1]) > 0.8
+    w = np.asarray(unet.texel_noise(jnp.array([[0, 0], [512, 77]]), 128, 128, 4))
+    assert _checker_std(big) < 0.1 * _checker_std(w)
+    with pytest.raises(ValueError, match="scale"):
+        unet.texel_noise(jnp.array([[0, 0]]), 8, 8, 1, scale=0)
+
+
+def _checker_std(v):
+    return np.std(v[:, :-1, :-1] - v[:, 1:, :-1] - v[:, :-1, 1:] + v[:, 1:, 1:])
+
+
+def test_upsample2_bilinear_interpolates_and_keeps_constants():
+    x = jax.random.normal(jax.random.key(0), (2, 5, 7, 3))
+    y = np.asarray(unet.upsample2(x, "bilinear"))
+    assert y.shape == (2, 10, 14, 3)
+    xn = np.asarray(x)
+    # Interior texel 2i+1 along rows: 3/4 of row i, 1/4 of row i+1 (half-texel centres).
+    np.testing.assert_allclose(y[:, 3, 4], 0.75 * (0.75 * xn[:, 1, 2] + 0.25 * xn[:, 2, 2])
+                               + 0.25 * (0.75 * xn[:, 1, 1] + 0.25 * xn[:, 2, 1]), rtol=1e-5)
+    np.testing.assert_allclose(unet.upsample2(jnp.ones((1, 4, 4, 2)) * 3.0), 3.0)
+    np.testing.assert_array_equal(unet.upsample2(x, "nearest")[:, ::2, ::2], x)
+    with pytest.raises(ValueError, match="up-sampling"):
+        unet.upsample2(x, "cubic")
+
+
+def test_resize_decoders_avoid_the_transposed_conv_checkerboard():
+    """Untrained networks on a smooth patch: the transposed conv's 2-texel checkerboard is of
+    the order of the output's own variation; bilinear resize + conv has several times less."""
+    yy, xx = np.mgrid[0:32, 0:32] / 32.0
+    n = np.stack([0.3 * np.sin(6 * xx + 2 * yy), 0.2 * np.cos(5 * yy), np.ones_like(xx)], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    x = jnp.asarray((n + 1) / 2, jnp.float32)[None].repeat(2, 0)
+    mask = np.ones((2, 32, 32, 1))
+    ratio = {}
+    for up in ("transpose", "bilinear"):
+        model = unet.CINUNet(num_materials=2, width=8, input_norm="none", residual=False,
+                             upsample=up, conv_impl="im2col_f32")
+        params = unet.init_params(model, jax.random.key(0, impl="rbg"), patch_size=32)
+        y = model.apply({"params": params}, x, jnp.array([0, 1]))
+        ratio[up] = float(evaluation.checker_rms(y, mask).mean() / np.asarray(y).std())
+        if up == "bilinear":
+            assert params["dec1"]["kernel"].shape == (3, 3, 64, 64)
+            ref = unet.CINUNet(num_materials=2, width=8, input_norm="none", residual=False,
+                               upsample=up, conv_impl="xla")
+            np.testing.assert_allclose(ref.apply({"params": params}, x, jnp.array([0, 1])), y,
+                                       rtol=1e-4, atol=1e-4)
+    assert ratio["transpose"] > 0.5
+    assert ratio["bilinear"] < 0.25 * ratio["transpose"]
+    with pytest.raises(ValueError, match="upsample"):
+        unet.CINUNet(num_materials=2, width=4, upsample="pixelshuffle").init(
+            jax.random.key(0), x, jnp.array([0, 1]))

@@ -60,8 +60,9 @@ class EnhancerConfig:
       coarse_pd: particle distance (m) of the coarse inputs it was trained for.
       residual_base, unsharp_sigma, unsharp_amount, residual_highpass, blur_order: the
         residual's base and its high-pass (`nn.unet.CINUNet`).
-      detail_sigma, noise_channels: the detail representation the model works in and its
-        fixed per-texel noise inputs (`nn.unet.CINUNet`); 0 for models without them.
+      detail_sigma, noise_channels, noise_scale: the detail representation the model works in
+        and its fixed per-texel noise inputs (`nn.unet.CINUNet`); 0 for models without them.
+      upsample: the decoder's up-sampling, "transpose", "nearest" or "bilinear" (`nn.unet.CINUNet`).
     """
 
     width: int = 32
@@ -78,6 +79,8 @@ class EnhancerConfig:
     blur_order: int = 1
     detail_sigma: float = 0.0
     noise_channels: int = 0
+    noise_scale: int = 1
+    upsample: str = "transpose"
 
     def model(self, conv_impl: str = "im2col_bf16") -> unet.CINUNet:
         return unet.CINUNet(num_materials=len(self.materials), width=self.width,
@@ -88,7 +91,8 @@ class EnhancerConfig:
                             residual_highpass=self.residual_highpass,
                             blur_order=self.blur_order, conv_impl=conv_impl,
                             detail_sigma=self.detail_sigma,
-                            noise_channels=self.noise_channels)
+                            noise_channels=self.noise_channels,
+                            noise_scale=self.noise_scale, upsample=self.upsample)
 
     def material_id(self, name: str) -> int:
         if name not in self.materials:

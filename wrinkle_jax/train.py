@@ -69,6 +69,8 @@ class TrainConfig:
         whose large scales diverge can be used without pixel alignment.
       noise_channels: fixed per-texel noise channels of the model's input (`nn.unet`); the
         batches' random "origins" place each patch in a noise field.
+      noise_scale, upsample: the noise's lattice spacing (texels) and the decoder's
+        up-sampling ("transpose", "nearest" or "bilinear"), see `nn.unet.CINUNet`.
       zero_init_output: with `residual`, start the output conv at zero so the untrained
         network is the identity (improvement 0) instead of input + random noise, whose style
         loss starts ~40x above the input's.
@@ -103,6 +105,8 @@ class TrainConfig:
     relative_floor: float | None = None
     detail_sigma: float = 0.0
     noise_channels: int = 0
+    noise_scale: int = 1
+    upsample: str = "transpose"
     seed: int = 0
     eval_every: int = 50
     eval_batches: int = 4
@@ -118,7 +122,8 @@ class TrainConfig:
                             residual_highpass=self.residual_highpass,
                             blur_order=self.blur_order, conv_impl=self.conv_impl,
                             detail_sigma=self.detail_sigma,
-                            noise_channels=self.noise_channels)
+                            noise_channels=self.noise_channels,
+                            noise_scale=self.noise_scale, upsample=self.upsample)
 
     @property
     def vgg_conv_impl(self) -> str:

@@ -133,6 +133,15 @@ class CINUNet(nn.Module):
         large scale, 0 outside the mask.
       noise_channels: number of fixed per-texel noise channels appended to the input
         (`texel_noise`; needs the patches' `origins` for UV-coherent noise).
+      noise_scale: lattice spacing of that noise in texels (1: white per-texel noise; s > 1:
+        value noise on an s-texel lattice, bilinearly interpolated, so its energy sits at
+        wavelengths >= 2s texels instead of at the texel scale).
+      upsample: the decoder's 2x up-sampling: "transpose" (4x4 stride-2 transposed conv, the
+        authors' layers), or a fixed resize then a 3x3 conv (Odena et al. 2016), "nearest" or
+        "bilinear" (`upsample2`): every output texel sees the same kernel, so no learned
+        2-texel checkerboard; bilinear also avoids nearest's 2x2 block edges (untrained
+        width-8 networks: checkerboard/output RMS 1.2-1.3 transposed, 0.25-0.31 nearest). The
+        resize forms' decoder kernels are 3x3, so their parameters differ from "transpose".
     """
 
     num_materials: int = 5
@@ -149,6 +158,8 @@ class CINUNet(nn.Module):
     conv_impl: str = "xla"
     detail_sigma: float = 0.0
     noise_channels: int = 0
+    noise_scale: int = 1
+    upsample: str = "transpose"
 
     @nn.compact
     def __call__(self, x, material, origins=None):
@@ -179,7 +190,8 @@ class CINUNet(nn.Module):
         if self.noise_channels > 0:
             if origins is None:
                 origins = jnp.zeros((x.shape[0], 2), jnp.int32)
-            noise = texel_noise(origins, x.shape[1], x.shape[2], self.noise_channels)
+            noise = texel_noise(origins, x.shape[1], x.shape[2], self.noise_channels,
+                                scale=self.noise_scale)
             h = jnp.concatenate([h, noise * mask], axis=-1)
         if self.conv_impl not in CONV_IMPLS:
             raise ValueError(f"unknown conv_impl {self.conv_impl!r}; expected one of "
@@ -209,6 +221,11 @@ class CINUNet(nn.Module):
             h = nn.relu(layer(self.width * 2**level, name=f"enc{level + 1}")(h))
             skips.append(h)
             h = nn.max_pool(h, (2, 2), strides=(2, 2)) if compute is None else _max_pool2(h)
+        if self.upsample in ("nearest", "bilinear"):
+            deconv = _ResizeConv(conv, self.upsample)
+        elif self.upsample != "transpose":
+            raise ValueError(f"unknown upsample {self.upsample!r}; expected transpose, "
+                             "nearest or bilinear")
         for level in reversed(range(NUM_LEVELS)):
             h = deconv(self.width * 2**level, name=f"dec{NUM_LEVELS - level}")(h)
             h = h + skips[level]
@@ -237,7 +254,44 @@ class CINUNet(nn.Module):
         return out
 
 
-def texel_noise(origins, height: int, width: int, channels: int, seed: int = 0):
+class _ResizeConv:
+    """Factory with the transposed conv's call signature: fixed 2x up-sampling (`upsample2`,
+    "nearest" or "bilinear"), then `conv` (a 3x3 "same" conv factory):
+    ``_ResizeConv(conv, kind)(features, name=...)(x)``."""
+
+    def __init__(self, conv, kind: str):
+        self.conv, self.kind = conv, kind
+
+    def __call__(self, features: int, name: str):
+        layer = self.conv(features, name=name)
+        return lambda x: layer(upsample2(x, self.kind))
+
+
+def upsample2(x, kind: str = "bilinear"):
+    """(N, H, W, C) -> (N, 2H, 2W, C). "nearest" repeats each texel into a 2x2 block;
+    "bilinear" interpolates at the new texel centres (weights 3/4, 1/4 of the two nearest
+    old texels per axis, edges clamped), whose response falls to zero towards the 2-texel
+    period smoothly, so a following conv sees no block edges to turn into a checkerboard."""
+    if kind == "nearest":
+        return jnp.repeat(jnp.repeat(x, 2, axis=1), 2, axis=2)
+    if kind != "bilinear":
+        raise ValueError(f"unknown up-sampling {kind!r}")
+    for axis in (1, 2):
+        n = x.shape[axis]
+        first = jax.lax.slice_in_dim(x, 0, 1, axis=axis)
+        last = jax.lax.slice_in_dim(x, n - 1, n, axis=axis)
+        xp = jnp.concatenate([first, x, last], axis=axis)
+        mid = jax.lax.slice_in_dim(xp, 1, n + 1, axis=axis)
+        even = 0.25 * jax.lax.slice_in_dim(xp, 0, n, axis=axis) + 0.75 * mid
+        odd = 0.75 * mid + 0.25 * jax.lax.slice_in_dim(xp, 2, n + 2, axis=axis)
+        x = jnp.stack([even, odd], axis=axis + 1)
+        shape = list(x.shape)
+        x = x.reshape(shape[:axis] + [2 * n] + shape[axis + 2:])
+    return x
+
+
+def texel_noise(origins, height: int, width: int, channels: int, seed: int = 0,
+                scale: int = 1):
     """Fixed per-texel noise: a hash of each texel's absolute (row, col) and the channel.
 
     The same texel of a UV layout gets the same values in every frame and in every patch that
@@ -248,12 +302,41 @@ def texel_noise(origins, height: int, width: int, channels: int, seed: int = 0):
       origins: (N, 2) int (row, col) of each patch's top-left texel in the layout.
       height, width, channels: patch size and number of noise channels.
       seed: selects another noise field.
+      scale: lattice spacing in texels. 1: independent values per texel. s > 1: independent
+        values at the texels whose absolute row and column are multiples of s, bilinearly
+        interpolated in between (value noise), rescaled to unit variance on average.
     Returns:
-      (N, height, width, channels) float32, uniform with zero mean and unit variance.
+      (N, height, width, channels) float32 with zero mean and unit variance (uniform for
+      scale 1).
     """
-    o = jnp.asarray(origins).astype(jnp.uint32)
-    r = o[:, 0, None, None, None] + jnp.arange(height, dtype=jnp.uint32)[None, :, None, None]
-    c = o[:, 1, None, None, None] + jnp.arange(width, dtype=jnp.uint32)[None, None, :, None]
+    if scale < 1:
+        raise ValueError(f"noise scale must be >= 1 texel, got {scale}")
+    o = jnp.asarray(origins).astype(jnp.int32)
+    if scale == 1:
+        return _lattice_values(o[:, 0, None] + jnp.arange(height, dtype=jnp.int32),
+                               o[:, 1, None] + jnp.arange(width, dtype=jnp.int32),
+                               channels, seed)
+    r = o[:, 0, None] + jnp.arange(height, dtype=jnp.int32)  # (N, H) absolute rows
+    c = o[:, 1, None] + jnp.arange(width, dtype=jnp.int32)
+    r0, c0 = r // scale, c // scale  # floor division: origins may be negative near borders
+    tr = ((r - r0 * scale).astype(jnp.float32) / scale)[:, :, None, None]
+    tc = ((c - c0 * scale).astype(jnp.float32) / scale)[:, None, :, None]
+    v00 = _lattice_values(r0, c0, channels, seed)
+    v01 = _lattice_values(r0, c0 + 1, channels, seed)
+    v10 = _lattice_values(r0 + 1, c0, channels, seed)
+    v11 = _lattice_values(r0 + 1, c0 + 1, channels, seed)
+    v = ((1 - tr) * ((1 - tc) * v00 + tc * v01) + tr * ((1 - tc) * v10 + tc * v11))
+    # Interpolation lowers the variance by mean_t[(1-t)^2 + t^2] per axis over the s phases.
+    t = np.arange(scale) / scale
+    shrink = float(np.mean((1 - t) ** 2 + t**2)) ** 2
+    return v * np.float32(1.0 / np.sqrt(shrink))
+
+
+def _lattice_values(rows, cols, channels: int, seed: int):
+    """rows (N, H), cols (N, W) int lattice coordinates -> (N, H, W, channels) float32 hash
+    values, uniform in [-sqrt 3, sqrt 3) (zero mean, unit variance)."""
+    r = rows.astype(jnp.uint32)[:, :, None, None]
+    c = cols.astype(jnp.uint32)[:, None, :, None]
     k = jnp.arange(channels, dtype=jnp.uint32)[None, None, None, :] + jnp.uint32(seed * 977 + 1)
     # Integer mixing (multiply-xorshift, "lowbias32"); uint32 arithmetic wraps modulo 2^32.
     v = r * jnp.uint32(0x8DA6B343) ^ c * jnp.uint32(0xD8163841) ^ k * jnp.uint32(0xCB1AB31F)

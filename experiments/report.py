@@ -67,6 +67,8 @@ FIDELITY_METHODS = {
     "oracle_detail": "ceiling: coarse large scale + the fine patch's exact detail",
     "oracle_next_frame": "ceiling: the fine patch of the next frame",
     "oracle_downsampled": "D: fine map downsampled (fine large scale, no detail)",
+    "detail_noise": "candidate, session 6: detail space + texel noise (not shipped)",
+    "detail_bilinear": "candidate, session 7: + bilinear decoder, 4-texel noise (not shipped)",
 }
 
 

@@ -248,16 +248,18 @@ def fidelity_headline(fid: dict | None) -> list[str]:
     def med(k):
         return r.get(k, {}).get("detail", nan)["signed_median"]
 
-    for name in [k for k in r if k not in FIDELITY_METHODS and "detail" in r[k]]:
+    not_models = {"identity", "unsharp", "unsharp_card", "input"} | {
+        k for k in FIDELITY_METHODS if k.startswith("oracle")}
+    for name in [k for k in r if k not in not_models and "detail" in r[k]]:
         d = r[name]["detail"]
+        label = FIDELITY_METHODS.get(name, name)
         rows.append(f"- **Detail-only score, real coarse input, unseen garments** ({d['n']} "
-                    f"patches): {name} signed median **{d['signed_median']:+.1f}** (mean "
+                    f"patches): {label} signed median **{d['signed_median']:+.1f}** (mean "
                     f"{d['signed_mean']:+.1f}); paired median difference against unsharp "
                     f"{_ci(d.get('vs_unsharp'))} (val-swept setting, median "
                     f"{med('unsharp'):+.1f}) and {_ci(d.get('vs_unsharp_card'))} (the model "
-                    f"card's setting, {med('unsharp_card'):+.1f}) (95 % bootstrap); shipped "
-                    f"{med('shipped'):+.1f}, ceiling (coarse + fine detail) "
-                    f"{med('oracle_detail'):+.1f}.")
+                    f"card's setting, {med('unsharp_card'):+.1f}) (95 % bootstrap); ceiling "
+                    f"(coarse + fine detail) {med('oracle_detail'):+.1f}.")
     return rows
 
 

@@ -48,6 +48,18 @@ def pytest_unconfigure(config):
         shutil.rmtree(_owned_cache_dir, ignore_errors=True)
 
 
+# The longest files first: pytest-xdist (--dist loadfile) hands files to the workers in
+# collection order as they free up, so a long file collected last would run alone at the end.
+# The order within a file is kept.
+SLOW_FILES_FIRST = ("test_train.py", "test_patchgan.py", "test_eval_experiments.py",
+                    "test_notebooks.py", "test_sim_detail.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(SLOW_FILES_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+
+
 def x64():
     """Context manager enabling float64 (for finite-difference gradient checks)."""
     if hasattr(jax, "enable_x64"):

@@ -48,9 +48,10 @@ def pytest_unconfigure(config):
         shutil.rmtree(_owned_cache_dir, ignore_errors=True)
 
 
-# The longest files first: pytest-xdist (--dist loadfile) hands files to the workers in
-# collection order as they free up, so a long file collected last would run alone at the end.
-# The order within a file is kept.
+# The longest files first: pytest-xdist (with --dist loadfile --no-loadscope-reorder, as in the
+# Makefile) hands files to the workers in collection order as they free up, so a long file
+# collected last would run alone at the end. (Without --no-loadscope-reorder xdist orders files
+# by their number of tests instead.) The order within a file is kept.
 SLOW_FILES_FIRST = ("test_train.py", "test_patchgan.py", "test_eval_experiments.py",
                     "test_notebooks.py", "test_sim_detail.py")
 

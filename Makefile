@@ -14,8 +14,12 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e ".[dev]"
 	touch $(STAMP)
 
+# The suite runs on every core (pytest-xdist); a file's tests stay on one worker so that its
+# module fixtures are built once, and files start in collection order (tests/conftest.py puts
+# the longest first). TEST_WORKERS=0 runs it in one process.
+TEST_WORKERS ?= auto
 test: venv
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder tests
 
 demo: venv
 	$(PY) -m wrinkle_jax.cli demo --out outputs/demo

@@ -1,6 +1,21 @@
-"""Shared test fixtures: analytic garments and a float64 context for gradient checks."""
+"""Shared test fixtures: analytic garments and a float64 context for gradient checks.
+
+Most of the suite's time is XLA compilation, and many tests build the same program in a new
+`jax.jit` (every `train.train` call, every script `main`, every fixture that makes a step).
+The session therefore uses a JAX persistent compilation cache in a temporary folder: a program
+already compiled in this session (by this process or by another pytest-xdist worker) is loaded
+instead of compiled again. The key is the lowered program and the compile options, so a test
+runs exactly the executable it would have compiled. The folder is made by the first process
+(the xdist controller), handed to the workers through the environment and removed at the end;
+it is never set for subprocesses that tests start (JAX reads only its own variables).
+Set WRINKLE_JAX_TEST_JIT_CACHE=off to compile everything afresh.
+"""
 
 from __future__ import annotations
+
+import os
+import shutil
+import tempfile
 
 import jax
 import numpy as np
@@ -8,6 +23,42 @@ import pytest
 
 from wrinkle_jax import data, primitives
 from wrinkle_jax.meshio import make_sequence, save_sequence
+
+_CACHE_ENV = "WRINKLE_JAX_TEST_JIT_CACHE"
+_owned_cache_dir: str | None = None
+
+
+def pytest_configure(config):
+    global _owned_cache_dir
+    cache_dir = os.environ.get(_CACHE_ENV)
+    if cache_dir == "off":
+        return
+    if not cache_dir:  # the first process of the session (xdist workers inherit the variable)
+        cache_dir = _owned_cache_dir = tempfile.mkdtemp(prefix="wrinkle-jax-test-jit-")
+        os.environ[_CACHE_ENV] = cache_dir
+    jax.config.update("jax_compilation_cache_dir", cache_dir)
+    # Only programs worth caching: loading costs a few ms, small jits compile faster.
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def pytest_unconfigure(config):
+    if _owned_cache_dir is not None:
+        os.environ.pop(_CACHE_ENV, None)
+        shutil.rmtree(_owned_cache_dir, ignore_errors=True)
+
+
+# The longest files first: pytest-xdist (with --dist loadfile --no-loadscope-reorder, as in the
+# Makefile) hands files to the workers in collection order as they free up, so a long file
+# collected last would run alone at the end. (Without --no-loadscope-reorder xdist orders files
+# by their number of tests instead.) The order within a file is kept.
+SLOW_FILES_FIRST = ("test_train.py", "test_patchgan.py", "test_eval_experiments.py",
+                    "test_notebooks.py", "test_sim_detail.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(SLOW_FILES_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
 
 def x64():

@@ -52,16 +52,26 @@ from wrinkle_jax import normalmap, patches
 from wrinkle_jax.mesh import Garment
 from wrinkle_jax.meshio import GarmentSequence
 from wrinkle_jax.stages import (
+    FrameResult,
     _bake_chunk,
     _extract_chunk,
+    _frame,
+    _FrameStatic,
     _lift_frame,
     _merge_chunk,
     _network_apply,
+    _network_frame,
+    bake_stage,
+    lift_stage,
+    merge_stage,
+    network_stage,
+    tile_stage,
 )
 
-__all__ = ["STAGES", "EnhanceResult", "EnhancedFrame", "Pipeline", "PipelineConfig",
-           "PipelineError", "classify_material", "enhance_frame", "enhance_sequence",
-           "iter_enhance", "make_pipeline", "resolve_material"]
+__all__ = ["STAGES", "EnhanceResult", "EnhancedFrame", "FrameResult", "Pipeline",
+           "PipelineConfig", "PipelineError", "bake_stage", "classify_material",
+           "enhance_frame", "enhance_sequence", "frame_fn", "iter_enhance", "lift_stage",
+           "make_pipeline", "merge_stage", "network_stage", "resolve_material", "tile_stage"]
 
 # Per-stage timings recorded by the pipeline (seconds), in pipeline order.
 STAGES = ("setup", "compile", "classify", "bake", "tile", "network", "merge", "lift", "write")
@@ -279,9 +289,9 @@ def _compile(pipe: Pipeline) -> float:
                       _padded_mask(pipe), smooth=cfg.smooth,
                       padded_shape=pipe.padded_shape).compile()
     _extract_chunk.lower(spec((c, hp, wp, 3), f32), pipe.origins, size=size).compile()
-    noise = (spec((cfg.batch_size, 2), jnp.int32),) if enh.config.noise_channels else ()
-    _network_apply(enh).lower(enh.params, spec((cfg.batch_size, size, size, 3), f32),
-                              spec((cfg.batch_size,), jnp.int32), *noise).compile()
+    _network_frame.lower(_network_apply(enh), enh.params, spec((p, size, size, 3), f32),
+                         spec((), jnp.int32), batch_size=cfg.batch_size,
+                         origins=_noise_origins(pipe)).compile()
     _merge_chunk.lower(spec((c, p, size, size, 3), f32), pipe.origins, _padded_mask(pipe),
                        spec((c, hp, wp, 3), f32), window=cfg.window, shape=pipe.shape).compile()
     if cfg.lift:
@@ -290,6 +300,11 @@ def _compile(pipe: Pipeline) -> float:
                           spec((*pipe.shape, 3), f32), pipe.subdivision, pipe.fine_garment,
                           pipe.topology, body, **_lift_static(pipe)).compile()
     return time.perf_counter() - t0
+
+
+def _noise_origins(pipe: Pipeline):
+    """The patch origins for models with texel noise (fixed to the cloth), else None."""
+    return jnp.asarray(pipe.origins) if pipe.enhancer.config.noise_channels else None
 
 
 def _padded_mask(pipe: Pipeline):
@@ -316,24 +331,19 @@ def _add(timings: dict, stage: str, t0: float) -> float:
 def _run_network(pipe: Pipeline, inputs, material_id: int, counts: dict):
     """U-Net over the patches of n frames, (n, P, S, S, 3) -> same shape, RGB form.
 
-    Every batch holds patches of a single frame at fixed positions (a frame's last batch is
-    zero-padded), so a patch's result never depends on its neighbours in the chunk. Models
-    with texel noise get each patch's origin, so the noise is fixed to the cloth.
+    One `network_stage` call per frame: every batch holds patches of a single frame at fixed
+    positions (a frame's last batch is zero-padded), so a patch's result never depends on its
+    neighbours in the chunk. Models with texel noise get each patch's origin, so the noise is
+    fixed to the cloth.
     """
     apply = _network_apply(pipe.enhancer)
     b, p = pipe.config.batch_size, pipe.num_patches
     nb = pipe.batches_per_frame
     n = inputs.shape[0]
-    x = jnp.pad(inputs, ((0, 0), (0, nb * b - p), (0, 0), (0, 0), (0, 0)))
-    x = x.reshape(n * nb, b, *inputs.shape[2:])
-    material = jnp.full((b,), material_id, jnp.int32)
-    extra = [()] * nb
-    if pipe.enhancer.config.noise_channels:
-        o = np.zeros((nb * b, 2), np.int32)
-        o[:p] = pipe.origins
-        extra = [(jnp.asarray(o[k * b:(k + 1) * b]),) for k in range(nb)]
-    outs = [apply(pipe.enhancer.params, x[i], material, *extra[i % nb]) for i in range(n * nb)]
-    out = jnp.stack(outs).reshape(n, nb * b, *inputs.shape[2:])[:, :p]
+    material = jnp.asarray(material_id, jnp.int32)
+    origins = _noise_origins(pipe)
+    out = jnp.stack([_network_frame(apply, pipe.enhancer.params, inputs[i], material,
+                                    batch_size=b, origins=origins) for i in range(n)])
     counts["network"] += n * p
     counts["padding"] += n * (nb * b - p)
     counts["batches"] += n * nb
@@ -403,6 +413,61 @@ def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int
                     pipe.fine_garment, pipe.topology, _body_for(pipe.body, t), **lift_static))
                 _add(timings, "lift", t0)
             yield EnhancedFrame(int(t), coarse[j], enhanced[j], detailed)
+
+
+# --------------------------------------------------------------------------------------------
+# One frame as one differentiable function
+# --------------------------------------------------------------------------------------------
+
+
+def frame_fn(pipe: Pipeline, body=None) -> Callable[..., FrameResult]:
+    """The whole pipeline of one frame as one pure, jittable, differentiable function.
+
+        f = frame_fn(pipe)
+        f(params, coarse_vertices, material_id) -> FrameResult(normal_map, mask, detailed)
+
+    bake -> tile -> U-Net -> merge -> lift with the pipeline's setup and settings (the same
+    stage functions, padding, batching, merge window and lifting as `iter_enhance`, so for
+    ``params = pipe.enhancer.params`` it computes the streamed results, up to float rounding).
+
+    Args of f:
+      params: the enhancer's parameter pytree (any values of `pipe.enhancer.params`' shapes).
+      coarse_vertices: (Vc, 3) float coarse frame, meters (float64 under jax_enable_x64).
+      material_id: int or int32 scalar, a row of the model's material tables
+        (`pipe.enhancer.config.material_id(name)`); not differentiable.
+    Returns of f: FrameResult; `detailed` is None when `pipe.config.lift` is False.
+
+    Differentiable end to end in reverse mode (`jax.grad`, `jax.vjp`) with respect to params
+    and coarse_vertices: through the bake, the U-Net, the merge and the lift (implicit
+    function theorem, exact at a converged solve: build the pipeline with a tighter
+    `PipelineConfig.solver` when gradients must be accurate). f is jitted (one compile per
+    pipeline shape, shared by pipelines of the same shapes and settings); it can also be
+    traced inside a caller's jit, grad or vmap.
+
+    Args:
+      pipe: from `make_pipeline` (``compile=False`` is enough; f compiles on first call).
+      body: None (default, also when the pipeline has one), or a `bodies` body, meters, the
+        lifted mesh is pushed out of (forward only: the penetration resolution is not
+        differentiable in reverse mode).
+    """
+    cfg = pipe.config
+    lift = None
+    if cfg.lift:
+        lift = tuple(sorted(_lift_static(pipe).items()))
+    static = _FrameStatic(apply=_network_apply(pipe.enhancer), smooth=cfg.smooth,
+                          padded_shape=pipe.padded_shape, shape=pipe.shape,
+                          size=pipe.enhancer.config.patch_size, batch_size=cfg.batch_size,
+                          window=cfg.window, noise=bool(pipe.enhancer.config.noise_channels),
+                          lift=lift)
+    setup = dict(plan=pipe.plan, padded_mask=_padded_mask(pipe),
+                 origins=jnp.asarray(pipe.origins), mask=jnp.asarray(pipe.mask),
+                 subdivision=pipe.subdivision, fine_garment=pipe.fine_garment,
+                 topology=pipe.topology, body=body)
+
+    def f(params, coarse_vertices, material_id) -> FrameResult:
+        return _frame(setup, params, coarse_vertices, material_id, static=static)
+
+    return f
 
 
 # --------------------------------------------------------------------------------------------

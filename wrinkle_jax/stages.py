@@ -249,7 +249,7 @@ _APPLY_CACHE: dict = {}
 
 def _network_apply(enh: enhancer_lib.Enhancer):
     """`enhancer.make_apply` shared by every pipeline with the same model (one compile)."""
-    key = (enh.config, getattr(enh.model, "conv_impl", None))
+    key = (enh.config, type(enh.model), getattr(enh.model, "conv_impl", None))
     if key not in _APPLY_CACHE:
         _APPLY_CACHE[key] = enhancer_lib.make_apply(enh)
     return _APPLY_CACHE[key]

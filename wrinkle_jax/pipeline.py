@@ -19,6 +19,11 @@ Contract:
     and, with ``keep=True``, also stacks them into arrays (a convenience for short sequences).
   * Results do not depend on the chunk size or on the batch padding (each network batch
     holds the patches of one frame only, always at the same positions).
+  * The stages are public pure functions of one frame (`bake_stage`, `tile_stage`,
+    `network_stage`, `merge_stage`, `lift_stage`, from `wrinkle_jax.stages`); the streaming
+    runs their jitted, frame-vmapped forms, and `frame_fn(pipe)` composes them into one
+    jitted function ``f(params, coarse_vertices, material_id) -> FrameResult``,
+    differentiable end to end (reverse mode) in the network parameters and the vertices.
   * Normal maps are float32 (H, W, 3) object-space normals in [-1, 1]: unit vectors on the
     garment texels (mask > 0), the coarse normals in the seam gutter (so bilinear sampling at
     the UV borders never reads background) and zero on the background. Vertices are meters.

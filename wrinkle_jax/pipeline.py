@@ -446,8 +446,8 @@ def frame_fn(pipe: Pipeline, body=None) -> Callable[..., FrameResult]:
     and coarse_vertices: through the bake, the U-Net, the merge and the lift (implicit
     function theorem, exact at a converged solve: build the pipeline with a tighter
     `PipelineConfig.solver` when gradients must be accurate). f is jitted (one compile per
-    pipeline shape, shared by pipelines of the same shapes and settings); it can also be
-    traced inside a caller's jit, grad or vmap.
+    pipeline shape, shared by pipelines of the same shapes and settings) and can be traced
+    inside a caller's jit or grad.
 
     Args:
       pipe: from `make_pipeline` (``compile=False`` is enough; f compiles on first call).

@@ -132,6 +132,19 @@ def test_enhance_frame_matches_the_sequence(result, seq, model):
     np.testing.assert_array_equal(frame.coarse, seq.frames[2])
 
 
+def test_frame_fn_is_the_streamed_frame(result, seq, model):
+    """One jitted function of (params, coarse vertices, material) computes what the streaming
+    pipeline computes for that frame (same stages, padding and batches)."""
+    pipe = pipeline.make_pipeline(seq.garment, model, pipeline.PipelineConfig(batch_size=BATCH),
+                                  compile=False)
+    f = pipeline.frame_fn(pipe)
+    out = f(model.params, jnp.asarray(seq.frames[2]), model.config.material_id("wool_melton"))
+    assert isinstance(out, pipeline.FrameResult)
+    np.testing.assert_allclose(out.normal_map, result.normal_maps[2], atol=1e-6)
+    np.testing.assert_allclose(out.detailed, result.detailed_frames[2], atol=1e-6)
+    np.testing.assert_array_equal(out.mask, result.mask)
+
+
 def test_material_auto_uses_the_injected_classifier(seq, model):
     calls = []
 

@@ -19,6 +19,11 @@ Contract:
     and, with ``keep=True``, also stacks them into arrays (a convenience for short sequences).
   * Results do not depend on the chunk size or on the batch padding (each network batch
     holds the patches of one frame only, always at the same positions).
+  * The stages are public pure functions of one frame (`bake_stage`, `tile_stage`,
+    `network_stage`, `merge_stage`, `lift_stage`, from `wrinkle_jax.stages`); the streaming
+    runs their jitted, frame-vmapped forms, and `frame_fn(pipe)` composes them into one
+    jitted function ``f(params, coarse_vertices, material_id) -> FrameResult``,
+    differentiable end to end (reverse mode) in the network parameters and the vertices.
   * Normal maps are float32 (H, W, 3) object-space normals in [-1, 1]: unit vectors on the
     garment texels (mask > 0), the coarse normals in the seam gutter (so bilinear sampling at
     the UV borders never reads background) and zero on the background. Vertices are meters.
@@ -38,7 +43,6 @@ Example:
 from __future__ import annotations
 
 import dataclasses
-import functools
 import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
@@ -52,10 +56,27 @@ from wrinkle_jax import lift as lift_lib
 from wrinkle_jax import normalmap, patches
 from wrinkle_jax.mesh import Garment
 from wrinkle_jax.meshio import GarmentSequence
+from wrinkle_jax.stages import (
+    FrameResult,
+    _bake_chunk,
+    _extract_chunk,
+    _frame,
+    _FrameStatic,
+    _lift_frame,
+    _merge_chunk,
+    _network_apply,
+    _network_frame,
+    bake_stage,
+    lift_stage,
+    merge_stage,
+    network_stage,
+    tile_stage,
+)
 
-__all__ = ["STAGES", "EnhanceResult", "EnhancedFrame", "Pipeline", "PipelineConfig",
-           "PipelineError", "classify_material", "enhance_frame", "enhance_sequence",
-           "iter_enhance", "make_pipeline", "resolve_material"]
+__all__ = ["STAGES", "EnhanceResult", "EnhancedFrame", "FrameResult", "Pipeline",
+           "PipelineConfig", "PipelineError", "bake_stage", "classify_material",
+           "enhance_frame", "enhance_sequence", "frame_fn", "iter_enhance", "lift_stage",
+           "make_pipeline", "merge_stage", "network_stage", "resolve_material", "tile_stage"]
 
 # Per-stage timings recorded by the pipeline (seconds), in pipeline order.
 STAGES = ("setup", "compile", "classify", "bake", "tile", "network", "merge", "lift", "write")
@@ -204,68 +225,6 @@ class EnhanceResult:
 
 
 # --------------------------------------------------------------------------------------------
-# Jitted stages (module level, so their compile caches are shared by every pipeline)
-# --------------------------------------------------------------------------------------------
-
-
-@functools.partial(jax.jit, static_argnames=("smooth", "padded_shape"))
-def _bake_chunk(plan, frames, mask, smooth: bool, padded_shape: tuple[int, int]):
-    """(C, V, 3) frames -> coarse maps (C, Hp, Wp, 3) with gutter, and the network input
-    (C, Hp, Wp, 3) in the RGB form, zero off the garment (as the training inputs)."""
-    maps = normalmap.bake_frames(plan, frames, smooth)
-    h, w = maps.shape[1:3]
-    maps = jnp.pad(maps, ((0, 0), (0, padded_shape[0] - h), (0, padded_shape[1] - w), (0, 0)))
-    return maps, normalmap.to_rgb(maps) * mask
-
-
-@functools.partial(jax.jit, static_argnames=("size",))
-def _extract_chunk(images, origins, size: int):
-    """(C, Hp, Wp, 3) -> (C, P, size, size, 3) patches at the same origins in every frame."""
-    return jax.vmap(lambda im: patches.extract(im, origins, size))(images)
-
-
-@functools.partial(jax.jit, static_argnames=("window", "shape"))
-def _merge_chunk(outputs, origins, mask, coarse, window: str, shape: tuple[int, int]):
-    """Enhanced RGB patches (C, P, S, S, 3) -> N* (C, H, W, 3).
-
-    Patches are merged as normals with `window` weights and renormalized; garment texels
-    whose merged vector vanished (a network output of exactly mid-grey) keep the coarse
-    normal, and the gutter keeps the coarse map, so the result is unit inside the mask.
-    """
-    inside = mask > 0
-
-    def one(out, base):
-        merged, _ = patches.merge(normalmap.from_rgb(out), origins, base.shape, window=window,
-                                  mask=mask, renormalize=True)
-        ok = inside & (jnp.sum(merged * merged, -1, keepdims=True) > 0.25)
-        return jnp.where(ok, merged, base)
-
-    return jax.vmap(one)(outputs, coarse)[:, : shape[0], : shape[1]]
-
-
-@functools.partial(jax.jit, static_argnames=("layout", "weights", "solver", "resolve", "phi"))
-def _lift_frame(coarse, normal_map, subdivision, fine_garment, topology, body, layout,
-                weights, solver, resolve, phi):
-    """(Vc, 3) coarse frame + N* (H, W, 3) -> (V', 3) lifted (and de-penetrated) vertices."""
-    p = lift_lib.lift_from_normal_map(coarse, subdivision, fine_garment, topology, normal_map,
-                                      layout, weights, solver)
-    if body is not None:  # the penetration term exists only when a body is given
-        p = lift_lib.resolve_penetration(p, topology, body, phi, resolve)
-    return p
-
-
-_APPLY_CACHE: dict = {}
-
-
-def _network_apply(enh: enhancer_lib.Enhancer):
-    """`enhancer.make_apply` shared by every pipeline with the same model (one compile)."""
-    key = (enh.config, getattr(enh.model, "conv_impl", None))
-    if key not in _APPLY_CACHE:
-        _APPLY_CACHE[key] = enhancer_lib.make_apply(enh)
-    return _APPLY_CACHE[key]
-
-
-# --------------------------------------------------------------------------------------------
 # Setup
 # --------------------------------------------------------------------------------------------
 
@@ -335,9 +294,9 @@ def _compile(pipe: Pipeline) -> float:
                       _padded_mask(pipe), smooth=cfg.smooth,
                       padded_shape=pipe.padded_shape).compile()
     _extract_chunk.lower(spec((c, hp, wp, 3), f32), pipe.origins, size=size).compile()
-    noise = (spec((cfg.batch_size, 2), jnp.int32),) if enh.config.noise_channels else ()
-    _network_apply(enh).lower(enh.params, spec((cfg.batch_size, size, size, 3), f32),
-                              spec((cfg.batch_size,), jnp.int32), *noise).compile()
+    _network_frame.lower(_network_apply(enh), enh.params, spec((p, size, size, 3), f32),
+                         spec((), jnp.int32), batch_size=cfg.batch_size,
+                         origins=_noise_origins(pipe)).compile()
     _merge_chunk.lower(spec((c, p, size, size, 3), f32), pipe.origins, _padded_mask(pipe),
                        spec((c, hp, wp, 3), f32), window=cfg.window, shape=pipe.shape).compile()
     if cfg.lift:
@@ -346,6 +305,11 @@ def _compile(pipe: Pipeline) -> float:
                           spec((*pipe.shape, 3), f32), pipe.subdivision, pipe.fine_garment,
                           pipe.topology, body, **_lift_static(pipe)).compile()
     return time.perf_counter() - t0
+
+
+def _noise_origins(pipe: Pipeline):
+    """The patch origins for models with texel noise (fixed to the cloth), else None."""
+    return jnp.asarray(pipe.origins) if pipe.enhancer.config.noise_channels else None
 
 
 def _padded_mask(pipe: Pipeline):
@@ -372,24 +336,19 @@ def _add(timings: dict, stage: str, t0: float) -> float:
 def _run_network(pipe: Pipeline, inputs, material_id: int, counts: dict):
     """U-Net over the patches of n frames, (n, P, S, S, 3) -> same shape, RGB form.
 
-    Every batch holds patches of a single frame at fixed positions (a frame's last batch is
-    zero-padded), so a patch's result never depends on its neighbours in the chunk. Models
-    with texel noise get each patch's origin, so the noise is fixed to the cloth.
+    One `network_stage` call per frame: every batch holds patches of a single frame at fixed
+    positions (a frame's last batch is zero-padded), so a patch's result never depends on its
+    neighbours in the chunk. Models with texel noise get each patch's origin, so the noise is
+    fixed to the cloth.
     """
     apply = _network_apply(pipe.enhancer)
     b, p = pipe.config.batch_size, pipe.num_patches
     nb = pipe.batches_per_frame
     n = inputs.shape[0]
-    x = jnp.pad(inputs, ((0, 0), (0, nb * b - p), (0, 0), (0, 0), (0, 0)))
-    x = x.reshape(n * nb, b, *inputs.shape[2:])
-    material = jnp.full((b,), material_id, jnp.int32)
-    extra = [()] * nb
-    if pipe.enhancer.config.noise_channels:
-        o = np.zeros((nb * b, 2), np.int32)
-        o[:p] = pipe.origins
-        extra = [(jnp.asarray(o[k * b:(k + 1) * b]),) for k in range(nb)]
-    outs = [apply(pipe.enhancer.params, x[i], material, *extra[i % nb]) for i in range(n * nb)]
-    out = jnp.stack(outs).reshape(n, nb * b, *inputs.shape[2:])[:, :p]
+    material = jnp.asarray(material_id, jnp.int32)
+    origins = _noise_origins(pipe)
+    out = jnp.stack([_network_frame(apply, pipe.enhancer.params, inputs[i], material,
+                                    batch_size=b, origins=origins) for i in range(n)])
     counts["network"] += n * p
     counts["padding"] += n * (nb * b - p)
     counts["batches"] += n * nb
@@ -459,6 +418,61 @@ def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int
                     pipe.fine_garment, pipe.topology, _body_for(pipe.body, t), **lift_static))
                 _add(timings, "lift", t0)
             yield EnhancedFrame(int(t), coarse[j], enhanced[j], detailed)
+
+
+# --------------------------------------------------------------------------------------------
+# One frame as one differentiable function
+# --------------------------------------------------------------------------------------------
+
+
+def frame_fn(pipe: Pipeline, body=None) -> Callable[..., FrameResult]:
+    """The whole pipeline of one frame as one pure, jittable, differentiable function.
+
+        f = frame_fn(pipe)
+        f(params, coarse_vertices, material_id) -> FrameResult(normal_map, mask, detailed)
+
+    bake -> tile -> U-Net -> merge -> lift with the pipeline's setup and settings (the same
+    stage functions, padding, batching, merge window and lifting as `iter_enhance`, so for
+    ``params = pipe.enhancer.params`` it computes the streamed results, up to float rounding).
+
+    Args of f:
+      params: the enhancer's parameter pytree (any values of `pipe.enhancer.params`' shapes).
+      coarse_vertices: (Vc, 3) float coarse frame, meters (float64 under jax_enable_x64).
+      material_id: int or int32 scalar, a row of the model's material tables
+        (`pipe.enhancer.config.material_id(name)`); not differentiable.
+    Returns of f: FrameResult; `detailed` is None when `pipe.config.lift` is False.
+
+    Differentiable end to end in reverse mode (`jax.grad`, `jax.vjp`) with respect to params
+    and coarse_vertices: through the bake, the U-Net, the merge and the lift (implicit
+    function theorem, exact at a converged solve: build the pipeline with a tighter
+    `PipelineConfig.solver` when gradients must be accurate). f is jitted (one compile per
+    pipeline shape, shared by pipelines of the same shapes and settings) and can be traced
+    inside a caller's jit or grad.
+
+    Args:
+      pipe: from `make_pipeline` (``compile=False`` is enough; f compiles on first call).
+      body: None (default, also when the pipeline has one), or a `bodies` body, meters, the
+        lifted mesh is pushed out of (forward only: the penetration resolution is not
+        differentiable in reverse mode).
+    """
+    cfg = pipe.config
+    lift = None
+    if cfg.lift:
+        lift = tuple(sorted(_lift_static(pipe).items()))
+    static = _FrameStatic(apply=_network_apply(pipe.enhancer), smooth=cfg.smooth,
+                          padded_shape=pipe.padded_shape, shape=pipe.shape,
+                          size=pipe.enhancer.config.patch_size, batch_size=cfg.batch_size,
+                          window=cfg.window, noise=bool(pipe.enhancer.config.noise_channels),
+                          lift=lift)
+    setup = dict(plan=pipe.plan, padded_mask=_padded_mask(pipe),
+                 origins=jnp.asarray(pipe.origins), mask=jnp.asarray(pipe.mask),
+                 subdivision=pipe.subdivision, fine_garment=pipe.fine_garment,
+                 topology=pipe.topology, body=body)
+
+    def f(params, coarse_vertices, material_id) -> FrameResult:
+        return _frame(setup, params, coarse_vertices, material_id, static=static)
+
+    return f
 
 
 # --------------------------------------------------------------------------------------------

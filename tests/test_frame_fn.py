@@ -4,8 +4,7 @@ The gradient test runs in float64 (`jax_enable_x64`, switched on for the test on
 garment with a tiny *smooth* network: the U-Net computes in float32 whatever its inputs and its
 ReLUs and small-patch instance norms make central differences of it meaningless, while the
 pipeline's own gradient plumbing (bake, padding, tiling, batching, merge, lift) is what this
-tests. The U-Net's gradients are tested in tests/test_unet.py; the notebook
-03_end_to_end_gradients optimises through the real U-Net with `frame_fn`.
+tests. The U-Net's gradients are tested in tests/test_unet.py.
 """
 
 from __future__ import annotations

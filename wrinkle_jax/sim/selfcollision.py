@@ -14,14 +14,19 @@ Method (Bridson, Fedkiw & Anderson 2002 proximity; Mueller et al. 2007 PBD const
       gets 0.9 x its rest distance as its thickness.
     * nothing is dropped silently: cell entries beyond `max_raw` and kept triangles beyond
       `max_contacts` are counted (`Candidates.overflow`, accumulated in the solver state).
-  projection (every substep, after the cloth constraints, before the body contacts):
-    for candidate (v, t) whose point p_v projects into t (barycentrics b), with the side s
-    taken from the start-of-substep positions x (a vertex that crossed t during the substep
-    is sent back, not through):
-        C = s n . (p_v - sum_i b_i p_i) - thickness >= 0
-    is projected with zero compliance (XPBD with alpha = 0 is PBD), n held fixed. All contacts
-    are solved together (Jacobi) and each vertex's correction is divided by its number of
-    active contacts, so a vertex in many contacts does not overshoot (Macklin et al. 2014).
+  projection (every substep: after the cloth constraints, and again after the body
+  contacts with the vertices the body moved held fixed, so a layer pressed between the body
+  and another layer pushes that layer out instead of being pushed back into the body):
+    for candidate (v, t), the closest point of t to the vertex at the substep's start
+    (barycentrics b, clamped to t) and the unit direction d from it to the vertex are fixed;
+        C = d . (p_v - sum_i b_i p_i) - thickness >= 0
+    is projected with zero compliance (XPBD with alpha = 0 is PBD). Over the face d is the
+    normal on the start side, so a vertex that passed through during the substep is sent
+    back, not on. All contacts are solved together (Jacobi) and each vertex's correction is
+    divided by its number of active contacts (Macklin et al. 2014), so it does not overshoot.
+  not modelled: edge-edge proximity. Two edges can cross while every vertex keeps the
+  thickness from every triangle; measured on coarse meshes (PD 30 mm, thickness 4 mm) this
+  is the remaining failure, and a thickness of ~0.3 PD closes it on the test scenes.
 
 Shapes: V vertices, F faces, K = max_contacts, R = max_raw. Units: meters.
 """

@@ -20,9 +20,12 @@ length h = 1 / (fps * substeps):
                 one sweep per substep on fine meshes; never resists bending)
          stretch C_e = (|x_j - x_i| - L_e) / L_e, compliance 1 / (k_s A_e) (last, so the
                 local strain left by the hard long-range projections is smoothed)
-  4. collisions with the present colliders (offset = cloth thickness, Coulomb friction;
+  4. optional self-collision (`SimConfig.self_collision`, see `selfcollision`): candidates
+     rebuilt every `rebuild_every` substeps, vertex-triangle thickness constraints projected
+     before the body contacts and again after them with the body-contact vertices held
+  5. collisions with the present colliders (offset = cloth thickness, Coulomb friction;
      pinned vertices are kinematic and not projected)
-  5. v = (p - x) / h; x = p
+  6. v = (p - x) / h; x = p
 
 Contract:
   * `build_cloth(garment, pinned, ...)` -> `ClothModel` (frozen pytree of arrays: topology,

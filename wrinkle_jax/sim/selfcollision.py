@@ -64,8 +64,8 @@ class SelfCollisionConfig:
     thickness: float = 0.004
     margin: float = 0.006
     rebuild_every: int = 1
-    max_raw: int = 96
-    max_contacts: int = 8
+    max_raw: int = 256
+    max_contacts: int = 16
     passes: int = 1
     post_passes: int = 1
 

@@ -113,10 +113,15 @@ def test_overflow_is_counted_not_dropped():
     assert np.asarray(state.self_overflow).min() > 0
 
 
-def _layers_ordered(x, lower, upper, center, radius=0.03, gap=0.003):
-    """Over the ball's top, the upper layer's vertices lie above the lower layer's."""
-    top = np.linalg.norm(x[:, :2] - np.asarray(center), axis=1) < radius
-    return x[top & upper, 2].mean() > x[top & lower, 2].mean() + gap
+def _layers_ordered(x, lower, upper, reach=0.01):
+    """Where the layers overlap (the nearest lower vertex within `reach` in x-y), the upper
+    layer's vertices lie above the lower layer's (masks (V,) bool). Measured on these scenes:
+    >= 0.98 of >= 65 pairs with self-collision, 0.42 without (two_sheets)."""
+    xu, xl = x[upper], x[lower]
+    d = np.linalg.norm(xu[:, None, :2] - xl[None, :, :2], axis=-1)
+    j = d.argmin(1)
+    ok = d[np.arange(len(xu)), j] < reach
+    return ok.sum() >= 20 and np.mean(xu[ok, 2] > xl[j[ok], 2]) > 0.95
 
 
 def test_two_sheets_do_not_pass_through():
@@ -129,7 +134,7 @@ def test_two_sheets_do_not_pass_through():
     g = scene.mesh.garment
     upper = np.zeros(len(scene.x0), bool)
     upper[np.asarray(g.faces)[np.asarray(g.panels) == 1].reshape(-1)] = True
-    assert _layers_ordered(xs[-1], ~upper, upper, (0.0, 0.0))
+    assert _layers_ordered(xs[-1], ~upper, upper)
 
 
 def test_folded_sheet_stays_intersection_free():
@@ -141,4 +146,4 @@ def test_folded_sheet_stays_intersection_free():
     assert np.asarray(state.self_overflow).tolist() == [0, 0]
     assert _pairs(xs, scene.model.faces, every=3) == [0] * 8
     upper = scene.x0[:, 2] > scene.x0[:, 2].min() + 0.015  # the top layer (2 cm fold)
-    assert _layers_ordered(xs[-1], ~upper, upper, (-0.05, 0.0))
+    assert _layers_ordered(xs[-1], ~upper, upper)

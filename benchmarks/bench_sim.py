@@ -1,9 +1,9 @@
 """Simulator benchmark: ms per frame (30 fps) per scene at PD 10 and 30 mm, speed against
 error over substep counts (constraint violation, energy drift, penetration depth), and the
-skirts' self-intersections (no self-collision in the solver).
+skirts' self-intersections; with --self-collision, ms/frame with and without it.
 
     python benchmarks/bench_sim.py [--quick] [--part speed|substeps|intersect|all]
-                                   [--scenes a,b] [--data data/sequences]
+                                   [--scenes a,b] [--data data/sequences] [--self-collision]
 
 Prints one JSON document. Timings exclude compilation (a warm-up chunk runs first). On a
 shared CPU the numbers are upper bounds; `load_avg` is reported alongside.
@@ -12,6 +12,7 @@ shared CPU the numbers are upper bounds; `load_avg` is reported alongside.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -25,40 +26,50 @@ from wrinkle_jax.sim import colliders as C
 from wrinkle_jax.sim import materials as M
 from wrinkle_jax.sim import patterns as P
 from wrinkle_jax.sim import scenes, xpbd
+from wrinkle_jax.sim.selfcollision import SelfCollisionConfig
 
 
-def bench_speed(scene_names, resolutions, frames: int, material: str = "silk_charmeuse"):
+def bench_speed(scene_names, resolutions, frames: int, material: str = "silk_charmeuse",
+                self_collision: tuple = (None,)):
+    """ms/frame per scene, resolution and self-collision setting (None = off)."""
     rows = []
     for name in scene_names:
         for res in resolutions:
             setup = scenes.setup_scene(name, res, frames)
-            config = xpbd.SimConfig(substeps=setup.scene.substeps,
-                                    stretch_sweeps=setup.scene.stretch_sweeps)
-            params = xpbd.fabric_params(M.fabric(material))
-            init_fn, _ = xpbd.cloth_simulator(config)
-            state = init_fn(setup.model, setup.mesh.garment.vertices)
-            chunk = 10
-            warm = xpbd.slice_drives(setup.drives, 0, chunk + 1)
-            t0 = time.perf_counter()
-            state, xs = xpbd.run_frames(config, setup.model, params, state, warm)
-            xs.block_until_ready()
-            compile_s = time.perf_counter() - t0
-            n = 0
-            t0 = time.perf_counter()
-            for start in range(chunk, min(chunk + frames, setup.drives.time.shape[0] - 1), chunk):
-                part = xpbd.slice_drives(setup.drives, start, start + chunk + 1)
-                state, xs = xpbd.run_frames(config, setup.model, params, state, part)
-                n += chunk
-            xs.block_until_ready()
-            dt = time.perf_counter() - t0
-            rows.append({"scene": name, "resolution": res, "pd_mm": setup.mesh.pd * 1e3,
-                         "vertices": setup.mesh.garment.num_vertices,
-                         "faces": setup.mesh.garment.num_faces,
-                         "substeps": config.substeps, "stretch_sweeps": config.stretch_sweeps,
-                         "ms_per_frame": round(1e3 * dt / max(n, 1), 1),
-                         "compile_plus_first_chunk_s": round(compile_s, 2)})
-            print(json.dumps(rows[-1]), file=sys.stderr, flush=True)  # progress
+            for sc in self_collision:
+                rows.append(_speed_row(setup, name, res, frames, material, sc))
+                print(json.dumps(rows[-1]), file=sys.stderr, flush=True)  # progress
     return rows
+
+
+def _speed_row(setup, name, res, frames, material, sc):
+    config = xpbd.SimConfig(substeps=setup.scene.substeps,
+                            stretch_sweeps=setup.scene.stretch_sweeps, self_collision=sc)
+    params = xpbd.fabric_params(M.fabric(material))
+    init_fn, _ = xpbd.cloth_simulator(config)
+    state = init_fn(setup.model, setup.mesh.garment.vertices)
+    chunk = 10
+    warm = xpbd.slice_drives(setup.drives, 0, chunk + 1)
+    t0 = time.perf_counter()
+    state, xs = xpbd.run_frames(config, setup.model, params, state, warm)
+    xs.block_until_ready()
+    compile_s = time.perf_counter() - t0
+    n = 0
+    t0 = time.perf_counter()
+    for start in range(chunk, min(chunk + frames, setup.drives.time.shape[0] - 1), chunk):
+        part = xpbd.slice_drives(setup.drives, start, start + chunk + 1)
+        state, xs = xpbd.run_frames(config, setup.model, params, state, part)
+        n += chunk
+    xs.block_until_ready()
+    dt = time.perf_counter() - t0
+    return {"scene": name, "resolution": res, "pd_mm": setup.mesh.pd * 1e3,
+            "vertices": setup.mesh.garment.num_vertices,
+            "faces": setup.mesh.garment.num_faces,
+            "substeps": config.substeps, "stretch_sweeps": config.stretch_sweeps,
+            "self_collision": None if sc is None else dataclasses.asdict(sc),
+            "self_overflow": None if sc is None else np.asarray(state.self_overflow).tolist(),
+            "ms_per_frame": round(1e3 * dt / max(n, 1), 1),
+            "compile_plus_first_chunk_s": round(compile_s, 2)}
 
 
 def _energies(xs, vs, model, params):
@@ -166,13 +177,17 @@ def main(argv=None):
     ap.add_argument("--part", default="all", choices=["speed", "substeps", "intersect", "all"])
     ap.add_argument("--data", default="data/sequences", help="sequences for --part intersect")
     ap.add_argument("--scenes", default=",".join(scenes.SCENES))
+    ap.add_argument("--self-collision", action="store_true",
+                    help="--part speed: also time each scene with self-collision (defaults)")
     args = ap.parse_args(argv)
     out = {"jax": jax.__version__, "devices": [str(d) for d in jax.devices()],
            "cpu_count": os.cpu_count(), "load_avg_start": os.getloadavg()}
     names = [s for s in args.scenes.split(",") if s]
     if args.part in ("speed", "all"):
         out["speed"] = bench_speed(names, ["coarse"] if args.quick else ["coarse", "fine"],
-                                   frames=10 if args.quick else 30)
+                                   frames=10 if args.quick else 30,
+                                   self_collision=(None, SelfCollisionConfig())
+                                   if args.self_collision else (None,))
     if args.part in ("substeps", "all"):
         out["substeps"] = bench_substeps([5, 10, 20] if args.quick else [5, 10, 20, 40, 80],
                                          pd=0.03 if args.quick else 0.02,

@@ -7,6 +7,9 @@ Modules:
   mannequin   procedural capsule body and its motions (kinematic tracks, NumPy)
   aero        aerodynamic drag/lift per triangle and a seeded gusty wind field
   xpbd        the solver: cloth model allocation (NumPy) and the (init_fn, step_fn) factory
+  selfcollision  cloth-cloth contact: spatial-hash candidates, vertex-triangle thickness
+              constraints (optional: `SimConfig.self_collision`)
+  contact_scenes small layered scenes (two sheets, a folded strip) for self-collision
   scenes      frozen scene configs and `simulate`
   intersect   self-intersection measurement (spatial hash + exact triangle tests)
   preview     matplotlib previews (shaded frames, fine vs coarse normal maps)

@@ -1,6 +1,7 @@
 """Self-intersection measurement: how many pairs of non-adjacent triangles intersect.
 
-The simulator has no self-collision; this module measures how much that matters.
+The independent checker of the solver's optional self-collision (`sim.selfcollision`): it
+shares no code with it.
 
 Method (NumPy, per frame): a spatial hash with cells as large as the longest edge puts each
 triangle at its centroid's cell, so two triangles that touch are in the same or neighbouring

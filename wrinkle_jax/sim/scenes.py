@@ -259,7 +259,8 @@ def setup_scene(scene: str | SceneConfig, resolution: str | float, frames: int, 
 def simulate(scene: str | SceneConfig, material: str, resolution: str | float = "fine",
              frames: int | None = None, seed: int = 0, substeps: int | None = None,
              iterations: int = 1, progress: Callable[[int, int], None] | None = None,
-             chunk: int = 30, setup: SceneSetup | None = None) -> SimulatedSequence:
+             chunk: int = 30, setup: SceneSetup | None = None,
+             self_collision: xpbd.SelfCollisionConfig | None = None) -> SimulatedSequence:
     """Simulate a scene with one material at one resolution.
 
     Args:
@@ -272,6 +273,8 @@ def simulate(scene: str | SceneConfig, material: str, resolution: str | float = 
       progress: optional callback(done_frames, total_frames) including the pre-roll.
       chunk: frames per jitted call.
       setup: a prebuilt `setup_scene(...)` (to reuse a mesh and model across materials).
+      self_collision: a `SelfCollisionConfig`, or None (off, the default). Its settings and
+        the dropped-candidate counts (`self_overflow`) are recorded in the metadata.
     Returns:
       SimulatedSequence (see the module docstring).
 
@@ -287,7 +290,8 @@ def simulate(scene: str | SceneConfig, material: str, resolution: str | float = 
     if setup is None:
         setup = setup_scene(sc, resolution, frames, seed)
     config = xpbd.SimConfig(fps=30.0, substeps=sc.substeps if substeps is None else substeps,
-                            iterations=iterations, stretch_sweeps=sc.stretch_sweeps)
+                            iterations=iterations, stretch_sweeps=sc.stretch_sweeps,
+                            self_collision=self_collision)
     fab = fabric(material)
     params = xpbd.fabric_params(fab)
     init_fn, _ = xpbd.cloth_simulator(config)
@@ -301,7 +305,8 @@ def simulate(scene: str | SceneConfig, material: str, resolution: str | float = 
             progress(done[0], total)
 
     t0 = time.perf_counter()
-    _, xs = xpbd.simulate_frames(config, setup.model, params, state, setup.drives, chunk, tick)
+    final, xs = xpbd.simulate_frames(config, setup.model, params, state, setup.drives, chunk,
+                                     tick)
     wall = time.perf_counter() - t0
     out = xs[setup.preroll_frames - 1:]
     g = setup.mesh.garment
@@ -334,6 +339,10 @@ def simulate(scene: str | SceneConfig, material: str, resolution: str | float = 
         "iterations": config.iterations,
         "stretch_sweeps": config.stretch_sweeps,
         "preroll_frames": setup.preroll_frames,
+        "self_collision": None if self_collision is None
+        else dataclasses.asdict(self_collision),
+        "self_overflow": None if final.self_overflow is None
+        else np.asarray(final.self_overflow).tolist(),
         "uv_units": "meters",
         "vertices": g.num_vertices,
         "faces": g.num_faces,

@@ -20,9 +20,12 @@ length h = 1 / (fps * substeps):
                 one sweep per substep on fine meshes; never resists bending)
          stretch C_e = (|x_j - x_i| - L_e) / L_e, compliance 1 / (k_s A_e) (last, so the
                 local strain left by the hard long-range projections is smoothed)
-  4. collisions with the present colliders (offset = cloth thickness, Coulomb friction;
+  4. optional self-collision (`SimConfig.self_collision`, see `selfcollision`): candidates
+     rebuilt every `rebuild_every` substeps, vertex-triangle thickness constraints projected
+     before the body contacts and again after them with the body-contact vertices held
+  5. collisions with the present colliders (offset = cloth thickness, Coulomb friction;
      pinned vertices are kinematic and not projected)
-  5. v = (p - x) / h; x = p
+  6. v = (p - x) / h; x = p
 
 Contract:
   * `build_cloth(garment, pinned, ...)` -> `ClothModel` (frozen pytree of arrays: topology,
@@ -50,9 +53,10 @@ import numpy as np
 
 from wrinkle_jax.mesh import Garment
 from wrinkle_jax.numerics import normalize, safe_div, safe_norm
-from wrinkle_jax.sim import aero, colliders
+from wrinkle_jax.sim import aero, colliders, selfcollision
 from wrinkle_jax.sim.colliders import Colliders
 from wrinkle_jax.sim.materials import Fabric
+from wrinkle_jax.sim.selfcollision import SelfCollisionConfig
 
 GRAVITY = (0.0, 0.0, -9.81)
 
@@ -123,6 +127,8 @@ class ClothModel:
       wind: aero.WindField or None (still air).
       aero: () bool-like marker array or None: None disables aerodynamics entirely.
       vertex_faces: (V, D) int32 incident faces padded with F (aero force gathering).
+      self_topo: selfcollision.SelfTopology (rest geometry; used only when the config
+        enables self-collision).
     """
 
     faces: Any
@@ -136,6 +142,7 @@ class ClothModel:
     wind: Any = None
     aero: Any = None
     vertex_faces: Any = None
+    self_topo: Any = None
 
 
 @jax.tree_util.register_dataclass
@@ -169,10 +176,13 @@ class Drive:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class ClothState:
-    """Positions (V, 3) m and velocities (V, 3) m/s."""
+    """Positions (V, 3) m and velocities (V, 3) m/s; with self-collision also
+    self_overflow (2,) int32, candidates dropped since `init_fn` (see
+    `selfcollision.Candidates.overflow`), else None."""
 
     x: Any
     v: Any
+    self_overflow: Any = None
 
     def replace(self, **changes) -> ClothState:
         return dataclasses.replace(self, **changes)
@@ -191,6 +201,8 @@ class SimConfig:
       collision_passes: deepest-contact passes after the sweep (2 helps where colliders
       overlap). aero_per_substep: evaluate drag/lift every substep instead of once per frame
       (held constant over the frame with an exact-decay factor; 20x cheaper).
+      self_collision: a `SelfCollisionConfig` (vertex-triangle thickness constraints after
+      the constraint sweep, before the body contacts), or None (off: no code traced).
     """
 
     fps: float = 30.0
@@ -201,6 +213,7 @@ class SimConfig:
     pre_collide: bool = False
     collision_passes: int = 1
     aero_per_substep: bool = False
+    self_collision: SelfCollisionConfig | None = None
 
     @property
     def h(self) -> float:
@@ -461,7 +474,8 @@ def build_cloth(garment: Garment, pinned=None, wind: aero.WindField | None = Non
         free=jnp.asarray(free), pin_idx=pin_idx, stretch=stretch, bend=bend, limits=limits,
         attach=attach,
         wind=wind, aero=jnp.zeros(()) if use_aero else None,
-        vertex_faces=jnp.asarray(aero.incident_faces(faces, n)) if use_aero else None)
+        vertex_faces=jnp.asarray(aero.incident_faces(faces, n)) if use_aero else None,
+        self_topo=selfcollision.self_topology(garment))
 
 
 def model_summary(model: ClothModel) -> dict:
@@ -537,11 +551,16 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
     n_sub = int(config.substeps)
     h = config.h
     dt = 1.0 / config.fps
+    sc = config.self_collision
+    if sc is not None and (sc.rebuild_every < 1 or n_sub % sc.rebuild_every):
+        raise ValueError(f"self_collision.rebuild_every={sc.rebuild_every} must divide "
+                         f"substeps={n_sub}")
 
     def init_fn(model: ClothModel, positions) -> ClothState:
         x = jnp.asarray(positions, jnp.float32)
         del model
-        return ClothState(x=x, v=jnp.zeros_like(x))
+        return ClothState(x=x, v=jnp.zeros_like(x),
+                          self_overflow=None if sc is None else jnp.zeros(2, jnp.int32))
 
     def step_fn(model: ClothModel, params: SimParams, state: ClothState, drive0: Drive,
                 drive1: Drive) -> ClothState:
@@ -565,8 +584,24 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
         if model.aero is not None and not config.aero_per_substep:
             frame_acc = gravity + aero_acc(state.x, state.v, drive0.time, dt)
 
+        if sc is not None and model.self_topo is None:
+            raise ValueError("self-collision needs a model built with self_topo (build_cloth)")
+
+        def rebuild(x):
+            return selfcollision.build_candidates(x, model.faces, model.self_topo, sc)
+
         def substep(carry, k):
-            x, v = carry
+            x, v, cand, overflow = carry
+            if sc is not None:
+                # Candidates from the substep's start positions; the margin covers the motion
+                # until the next rebuild.
+                if sc.rebuild_every == 1:
+                    cand = rebuild(x)
+                    overflow = overflow + cand.overflow
+                else:
+                    fresh = k % sc.rebuild_every == 0
+                    cand = jax.lax.cond(fresh, rebuild, lambda _: cand, x)
+                    overflow = overflow + jnp.where(fresh, cand.overflow, 0)
             s0 = k / n_sub
             s1 = (k + 1) / n_sub
             acc = frame_acc
@@ -601,13 +636,31 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
                     for m in (order if sweep % 2 == 0 else reversed(order)):
                         p, lam_s[m] = project_stretch(p, w, model.stretch[m], lam_s[m], inv_k_h2,
                                                       config.relax)
+            if sc is not None:
+                # After the cloth constraints (they would undo it).
+                for _ in range(sc.passes):
+                    p, _ = selfcollision.project_self(p, x, w, model.faces, cand, sc)
             moved = colliders.collide(p, x, c0, c1, params.offset, params.friction,
                                       passes=config.collision_passes)
-            p = jnp.where(free[:, None] > 0, moved, p)
-            return (p, (p - x) / h), None
+            if sc is not None and sc.post_passes:
+                # A layer pressed between the body and another layer: the body contact pushed
+                # it out into that layer. Those vertices are now held (inverse mass 0), so the
+                # outer layer gives way instead of pushing them back into the body.
+                held = jnp.any(moved != p, axis=-1)
+                p = jnp.where(free[:, None] > 0, moved, p)
+                w_held = jnp.where(held, 0.0, w)
+                for _ in range(sc.post_passes):
+                    p, _ = selfcollision.project_self(p, x, w_held, model.faces, cand, sc)
+            else:
+                p = jnp.where(free[:, None] > 0, moved, p)
+            return (p, (p - x) / h, cand, overflow), None
 
-        (x, v), _ = jax.lax.scan(substep, (state.x, state.v), jnp.arange(n_sub))
-        return ClothState(x=x, v=v)
+        cand0 = None
+        if sc is not None:  # rebuilt at k = 0
+            cand0 = selfcollision.empty_candidates(state.x.shape[0], sc)
+        (x, v, _, overflow), _ = jax.lax.scan(
+            substep, (state.x, state.v, cand0, state.self_overflow), jnp.arange(n_sub))
+        return ClothState(x=x, v=v, self_overflow=overflow)
 
     return init_fn, step_fn
 

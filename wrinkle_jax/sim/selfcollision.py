@@ -1,0 +1,271 @@
+"""Cloth self-collision for the XPBD solver: a spatial hash and vertex-triangle proximity
+constraints with a thickness (jittable, static shapes).
+
+Method (Bridson, Fedkiw & Anderson 2002 proximity; Mueller et al. 2007 PBD constraints):
+
+  candidates (rebuilt every `rebuild_every` substeps, at the substep's start positions x):
+    * every triangle's box, grown by reach = thickness + margin, is entered in the (at most 8)
+      cells of a uniform grid it overlaps; the cell size is the largest grown box extent, so a
+      vertex inside a grown box always lies in one of that box's cells. Cells are hashed to
+      uint32 keys and the entries sorted by key (one sort of 8 F keys).
+    * each vertex reads up to `max_raw` entries of its own cell (two binary searches), keeps
+      triangles closer than the reach that do not contain it, and compacts them into at most
+      `max_contacts` slots. A pair closer than the thickness in the rest (pattern) shape
+      gets 0.9 x its rest distance as its thickness.
+    * nothing is dropped silently: cell entries beyond `max_raw` and kept triangles beyond
+      `max_contacts` are counted (`Candidates.overflow`, accumulated in the solver state).
+  projection (every substep: after the cloth constraints, and again after the body
+  contacts with the vertices the body moved held fixed, so a layer pressed between the body
+  and another layer pushes that layer out instead of being pushed back into the body):
+    for candidate (v, t), the closest point of t to the vertex at the substep's start
+    (barycentrics b, clamped to t) and the unit direction d from it to the vertex are fixed;
+        C = d . (p_v - sum_i b_i p_i) - thickness >= 0
+    is projected with zero compliance (XPBD with alpha = 0 is PBD). Over the face d is the
+    normal on the start side, so a vertex that passed through during the substep is sent
+    back, not on. All contacts are solved together (Jacobi) and each vertex's correction is
+    divided by its number of active contacts (Macklin et al. 2014), so it does not overshoot.
+  not modelled: edge-edge proximity. Two edges can cross while every vertex keeps the
+  thickness from every triangle; measured on coarse meshes (PD 30 mm, thickness 4 mm) this
+  is the remaining failure, and a thickness of ~0.3 PD closes it on the test scenes.
+
+Shapes: V vertices, F faces, K = max_contacts, R = max_raw. Units: meters.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wrinkle_jax.numerics import normalize, safe_div
+
+_SENTINEL = np.uint32(0xFFFFFFFF)  # key of unused cell entries (sorted last, never queried)
+_PRIMES = (np.uint32(73856093), np.uint32(19349663), np.uint32(83492791))
+
+
+@dataclasses.dataclass(frozen=True)
+class SelfCollisionConfig:
+    """Static self-collision settings (hashable; nested in `xpbd.SimConfig`).
+
+    Attributes:
+      thickness: minimum vertex-triangle distance, m. Must stay well below the edge length
+        (a flat sheet's non-adjacent vertex-triangle distances are >= ~0.8 PD).
+      margin: extra search distance at a rebuild, m: must cover the relative motion of a
+        vertex and a triangle between rebuilds (e.g. 3 m/s over one 1/600 s substep = 5 mm).
+      rebuild_every: substeps between candidate rebuilds (1 = every substep).
+      max_raw: hash-cell entries read per vertex. max_contacts: triangles kept per vertex.
+      passes: Jacobi projection passes per substep before the body contacts.
+      post_passes: passes after the body contacts, with the vertices the body moved held.
+    """
+
+    thickness: float = 0.004
+    margin: float = 0.006
+    rebuild_every: int = 1
+    max_raw: int = 256
+    max_contacts: int = 16
+    passes: int = 1
+    post_passes: int = 1
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class SelfTopology:
+    """Rest (pattern) geometry that bounds the thickness of nearby pairs.
+
+    Attributes: uv (V, 2) m, a rest position per vertex (on a seam: one of its panels);
+    panel (V,) int32, that panel; face_uv (F, 3, 2) m; face_panel (F,) int32.
+    """
+
+    uv: Any
+    panel: Any
+    face_uv: Any
+    face_panel: Any
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Candidates:
+    """Candidate triangles per vertex: tri (V, K) int32 (0 where unused), valid (V, K) bool,
+    thickness (V, K) m (the pair's target distance), overflow (2,) int32: [cell entries not
+    read (max_raw), close triangles dropped (max_contacts)]."""
+
+    tri: Any
+    valid: Any
+    thickness: Any
+    overflow: Any
+
+
+def self_topology(garment) -> SelfTopology:
+    """Rest geometry of a garment for self-collision (NumPy, once per mesh)."""
+    faces = np.asarray(garment.faces)
+    uv_faces = np.asarray(garment.uv_faces)
+    uvs = np.asarray(garment.uvs, np.float32)
+    panels = (np.zeros(len(faces), np.int32) if garment.panels is None
+              else np.asarray(garment.panels, np.int32))
+    vuv = np.zeros((garment.num_vertices, 2), np.float32)
+    vpanel = np.zeros(garment.num_vertices, np.int32)
+    vuv[faces.reshape(-1)] = uvs[uv_faces.reshape(-1)]
+    vpanel[faces.reshape(-1)] = np.repeat(panels, 3)
+    return SelfTopology(jnp.asarray(vuv), jnp.asarray(vpanel), jnp.asarray(uvs[uv_faces]),
+                        jnp.asarray(panels))
+
+
+def empty_candidates(num_vertices: int, cfg: SelfCollisionConfig) -> Candidates:
+    """No candidates (a placeholder of the right shapes)."""
+    k = (num_vertices, cfg.max_contacts)
+    return Candidates(jnp.zeros(k, jnp.int32), jnp.zeros(k, bool), jnp.zeros(k, jnp.float32),
+                      jnp.zeros(2, jnp.int32))
+
+
+def _hash(g):
+    """uint32 key of integer cells g (..., 3) int32; never the sentinel."""
+    # A wrapping linear form, not the usual XOR: XOR of the products maps (i, j, k) and
+    # (-i, -j, k) to one key, merging cells on opposite sides of the origin. Keys are only
+    # sorted (no table); a rare collision only adds entries that the exact tests drop.
+    u = g.astype(jnp.uint32)
+    k = u[..., 0] * _PRIMES[0] + u[..., 1] * _PRIMES[1] + u[..., 2] * _PRIMES[2]
+    return jnp.minimum(k, _SENTINEL - np.uint32(1))
+
+
+def build_candidates(x, faces, topo: SelfTopology, cfg: SelfCollisionConfig) -> Candidates:
+    """Candidate triangles of every vertex at positions x (V, 3) m; faces (F, 3) int32."""
+    num_v = x.shape[0]
+    reach = cfg.thickness + cfg.margin
+    tri = x[faces]
+    lo = tri.min(1) - reach
+    hi = tri.max(1) + reach
+    # One cell holds the largest grown box, so every box overlaps at most 2 cells per axis.
+    cell = jnp.maximum(jnp.max(hi - lo), 1e-6)
+    glo = jnp.floor(lo / cell).astype(jnp.int32)
+    ghi = jnp.floor(hi / cell).astype(jnp.int32)
+    off = jnp.asarray(np.stack(np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij"), -1)
+                      .reshape(8, 3), jnp.int32)
+    g = glo[:, None, :] + off[None]
+    used = jnp.all(g <= ghi[:, None, :], axis=-1)
+    keys = jnp.where(used, _hash(g), _SENTINEL).reshape(-1)
+    order = jnp.argsort(keys)
+    skeys = keys[order]
+    stri = (order // 8).astype(jnp.int32)
+    # Each vertex reads its own cell: [start, stop) in the sorted entries.
+    kv = _hash(jnp.floor(x / cell).astype(jnp.int32))
+    start = jnp.searchsorted(skeys, kv, side="left")
+    count = jnp.searchsorted(skeys, kv, side="right") - start
+    slot = jnp.arange(cfg.max_raw)
+    read = slot[None] < count[:, None]
+    t = stri[jnp.minimum(start[:, None] + slot[None], skeys.shape[0] - 1)]       # (V, R)
+    inside = jnp.all((lo[t] <= x[:, None]) & (x[:, None] <= hi[t]), axis=-1)
+    touches = jnp.any(faces[t] == jnp.arange(num_v)[:, None, None], axis=-1)
+    # The box test keeps every same-layer triangle around a vertex; the exact distance does
+    # not (in a flat sheet they are >= ~0.8 PD away, beyond the reach).
+    tt = tri[t]
+    _, near, _ = closest_point_triangle(x[:, None], tt[..., 0, :], tt[..., 1, :], tt[..., 2, :])
+    keep = read & inside & ~touches & (near < reach * reach)
+    # Compact the kept triangles to the front (order of the cell), at most K of them.
+    pos = jnp.cumsum(keep, axis=1) - 1
+    pos = jnp.where(keep, pos, cfg.max_contacts)  # out of range -> dropped by the scatter
+    rows = jnp.broadcast_to(jnp.arange(num_v)[:, None], pos.shape)
+    out_t = jnp.zeros((num_v, cfg.max_contacts), jnp.int32).at[rows, pos].set(t, mode="drop")
+    # A pair closer at rest than the thickness (a vertex and a triangle two rings away on a
+    # fine or irregular mesh) is only kept at 0.9 x its rest distance: no force in the rest
+    # shape, yet a tight fold still cannot close through it.
+    fu = jnp.concatenate([topo.face_uv[t], jnp.zeros(t.shape + (3, 1))], -1)
+    vu = jnp.concatenate([topo.uv, jnp.zeros((num_v, 1))], -1)[:, None]
+    _, rest2, _ = closest_point_triangle(vu, fu[..., 0, :], fu[..., 1, :], fu[..., 2, :])
+    same = topo.face_panel[t] == topo.panel[:, None]
+    thick = jnp.where(same, jnp.minimum(cfg.thickness, 0.9 * jnp.sqrt(rest2)), cfg.thickness)
+    out_h = jnp.zeros((num_v, cfg.max_contacts), jnp.float32).at[rows, pos].set(thick, mode="drop")
+    n_keep = keep.sum(1)
+    valid = jnp.arange(cfg.max_contacts)[None] < n_keep[:, None]
+    overflow = jnp.stack([jnp.maximum(count - cfg.max_raw, 0).sum(),
+                          jnp.maximum(n_keep - cfg.max_contacts, 0).sum()]).astype(jnp.int32)
+    return Candidates(out_t, valid, out_h, overflow)
+
+
+def _segment_closest(p, a, b):
+    """Parameter t (...) of the point of segment a-b closest to p, and the squared distance."""
+    ab = b - a
+    t = jnp.clip(safe_div(jnp.sum((p - a) * ab, -1), jnp.sum(ab * ab, -1)), 0.0, 1.0)
+    d = p - a - t[..., None] * ab
+    return t, jnp.sum(d * d, -1)
+
+
+def closest_point_triangle(p, a, b, c):
+    """Closest point of triangles a, b, c to points p (all (..., 3) m).
+
+    Returns:
+      barycentrics (..., 3) of the closest point, the squared distance (...) m^2, and the
+      unit normal (..., 3) of the triangle (guarded when degenerate).
+    """
+    n = normalize(jnp.cross(b - a, c - a))
+    h = jnp.sum((p - a) * n, -1)
+    bary = _barycentric(p - h[..., None] * n, a, b, c)
+    inside = jnp.all(bary >= 0, -1)
+    t0, d0 = _segment_closest(p, a, b)
+    t1, d1 = _segment_closest(p, b, c)
+    t2, d2 = _segment_closest(p, c, a)
+    z = jnp.zeros_like(t0)
+    b0 = jnp.stack([1 - t0, t0, z], -1)
+    b1 = jnp.stack([z, 1 - t1, t1], -1)
+    b2 = jnp.stack([t2, z, 1 - t2], -1)
+    use0 = (d0 <= d1) & (d0 <= d2)
+    use1 = ~use0 & (d1 <= d2)
+    edge_b = jnp.where(use0[..., None], b0, jnp.where(use1[..., None], b1, b2))
+    edge_d = jnp.minimum(jnp.minimum(d0, d1), d2)
+    return (jnp.where(inside[..., None], bary, edge_b), jnp.where(inside, h * h, edge_d), n)
+
+
+def _barycentric(q, a, b, c):
+    """Barycentric coordinates (..., 3) of q in triangle a, b, c (guarded when degenerate)."""
+    e0, e1, e2 = b - a, c - a, q - a
+    d00 = jnp.sum(e0 * e0, -1)
+    d01 = jnp.sum(e0 * e1, -1)
+    d11 = jnp.sum(e1 * e1, -1)
+    d20 = jnp.sum(e2 * e0, -1)
+    d21 = jnp.sum(e2 * e1, -1)
+    den = d00 * d11 - d01 * d01
+    bv = safe_div(d11 * d20 - d01 * d21, den)
+    bw = safe_div(d00 * d21 - d01 * d20, den)
+    return jnp.stack([1.0 - bv - bw, bv, bw], -1)
+
+
+def project_self(p, x, w, faces, cand: Candidates, cfg: SelfCollisionConfig):
+    """One Jacobi pass of vertex-triangle thickness constraints.
+
+    Per candidate, the closest point of the triangle to the vertex at the substep's start
+    (barycentrics b, clamped to the triangle) and the direction d from it to the vertex are
+    fixed; then C = d . (p_v - sum_i b_i p_i) - thickness >= 0. In the face region d is the
+    normal on the vertex's start side, so a vertex that passed through the face during the
+    substep is sent back, not on; over an edge or corner d points away from it, so a vertex
+    above a convex ridge (which projects into neither face, and may lie below the extended
+    plane of either) is pushed away from the ridge, never through it.
+
+    Args:
+      p: (V, 3) predicted positions, m. x: (V, 3) start-of-substep positions.
+      w: (V,) inverse masses (0 = kinematic). faces: (F, 3) int32.
+    Returns:
+      (V, 3) corrected positions, and the number of active contacts (int32 scalar).
+    """
+    idx = faces[cand.tri]                                                 # (V, K, 3)
+    pt = p[idx]
+    xt = x[idx]
+    xv = x[:, None]
+    bary, d2, n = closest_point_triangle(xv, xt[..., 0, :], xt[..., 1, :], xt[..., 2, :])
+    off = xv - jnp.einsum("vkc,vkcd->vkd", bary, xt)
+    side = jnp.where(jnp.sum(off * n, -1) >= 0, 1.0, -1.0)[..., None] * n
+    # Exactly on the surface the direction is undefined: fall back to the normal.
+    d = jnp.where((d2 > 1e-12)[..., None], normalize(off), side)
+    c = jnp.sum(d * (p[:, None] - jnp.einsum("vkc,vkcd->vkd", bary, pt)), -1) - cand.thickness
+    active = cand.valid & (c < 0)
+    wt = w[idx]
+    den = w[:, None] + jnp.sum(wt * bary * bary, -1)
+    dlam = jnp.where(active, safe_div(-c, den), 0.0)                    # (V, K), m
+    dirn = dlam[..., None] * d                                           # (V, K, 3)
+    dv = w[:, None, None] * dirn
+    dt = -(wt * bary)[..., None] * dirn[..., None, :]                   # (V, K, 3, 3)
+    act = active.astype(p.dtype)
+    delta = dv.sum(1).at[idx.reshape(-1)].add(dt.reshape(-1, 3))
+    cnt = act.sum(1).at[idx.reshape(-1)].add(jnp.repeat(act.reshape(-1), 3))
+    return p + delta / jnp.maximum(cnt, 1.0)[:, None], active.sum().astype(jnp.int32)

@@ -312,12 +312,10 @@ def texel_noise(origins, height: int, width: int, channels: int, seed: int = 0,
     if scale < 1:
         raise ValueError(f"noise scale must be >= 1 texel, got {scale}")
     o = jnp.asarray(origins).astype(jnp.int32)
-    if scale == 1:
-        return _lattice_values(o[:, 0, None] + jnp.arange(height, dtype=jnp.int32),
-                               o[:, 1, None] + jnp.arange(width, dtype=jnp.int32),
-                               channels, seed)
     r = o[:, 0, None] + jnp.arange(height, dtype=jnp.int32)  # (N, H) absolute rows
     c = o[:, 1, None] + jnp.arange(width, dtype=jnp.int32)
+    if scale == 1:
+        return _lattice_values(r, c, channels, seed)
     r0, c0 = r // scale, c // scale  # floor division: origins may be negative near borders
     tr = ((r - r0 * scale).astype(jnp.float32) / scale)[:, :, None, None]
     tc = ((c - c0 * scale).astype(jnp.float32) / scale)[:, None, :, None]

@@ -1,6 +1,7 @@
 """Detail-only evaluation on real coarse simulations: ceilings, baselines and models.
 
     python -m experiments.fidelity sweep [--data data/pairs]     # unsharp settings, val split
+    python -m experiments.fidelity sweep-material                 # the same per material
     python -m experiments.fidelity score [--model NAME=PATH ...] [--cells unseen|all]
     python -m experiments.fidelity report                         # results.json + README.md
 
@@ -41,7 +42,16 @@ from pathlib import Path
 import numpy as np
 
 from experiments import eval_common as ec
-from wrinkle_jax import data, detail, enhancer, evaluation, material_index, normalmap, patches
+from wrinkle_jax import (
+    MATERIALS,
+    data,
+    detail,
+    enhancer,
+    evaluation,
+    material_index,
+    normalmap,
+    patches,
+)
 from wrinkle_jax.nn import vgg
 
 OUT = ec.RESULTS / "fidelity"
@@ -72,6 +82,46 @@ def sweep(args, vgg_params) -> dict:
     got = {"split": "val", "patches": int(len(inp)), "detail_sigma": SIGMA,
            "median_detail_score": res, "best": best, "data": ec.portable_path(args.data)}
     ec.write_json(OUT / "unsharp_sweep.json", got)
+    return got
+
+
+MATERIAL_SWEEP = [(s, a) for s in (8.0, 16.0) for a in (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)]
+
+
+def sweep_per_material(args, vgg_params) -> dict:
+    """The unsharp gain per material: median detail-only score of each (sigma, amount) in
+    `MATERIAL_SWEEP` on `--sweep-patches` val patches PER MATERIAL (evenly spaced), written to
+    unsharp_sweep_material.json with each material's best setting. Val split only."""
+    ds = data.PatchDataset(args.data, "val")
+    names = [f"sigma={s:g},amount={a:g}" for s, a in MATERIAL_SWEEP]
+    res, best = {}, {}
+    for mid, mat in enumerate(MATERIALS):
+        rows = np.flatnonzero(ds.materials == mid)
+        if not len(rows):
+            continue
+        pick = rows[np.unique(np.linspace(0, len(rows) - 1, min(args.sweep_patches, len(rows)))
+                              .round().astype(int))]
+        b = ds.get(pick)
+        inp, tgt, mask = b["input"], b["target"], b["mask"]
+        d_in, d_tgt, *d_outs = (np.asarray(x) for x in detail.on_reference_branch_rgb(
+            inp, (tgt, *(evaluation.unsharp_mask(inp, mask, s, a, order=1)
+                         for s, a in MATERIAL_SWEEP)), mask, SIGMA))
+        outs = dict(zip(names, d_outs, strict=True))
+        losses = ec.method_losses(vgg_params, d_in, d_tgt, mask, outs)
+        res[mat] = {}
+        for k in names:
+            sc = evaluation.scores_from_losses(losses["input"], losses[k])
+            v = sc["valid"]
+            res[mat][k] = {"median": float(np.median(sc["improvement_signed"][v])),
+                           "mean": float(np.mean(sc["improvement_signed"][v]))}
+        best[mat] = max(res[mat], key=lambda k: res[mat][k]["median"])
+        print(f"{mat}: best {best[mat]} median {res[mat][best[mat]]['median']:+.1f} "
+              f"(amount 1 at sigma 16: {res[mat]['sigma=16,amount=1']['median']:+.1f})",
+              flush=True)
+    got = {"split": "val", "patches_per_material": int(args.sweep_patches),
+           "detail_sigma": SIGMA, "scores": res, "best": best,
+           "data": ec.portable_path(args.data)}
+    ec.write_json(OUT / "unsharp_sweep_material.json", got)
     return got
 
 
@@ -256,7 +306,7 @@ def summarize(cells: list[dict]) -> dict:
 
 def main(argv=None) -> int:
     ap = ec.script_parser(__doc__)
-    ap.add_argument("command", choices=("sweep", "score", "report"))
+    ap.add_argument("command", choices=("sweep", "sweep-material", "score", "report"))
     ap.add_argument("--data", default=str(ec.ROOT / "data" / "pairs"))
     ap.add_argument("--sweep-patches", type=int, default=96)
     ap.add_argument("--model", action="append", default=[], metavar="NAME=PATH")
@@ -280,6 +330,9 @@ def main(argv=None) -> int:
                           for k, r in summary.items()}, indent=1))
         return 0
     vgg_params = vgg.load_vgg19()
+    if args.command == "sweep-material":
+        print(json.dumps(sweep_per_material(args, vgg_params)["best"]))
+        return 0
     if args.command == "sweep":
         print(json.dumps(sweep(args, vgg_params)["best"]))
         return 0

@@ -83,6 +83,26 @@ def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None,
     return enhancer.save_enhancer(out, jax.device_get(state.params), econf, meta)
 
 
+def material_gains(spec: str, sigma: float) -> list[float]:
+    """Per-material unsharp gains (wrinkle_jax.MATERIALS order) from `--material-gains`."""
+    if spec != "sweep":
+        gains = [float(x) for x in spec.split(",")]
+        if len(gains) != len(MATERIALS):
+            raise SystemExit(f"--material-gains: {len(MATERIALS)} values, got {len(gains)}")
+        return gains
+    sweep = json.loads((ROOT / "experiments" / "results" / "fidelity"
+                        / "unsharp_sweep_material.json").read_text())["scores"]
+    out = []
+    for mat in MATERIALS:
+        at = {k: v["median"] for k, v in sweep[mat].items()
+              if float(dict(p.split("=") for p in k.split(","))["sigma"]) == sigma}
+        if not at:
+            raise SystemExit(f"--material-gains sweep: no setting at sigma {sigma:g}")
+        best = max(at, key=at.get)
+        out.append(float(dict(p.split("=") for p in best.split(","))["amount"]))
+    return out
+
+
 def add_recipe_args(ap: argparse.ArgumentParser) -> None:
     """The training recipe's flags (defaults: the shipped model's), read by `config_from_args`;
     shared with `experiments.short_runs` so its studies vary one knob of the same recipe."""
@@ -131,6 +151,11 @@ def main(argv=None) -> None:
     add_recipe_args(ap)
     ap.add_argument("--init-from", default=None,
                     help="start a fresh run from another run's last checkpoint (warm start)")
+    ap.add_argument("--material-gains", default=None,
+                    help="initial per-material unsharp gains of a fresh run (residual base "
+                         "unsharp): 'sweep' = each material's best amount at --unsharp-sigma "
+                         "in experiments/results/fidelity/unsharp_sweep_material.json (val "
+                         "split), or comma-separated values in wrinkle_jax.MATERIALS order")
     ap.add_argument("--minutes", type=float, default=40.0)
     ap.add_argument("--warm-start", action="store_true")
     ap.add_argument("--export-only", action="store_true")
@@ -159,6 +184,15 @@ def main(argv=None) -> None:
         if args.init_from and not (run / "checkpoints").exists():
             from experiments.per_layer_ratios import restore_params
             init = restore_params(Path(args.init_from))[1].params
+        if args.material_gains and not (run / "checkpoints").exists():
+            if cfg.residual_base != "unsharp":
+                raise SystemExit("--material-gains needs --residual-base unsharp")
+            gains = material_gains(args.material_gains, cfg.unsharp_sigma)
+            if init is None:
+                init = train.create_train_state(cfg, jax.random.key(cfg.seed, impl="rbg"),
+                                                data.PatchDataset(data_root).patch_size).params
+            init = {**init, "unsharp_amount": np.asarray(gains, np.float32)}
+            print(json.dumps({"material_gains": dict(zip(MATERIALS, gains, strict=True))}))
         train.train(cfg, data_root, run, resume=True, vgg_params=vgg.load_vgg19(),
                     progress=False, time_limit_s=60 * args.minutes, init_params=init,
                     train_scenes=scenes, eval_split=args.eval_split)

@@ -58,8 +58,9 @@ OUT = ec.RESULTS / "fidelity"
 SIGMA = detail.DEFAULT_SIGMA
 SWEEP = [(s, a) for s in (2.0, 4.0, 8.0, 16.0) for a in (0.5, 1.0, 2.0, 3.0)]
 ORACLES = ("oracle_detail", "oracle_downsampled", "oracle_next_frame")
-OBJECT_SPACE = ("identity", "unsharp", "unsharp_card", "oracle_detail")  # + every model
-BASELINES = ("unsharp", "unsharp_card")
+# + every model:
+OBJECT_SPACE = ("identity", "unsharp", "unsharp_card", "unsharp_material", "oracle_detail")
+BASELINES = ("unsharp", "unsharp_card", "unsharp_material")
 
 
 def sweep(args, vgg_params) -> dict:
@@ -85,15 +86,17 @@ def sweep(args, vgg_params) -> dict:
     return got
 
 
-MATERIAL_SWEEP = [(s, a) for s in (8.0, 16.0) for a in (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)]
+MATERIAL_AMOUNTS = (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0)
 
 
 def sweep_per_material(args, vgg_params) -> dict:
-    """The unsharp gain per material: median detail-only score of each (sigma, amount) in
-    `MATERIAL_SWEEP` on `--sweep-patches` val patches PER MATERIAL (evenly spaced), written to
-    unsharp_sweep_material.json with each material's best setting. Val split only."""
+    """The unsharp gain per material: median detail-only score of each `MATERIAL_AMOUNTS` gain
+    at each `--sweep-sigmas` radius on `--sweep-patches` val patches PER MATERIAL (evenly
+    spaced), written to unsharp_sweep_material.json with each material's best setting. Val
+    split only."""
     ds = data.PatchDataset(args.data, "val")
-    names = [f"sigma={s:g},amount={a:g}" for s, a in MATERIAL_SWEEP]
+    sweep = [(float(s), a) for s in args.sweep_sigmas.split(",") for a in MATERIAL_AMOUNTS]
+    names = [f"sigma={s:g},amount={a:g}" for s, a in sweep]
     res, best = {}, {}
     for mid, mat in enumerate(MATERIALS):
         rows = np.flatnonzero(ds.materials == mid)
@@ -105,7 +108,7 @@ def sweep_per_material(args, vgg_params) -> dict:
         inp, tgt, mask = b["input"], b["target"], b["mask"]
         d_in, d_tgt, *d_outs = (np.asarray(x) for x in detail.on_reference_branch_rgb(
             inp, (tgt, *(evaluation.unsharp_mask(inp, mask, s, a, order=1)
-                         for s, a in MATERIAL_SWEEP)), mask, SIGMA))
+                         for s, a in sweep)), mask, SIGMA))
         outs = dict(zip(names, d_outs, strict=True))
         losses = ec.method_losses(vgg_params, d_in, d_tgt, mask, outs)
         res[mat] = {}
@@ -116,10 +119,10 @@ def sweep_per_material(args, vgg_params) -> dict:
                            "mean": float(np.mean(sc["improvement_signed"][v]))}
         best[mat] = max(res[mat], key=lambda k: res[mat][k]["median"])
         print(f"{mat}: best {best[mat]} median {res[mat][best[mat]]['median']:+.1f} "
-              f"(amount 1 at sigma 16: {res[mat]['sigma=16,amount=1']['median']:+.1f})",
+              f"(amount 1: {res[mat][names[MATERIAL_AMOUNTS.index(1.0)]]['median']:+.1f})",
               flush=True)
     got = {"split": "val", "patches_per_material": int(args.sweep_patches),
-           "detail_sigma": SIGMA, "scores": res, "best": best,
+           "detail_sigma": SIGMA, "unsharp_sigmas": args.sweep_sigmas, "scores": res, "best": best,
            "data": ec.portable_path(args.data)}
     ec.write_json(OUT / "unsharp_sweep_material.json", got)
     return got
@@ -226,6 +229,18 @@ def build_methods(args) -> tuple[dict, dict]:
     methods["unsharp_card"] = lambda p, e: evaluation.unsharp_mask(p.input, p.mask, s1, a1,
                                                                    order=1)
     sources["unsharp_card"] = f"order=1,sigma={s1:g},amount={a1:g}"
+    # Per-material gains from the val sweep (sweep-material): the base a material-conditioned
+    # model starts from, so "model minus its own base" is measured, not assumed.
+    per_mat = OUT / "unsharp_sweep_material.json"
+    if per_mat.exists():
+        best = json.loads(per_mat.read_text())["best"]
+        settings = {MATERIALS.index(m): tuple(float(dict(q.split("=") for q in k.split(","))[x])
+                                              for x in ("sigma", "amount"))
+                    for m, k in best.items()}
+        methods["unsharp_material"] = lambda p, e: evaluation.unsharp_mask(
+            p.input, p.mask, *settings[p.material_id], order=1)
+        sources["unsharp_material"] = "order=1," + ";".join(
+            f"{MATERIALS[i]}:sigma={s:g},amount={a:g}" for i, (s, a) in sorted(settings.items()))
     models = {"shipped": str(enhancer.DEFAULT_PATH)}
     for spec in args.model:
         name, path = spec.split("=", 1)
@@ -309,6 +324,8 @@ def main(argv=None) -> int:
     ap.add_argument("command", choices=("sweep", "sweep-material", "score", "report"))
     ap.add_argument("--data", default=str(ec.ROOT / "data" / "pairs"))
     ap.add_argument("--sweep-patches", type=int, default=96)
+    ap.add_argument("--sweep-sigmas", default="16",
+                    help="sweep-material: comma-separated unsharp radii (texels)")
     ap.add_argument("--model", action="append", default=[], metavar="NAME=PATH")
     ap.add_argument("--cells", default="unseen", choices=("unseen", "all"))
     ap.add_argument("--scenes", default=None,

@@ -63,6 +63,7 @@ FIDELITY_METHODS = {
     "identity": "identity (the coarse input)",
     "unsharp": "unsharp mask (best on the val split)",
     "unsharp_card": "unsharp mask (the model card's setting)",
+    "unsharp_material": "unsharp mask, per-material gain (best per material on the val split)",
     "shipped": "shipped enhancer",
     "oracle_detail": "ceiling: coarse large scale + the fine patch's exact detail",
     "oracle_next_frame": "ceiling: the fine patch of the next frame",
@@ -248,7 +249,7 @@ def fidelity_headline(fid: dict | None) -> list[str]:
     def med(k):
         return r.get(k, {}).get("detail", nan)["signed_median"]
 
-    not_models = {"identity", "unsharp", "unsharp_card", "input"} | {
+    not_models = {"identity", "unsharp", "unsharp_card", "unsharp_material", "input"} | {
         k for k in FIDELITY_METHODS if k.startswith("oracle")}
     for name in [k for k in r if k not in not_models and "detail" in r[k]]:
         d = r[name]["detail"]
@@ -258,7 +259,11 @@ def fidelity_headline(fid: dict | None) -> list[str]:
                     f"{d['signed_mean']:+.1f}); paired median difference against unsharp "
                     f"{_ci(d.get('vs_unsharp'))} (val-swept setting, median "
                     f"{med('unsharp'):+.1f}) and {_ci(d.get('vs_unsharp_card'))} (the model "
-                    f"card's setting, {med('unsharp_card'):+.1f}) (95 % bootstrap); ceiling "
+                    f"card's setting, {med('unsharp_card'):+.1f})"
+                    + (f" and {_ci(d.get('vs_unsharp_material'))} (per-material val-swept "
+                       f"gains, {med('unsharp_material'):+.1f})"
+                       if d.get("vs_unsharp_material") else "")
+                    + " (95 % bootstrap); ceiling "
                     f"(coarse + fine detail) {med('oracle_detail'):+.1f}.")
     return rows
 
@@ -281,9 +286,9 @@ def fidelity_section(rep: Report, fid: dict | None) -> None:
     for kind, res in fid.items():
         rep.add(f"### {kind} ({', '.join(res['cells'])})", "",
                 "| method | detail: median (mean) | vs unsharp (val), median diff [95 % CI] | "
-                "vs unsharp (card) | object space: median (mean) | < 16 mm band | "
-                "16-64 mm band | checker |",
-                "|---|---|---|---|---|---|---|---|")
+                "vs unsharp (card) | vs unsharp (per-material) | object space: median (mean) "
+                "| < 16 mm band | 16-64 mm band | checker |",
+                "|---|---|---|---|---|---|---|---|---|")
         ms = res["methods"]
         order = [k for k in FIDELITY_METHODS if k in ms] + [
             k for k in ms if k not in FIDELITY_METHODS and k != "input"]
@@ -295,6 +300,7 @@ def fidelity_section(rep: Report, fid: dict | None) -> None:
                     + (f"{det['signed_median']:+.1f} ({det['signed_mean']:+.1f})" if det
                        else "") + f" | {_ci(det.get('vs_unsharp')) if det else ''} | "
                     + f"{_ci(det.get('vs_unsharp_card')) if det else ''} | "
+                    + f"{_ci(det.get('vs_unsharp_material')) if det else ''} | "
                     + (f"{obj['signed_median']:+.1f} ({obj['signed_mean']:+.1f})" if obj
                        else "") + " | "
                     + " | ".join(f"{br[b]:.2f}" if b in br else "" for b in

@@ -128,6 +128,78 @@ def sweep_per_material(args, vgg_params) -> dict:
     return got
 
 
+def material_settings() -> dict[int, tuple[float, float]]:
+    """Per-material (sigma, amount) of the val sweep (unsharp_sweep_material.json), by
+    material id; empty when the sweep has not been run."""
+    per_mat = OUT / "unsharp_sweep_material.json"
+    if not per_mat.exists():
+        return {}
+    best = json.loads(per_mat.read_text())["best"]
+    return {MATERIALS.index(m): tuple(float(dict(q.split("=") for q in k.split(","))[x])
+                                      for x in ("sigma", "amount"))
+            for m, k in best.items()}
+
+
+def val_models(args, vgg_params) -> dict:
+    """Models against the per-material unsharp base ON THE VAL SPLIT (the training scenes'
+    last frames): per material, `--sweep-patches` evenly spaced val patches, detail-only
+    signed median of each `--model` and of unsharp_material, and the paired difference
+    model - unsharp_material (95 % bootstrap). This is what checkpoint and recipe choices
+    read; the held-out scenes are never touched here. Texel-noise models get fixed
+    pseudo-random patch origins (the val patches carry none)."""
+    ds = data.PatchDataset(args.data, "val")
+    settings = material_settings()
+    models = {}
+    for spec in args.model:
+        name, path = spec.split("=", 1)
+        models[name] = ec.enhancer_method(enhancer.load_enhancer(path))
+    rng = np.random.default_rng(0)
+    scores = {k: [] for k in ["unsharp_material", *models]}
+    mats = []
+    for mid, mat in enumerate(MATERIALS):
+        rows = np.flatnonzero(ds.materials == mid)
+        if not len(rows) or mid not in settings:
+            continue
+        pick = rows[np.unique(np.linspace(0, len(rows) - 1, min(args.sweep_patches, len(rows)))
+                              .round().astype(int))]
+        b = ds.get(pick)
+        ps = ec.PatchSet(input=b["input"], target=b["target"], mask=b["mask"],
+                              origins=rng.integers(0, 4096, (len(pick), 2)).astype(np.int32),
+                              material_id=mid)
+        outs = {"unsharp_material": evaluation.unsharp_mask(ps.input, ps.mask, *settings[mid],
+                                                            order=1)}
+        outs.update({k: f(ps) for k, f in models.items()})
+        outs = {k: np.asarray(v, np.float32) * ps.mask for k, v in outs.items()}
+        d_in, d_tgt, *d_outs = (np.asarray(x) for x in detail.on_reference_branch_rgb(
+            ps.input, (ps.target, *outs.values()), ps.mask, SIGMA))
+        losses = ec.method_losses(vgg_params, d_in, d_tgt, ps.mask,
+                                  dict(zip(outs, d_outs, strict=True)))
+        for k in outs:
+            sc = evaluation.scores_from_losses(losses["input"], losses[k])
+            scores[k].append(np.where(sc["valid"], sc["improvement_signed"], np.nan))
+        mats += [mat] * len(pick)
+    mats = np.asarray(mats)
+    got = {"split": "val", "patches_per_material": int(args.sweep_patches),
+           "detail_sigma": SIGMA, "models": {k: ec.portable_path(p.split("=", 1)[1])
+                                             for k, p in zip(models, args.model, strict=True)},
+           "methods": {}}
+    cat = {k: np.concatenate(v) for k, v in scores.items()}
+    for k, sc in cat.items():
+        v = np.isfinite(sc)
+        entry = {"median": float(np.median(sc[v])), "mean": float(np.mean(sc[v])),
+                 "material_medians": {m: float(np.nanmedian(sc[mats == m]))
+                                      for m in dict.fromkeys(mats)}}
+        if k != "unsharp_material":
+            base = cat["unsharp_material"]
+            entry["vs_unsharp_material"] = evaluation.paired_difference(
+                np.nan_to_num(sc), np.nan_to_num(base), v & np.isfinite(base))
+        got["methods"][k] = entry
+        print(f"{k}: val median {entry['median']:+.1f} (mean {entry['mean']:+.1f}) "
+              + ", ".join(f"{m} {x:+.1f}" for m, x in entry["material_medians"].items()),
+              flush=True)
+    return got
+
+
 def unsharp_best() -> tuple[float, float]:
     best = json.loads((OUT / "unsharp_sweep.json").read_text())["best"]
     kv = dict(p.split("=") for p in best.split(","))
@@ -231,12 +303,8 @@ def build_methods(args) -> tuple[dict, dict]:
     sources["unsharp_card"] = f"order=1,sigma={s1:g},amount={a1:g}"
     # Per-material gains from the val sweep (sweep-material): the base a material-conditioned
     # model starts from, so "model minus its own base" is measured, not assumed.
-    per_mat = OUT / "unsharp_sweep_material.json"
-    if per_mat.exists():
-        best = json.loads(per_mat.read_text())["best"]
-        settings = {MATERIALS.index(m): tuple(float(dict(q.split("=") for q in k.split(","))[x])
-                                              for x in ("sigma", "amount"))
-                    for m, k in best.items()}
+    settings = material_settings()
+    if settings:
         methods["unsharp_material"] = lambda p, e: evaluation.unsharp_mask(
             p.input, p.mask, *settings[p.material_id], order=1)
         sources["unsharp_material"] = "order=1," + ";".join(
@@ -321,7 +389,7 @@ def summarize(cells: list[dict]) -> dict:
 
 def main(argv=None) -> int:
     ap = ec.script_parser(__doc__)
-    ap.add_argument("command", choices=("sweep", "sweep-material", "score", "report"))
+    ap.add_argument("command", choices=("sweep", "sweep-material", "val", "score", "report"))
     ap.add_argument("--data", default=str(ec.ROOT / "data" / "pairs"))
     ap.add_argument("--sweep-patches", type=int, default=96)
     ap.add_argument("--sweep-sigmas", default="16",
@@ -337,6 +405,7 @@ def main(argv=None) -> int:
                          "and fine detail are both near zero and every ratio degenerates)")
     ap.add_argument("--patches", type=int, default=8)
     ap.add_argument("--ceilings", type=int, default=1)
+    ap.add_argument("--val-out", default=None, help="val: write the JSON here")
     args = ap.parse_args(argv)
     if args.command == "report":
         cells = [_load_cell(p) for p in sorted((OUT / "cells").glob("*.npz"))]
@@ -352,6 +421,11 @@ def main(argv=None) -> int:
         return 0
     if args.command == "sweep":
         print(json.dumps(sweep(args, vgg_params)["best"]))
+        return 0
+    if args.command == "val":
+        got = val_models(args, vgg_params)
+        if args.val_out:
+            ec.write_json(Path(args.val_out), got)
         return 0
     methods, sources = build_methods(args)
     keep = set(args.scenes.split(",")) if args.scenes else None

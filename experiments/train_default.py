@@ -44,6 +44,7 @@ def config_from_args(args) -> train.TrainConfig:
                              w_c=args.w_c, normalize_channels=bool(args.normalize_channels),
                              relative_floor=(args.relative_floor if args.relative_floor > 0
                                              else None),
+                             relative_log=bool(args.relative_log),
                              residual_base=args.residual_base, unsharp_sigma=args.unsharp_sigma,
                              unsharp_amount=args.unsharp_amount,
                              residual_highpass=args.residual_highpass,
@@ -120,6 +121,8 @@ def add_recipe_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--w-s", type=float, default=10.0)
     ap.add_argument("--relative-floor", type=float, default=100.0,
                     help="per-patch relative style loss floor; <= 0 for the paper's absolute loss")
+    ap.add_argument("--relative-log", type=int, default=0,
+                    help="1: the log of the per-patch relative style loss (median-seeking)")
     ap.add_argument("--residual-base", default="unsharp", choices=("input", "unsharp"))
     ap.add_argument("--unsharp-sigma", type=float, default=16.0,
                     help="texels; the best sigma of the unsharp-mask sweep on training patches")

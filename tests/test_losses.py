@@ -254,3 +254,34 @@ def test_relative_style_loss_divides_by_the_input_loss(tiny_vgg):
     # The input itself scores a ratio of ~1 (exactly style_in / (style_in + floor)).
     _, ident = loss_fn(tiny_vgg, inp, inp, tgt, mask, style_layers=layers, relative_floor=1e-3)
     np.testing.assert_allclose(ident["style"], style_in / (style_in + 1e-3), rtol=1e-4)
+
+
+def test_relative_log_style_loss_is_the_log_ratio_and_weighs_gains_like_losses(tiny_vgg):
+    rng = np.random.default_rng(14)
+    out, inp, tgt = (jnp.asarray(rng.uniform(size=(3, 16, 16, 3)), jnp.float32) for _ in range(3))
+    mask = jnp.asarray(_block_mask(rng, 3, 16, 16))
+    layers, floor = ("relu1_2", "relu2_1"), 1e-3
+    loss_fn = jax.jit(losses.enhancer_loss, static_argnames=(
+        "style_layers", "content_layer", "relative_floor", "relative_log"))
+    _, absolute = loss_fn(tiny_vgg, out, inp, tgt, mask, style_layers=layers)
+    _, log_rel = loss_fn(tiny_vgg, out, inp, tgt, mask, style_layers=layers,
+                         relative_floor=floor, relative_log=True)
+    feats = {k: vgg.features(tiny_vgg, x, layers=layers) for k, x in (("i", inp), ("t", tgt))}
+    style_in = losses.style_loss(feats["i"], feats["t"], mask, layers)
+    np.testing.assert_allclose(log_rel["style"],
+                               np.log((absolute["style"] + floor) / (style_in + floor)),
+                               rtol=1e-4, atol=1e-5)
+    # The input itself scores exactly 0: no gain, no loss.
+    _, ident = loss_fn(tiny_vgg, inp, inp, tgt, mask, style_layers=layers,
+                       relative_floor=floor, relative_log=True)
+    np.testing.assert_allclose(ident["style"], 0.0, atol=1e-5)
+    # Gradient: the ratio form's, scaled by (style_in + floor) / (style_out + floor), so a
+    # patch whose output is far worse than its input pulls less than under the ratio form.
+    def style_sum(o, log):
+        return loss_fn(tiny_vgg, o, inp, tgt, mask, style_layers=layers, relative_floor=floor,
+                       relative_log=log)[1]["style"].sum()
+
+    g_log, g_ratio = (jax.grad(style_sum)(out, lg) for lg in (True, False))
+    scale = (style_in + floor) / (absolute["style"] + floor)
+    np.testing.assert_allclose(g_log, g_ratio * scale[:, None, None, None], rtol=2e-3,
+                               atol=1e-6 * float(jnp.abs(g_ratio).max()))

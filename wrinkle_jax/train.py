@@ -59,6 +59,8 @@ class TrainConfig:
         forms, so a run may resume with another one.
       relative_floor: None for the paper's absolute style loss, or the floor of the per-patch
         relative style loss (`nn.losses.enhancer_loss`); the "style" metric is then a ratio.
+      relative_log: the log of that ratio instead (the median-seeking form; "style" is then
+        a log ratio, 0 = as far from the target as the input).
       residual_base, unsharp_sigma, unsharp_amount, residual_highpass, blur_order: the
         residual's base (`nn.unet.CINUNet`:
         "input", or "unsharp" to start from unsharp masking with a learnable per-material gain).
@@ -103,6 +105,7 @@ class TrainConfig:
     blur_order: int = 1
     zero_init_output: bool = True
     relative_floor: float | None = None
+    relative_log: bool = False
     detail_sigma: float = 0.0
     noise_channels: int = 0
     noise_scale: int = 1
@@ -190,7 +193,7 @@ def loss_fn(params, batch, vgg_params, config: TrainConfig):
         style_layers=config.style_layers, content_layer=config.content_layer,
         w_c=config.w_c, w_s=config.w_s, pool=config.pool,
         normalize_channels=config.normalize_channels, conv_impl=config.vgg_conv_impl,
-        relative_floor=config.relative_floor)
+        relative_floor=config.relative_floor, relative_log=config.relative_log)
 
 
 def data_mesh(devices=None) -> jax.sharding.Mesh:
@@ -331,6 +334,10 @@ def evaluate(eval_step, params, batches: list[dict]) -> dict:
             # when the output is further from the target than the input.
             "heldout_improvement_signed": float(cat["improvement_signed"][valid].mean())
             if valid.any() else float("nan"),
+            # Per-patch scores are heavy-tailed; the evaluation leads with the median.
+            "heldout_improvement_signed_median":
+                float(np.median(cat["improvement_signed"][valid])) if valid.any()
+                else float("nan"),
             "heldout_improvement_valid": float(valid.mean())}
 
 

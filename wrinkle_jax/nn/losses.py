@@ -172,7 +172,7 @@ def content_loss(out_feats, inp_feats, mask, layer=DEFAULT_CONTENT_LAYER):
 def enhancer_loss(vgg_params, out_images, inp_images, target_images, mask,
                   style_layers=DEFAULT_STYLE_LAYERS, content_layer=DEFAULT_CONTENT_LAYER,
                   w_c=1.0, w_s=1e4, layer_weights=None, pool="avg", normalize_channels=False,
-                  conv_impl="xla", relative_floor=None):
+                  conv_impl="xla", relative_floor=None, relative_log=False):
     """Training objective of the enhancer: ``w_c content(out, inp) + w_s style(out, target)``.
 
     With `relative_floor` set, the style term of each patch is divided by the input's own style
@@ -180,6 +180,12 @@ def enhancer_loss(vgg_params, out_images, inp_images, target_images, mask,
     improvement score measures per patch. The absolute form lets a patch that is already right
     (tiny input loss) take on detail it does not need, which costs little in the batch mean
     but ruins that patch's score; the relative form weighs every patch's improvement equally.
+    With `relative_log` as well, the style term is the log of that ratio,
+    ``log(style(out, tgt) + floor) - log(style(inp, tgt) + floor)``: the evaluation reads the
+    per-patch MEDIAN of ``1 - style(out)/style(inp)``, and a batch mean of plain ratios is led
+    by the few patches whose output got much worse (the ratio is unbounded above, bounded
+    below by 0), which makes the network timid everywhere; on the log scale halving a patch's
+    loss and doubling another's cancel, so the mean follows the typical patch.
 
     VGG runs once per image set and only as deep as needed: the output to the deepest of the
     style and content layers, the input to the content layer, the target to the deepest style
@@ -196,6 +202,8 @@ def enhancer_loss(vgg_params, out_images, inp_images, target_images, mask,
       w_c, w_s: content and style weights (paper: 1 and 1e4).
       relative_floor: None (the paper's absolute style loss) or a float > 0 (see above; the
         input's features then run to the deepest style layer too).
+      relative_log: with `relative_floor`, the log-ratio form (see above; zero when the output
+        equals the input).
 
     Returns:
       (total, parts): total is the batch mean of the per-sample objective (scalar float32);
@@ -215,6 +223,8 @@ def enhancer_loss(vgg_params, out_images, inp_images, target_images, mask,
     if relative_floor is not None:
         style_in = style_loss(inp_f, tgt_f, mask, style_layers, layer_weights,
                               normalize_channels)
-        style = style / (jax.lax.stop_gradient(style_in) + relative_floor)
+        style_in = jax.lax.stop_gradient(style_in) + relative_floor
+        style = (jnp.log(style + relative_floor) - jnp.log(style_in) if relative_log
+                 else style / style_in)
     per_sample = w_c * content + w_s * style
     return jnp.mean(per_sample), {"content": content, "style": style, "total": per_sample}

@@ -54,33 +54,7 @@ def config_from_args(args) -> train.TrainConfig:
 
 def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None,
            train_scenes: tuple[str, ...] | None = None) -> Path:
-    cfg = train.TrainConfig.from_json(json.loads((run / "config.json").read_text()))
-    manager = train._manager(run / "checkpoints", cfg)
-    template = train.create_train_state(cfg, jax.random.key(0, impl="rbg"))
-    state, _ = train.restore_checkpoint(manager, template, cfg)
-    ds = data.PatchDataset(data_root, "train", scenes=train_scenes)
-    entry = ds.entries[0]
-    econf = enhancer.EnhancerConfig(width=cfg.width, residual=cfg.residual,
-                                    input_norm=cfg.input_norm, materials=MATERIALS,
-                                    patch_size=ds.patch_size, texel_size=entry["texel_size"],
-                                    coarse_pd=entry["config"]["coarse_pd"],
-                                    residual_base=cfg.residual_base,
-                                    unsharp_sigma=cfg.unsharp_sigma,
-                                    unsharp_amount=cfg.unsharp_amount,
-                                    residual_highpass=cfg.residual_highpass,
-                                    blur_order=cfg.blur_order, detail_sigma=cfg.detail_sigma,
-                                    noise_channels=cfg.noise_channels,
-                                    noise_scale=cfg.noise_scale, upsample=cfg.upsample)
-    rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if x]
-    train_s = float(sum(r.get("step_s", 0.0) for r in rows if r["kind"] == "train"))
-    evals = [r for r in rows if r["kind"] == "eval"]
-    meta = {"train_config": cfg.to_json(), "steps": int(state.step),
-            "train_step_seconds": round(train_s, 1), "wall_seconds_this_call": wall_s,
-            "train_patches": len(ds), "train_sequences": [e["sequence"] for e in ds.entries],
-            "train_scenes": sorted({e["scene"] for e in ds.entries}),
-            "last_eval": evals[-1] if evals else None,
-            "exported": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())}
-    return enhancer.save_enhancer(out, jax.device_get(state.params), econf, meta)
+    return train.export_run(run, out, data_root, wall_s, train_scenes)
 
 
 def material_gains(spec: str, sigma: float) -> list[float]:
@@ -182,8 +156,7 @@ def main(argv=None) -> None:
                                  "unsharp sigma/blur order differ from the flags")
             init = shipped.params
         if args.init_from and not (run / "checkpoints").exists():
-            from experiments.per_layer_ratios import restore_params
-            init = restore_params(Path(args.init_from))[1].params
+            init = train.restore_run(args.init_from)[1].params
         if args.material_gains and not (run / "checkpoints").exists():
             if cfg.residual_base != "unsharp":
                 raise SystemExit("--material-gains needs --residual-base unsharp")

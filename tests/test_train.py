@@ -195,3 +195,29 @@ def test_detail_noise_recipe_trains_and_scores_detail(data_root, tiny_vgg):
     _, _, t1 = train.loss_images(cfg, tilted, batch["input"])
     m_ = np.asarray(batch["mask"])[..., 0] > 0
     np.testing.assert_allclose(np.asarray(t1)[..., 2][m_], np.asarray(t0)[..., 2][m_], atol=1e-4)
+
+
+def test_restore_run_and_export_run_give_a_model_file_of_the_run(data_root, tmp_path, tiny_vgg):
+    from wrinkle_jax import enhancer
+
+    cfg = dataclasses.replace(CONFIG, steps=2, zero_init_output=False)
+    got = train.train(cfg, data_root, tmp_path / "run", vgg_params=tiny_vgg, progress=False)
+    saved_cfg, state = train.restore_run(tmp_path / "run")
+    assert saved_cfg == cfg and int(state.step) == 2
+    for a, b in zip(jax.tree.leaves(got["state"].params), jax.tree.leaves(state.params),
+                    strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    path = train.export_run(tmp_path / "run", tmp_path / "m.npz", data_root)
+    enh = enhancer.load_enhancer(path, conv_impl="im2col_f32")
+    assert enh.meta["steps"] == 2
+    assert train.TrainConfig.from_json(enh.meta["train_config"]) == cfg
+    assert (enh.config.patch_size, enh.config.texel_size) == (32, 0.004)
+    x = data.PatchDataset(data_root, "train").get(np.arange(2))
+    ref = dataclasses.replace(cfg, conv_impl="im2col_f32").model().apply(
+        {"params": state.params}, x["input"], x["material"])
+    out = enhancer.make_apply(enh, clip=False)(enh.params, x["input"], x["material"])
+    # float16 storage: ~5e-4 relative rounding of the weights
+    assert np.abs(np.asarray(out) - np.asarray(ref)).max() < 2e-2
+    assert np.abs(np.asarray(ref) - x["input"]).max() > 1e-2  # a trained, non-identity net
+    with pytest.raises(FileNotFoundError):
+        train.restore_run(tmp_path / "nothing")

@@ -311,6 +311,59 @@ def restore_checkpoint(manager, template: TrainState, config: TrainConfig, step=
     return got["state"], IteratorState(**got["meta"]["iterator"])
 
 
+def restore_run(run_dir: str | os.PathLike, step: int | None = None
+                ) -> tuple[TrainConfig, TrainState]:
+    """The config and the train state of a run folder written by `train` (its
+    ``config.json`` and ``checkpoints/``), at its last checkpoint or at `step`."""
+    run = Path(run_dir)
+    cfg = TrainConfig.from_json(json.loads((run / "config.json").read_text()))
+    manager = _manager(run / "checkpoints", cfg)
+    template = create_train_state(cfg, jax.random.key(0, impl="rbg"))
+    state, _ = restore_checkpoint(manager, template, cfg, step)
+    return cfg, state
+
+
+def export_run(run_dir: str | os.PathLike, out_path: str | os.PathLike,
+               data_root: str | os.PathLike, wall_s: float | None = None,
+               train_scenes: tuple[str, ...] | None = None) -> Path:
+    """Write a run's last checkpoint as an enhancer model file (`enhancer.save_enhancer`,
+    float16) with the training facts in its metadata; returns `out_path`.
+
+    Args:
+      data_root: the patch data set the run trained on (patch size, texel size, coarse
+        particle distance and the training sequences are read from it).
+      wall_s: seconds of wall time to record (``meta["wall_seconds_this_call"]``).
+      train_scenes: the scenes the run was restricted to, if any.
+    """
+    from wrinkle_jax import MATERIALS, enhancer
+
+    run = Path(run_dir)
+    cfg, state = restore_run(run)
+    ds = PatchDataset(data_root, "train", scenes=train_scenes)
+    entry = ds.entries[0]
+    econf = enhancer.EnhancerConfig(width=cfg.width, residual=cfg.residual,
+                                    input_norm=cfg.input_norm, materials=MATERIALS,
+                                    patch_size=ds.patch_size, texel_size=entry["texel_size"],
+                                    coarse_pd=entry["config"]["coarse_pd"],
+                                    residual_base=cfg.residual_base,
+                                    unsharp_sigma=cfg.unsharp_sigma,
+                                    unsharp_amount=cfg.unsharp_amount,
+                                    residual_highpass=cfg.residual_highpass,
+                                    blur_order=cfg.blur_order, detail_sigma=cfg.detail_sigma,
+                                    noise_channels=cfg.noise_channels,
+                                    noise_scale=cfg.noise_scale, upsample=cfg.upsample)
+    rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if x]
+    train_s = float(sum(r.get("step_s", 0.0) for r in rows if r["kind"] == "train"))
+    evals = [r for r in rows if r["kind"] == "eval"]
+    meta = {"train_config": cfg.to_json(), "steps": int(state.step),
+            "train_step_seconds": round(train_s, 1), "wall_seconds_this_call": wall_s,
+            "train_patches": len(ds), "train_sequences": [e["sequence"] for e in ds.entries],
+            "train_scenes": sorted({e["scene"] for e in ds.entries}),
+            "last_eval": evals[-1] if evals else None,
+            "exported": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())}
+    return enhancer.save_enhancer(out_path, jax.device_get(state.params), econf, meta)
+
+
 # --------------------------------------------------------------------------------------------
 # The loop
 # --------------------------------------------------------------------------------------------

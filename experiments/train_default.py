@@ -31,25 +31,25 @@ import jax
 import numpy as np
 
 from wrinkle_jax import MATERIALS, data, enhancer, train
-from wrinkle_jax.nn import vgg
+from wrinkle_jax.nn import unet, vgg
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def config_from_args(args) -> train.TrainConfig:
-    return train.TrainConfig(width=args.width, residual=bool(args.residual),
-                             style_layers=tuple(args.style_layers.split(",")),
+    net = unet.UNetConfig(width=args.width, residual=bool(args.residual),
+                          residual_base=args.residual_base, unsharp_sigma=args.unsharp_sigma,
+                          unsharp_amount=args.unsharp_amount,
+                          residual_highpass=args.residual_highpass, blur_order=args.blur_order,
+                          detail_sigma=args.detail_sigma, noise_channels=args.noise_channels,
+                          noise_scale=args.noise_scale, upsample=args.upsample)
+    return train.TrainConfig(unet=net, style_layers=tuple(args.style_layers.split(",")),
                              steps=args.steps, eval_every=100, checkpoint_every=100,
                              eval_batches=8, learning_rate=args.lr, w_s=args.w_s,
                              w_c=args.w_c, normalize_channels=bool(args.normalize_channels),
                              relative_floor=(args.relative_floor if args.relative_floor > 0
                                              else None),
-                             residual_base=args.residual_base, unsharp_sigma=args.unsharp_sigma,
-                             unsharp_amount=args.unsharp_amount,
-                             residual_highpass=args.residual_highpass,
-                             blur_order=args.blur_order, detail_sigma=args.detail_sigma,
-                             noise_channels=args.noise_channels, batch_size=args.batch_size,
-                             noise_scale=args.noise_scale, upsample=args.upsample)
+                             batch_size=args.batch_size)
 
 
 def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None,
@@ -148,19 +148,18 @@ def main(argv=None) -> None:
         init = None
         if args.warm_start and not (run / "checkpoints").exists():
             shipped = enhancer.load_enhancer()
-            c = shipped.config
+            c, n = shipped.config.unet, cfg.unet
             if ((c.width, c.residual, c.residual_base, c.unsharp_sigma, c.blur_order)
-                    != (cfg.width, cfg.residual, cfg.residual_base, cfg.unsharp_sigma,
-                        cfg.blur_order)):
+                    != (n.width, n.residual, n.residual_base, n.unsharp_sigma, n.blur_order)):
                 raise SystemExit("--warm-start: the shipped model's width/residual/base/"
                                  "unsharp sigma/blur order differ from the flags")
             init = shipped.params
         if args.init_from and not (run / "checkpoints").exists():
             init = train.restore_run(args.init_from)[1].params
         if args.material_gains and not (run / "checkpoints").exists():
-            if cfg.residual_base != "unsharp":
+            if cfg.unet.residual_base != "unsharp":
                 raise SystemExit("--material-gains needs --residual-base unsharp")
-            gains = material_gains(args.material_gains, cfg.unsharp_sigma)
+            gains = material_gains(args.material_gains, cfg.unet.unsharp_sigma)
             if init is None:
                 init = train.create_train_state(cfg, jax.random.key(cfg.seed, impl="rbg"),
                                                 data.PatchDataset(data_root).patch_size).params

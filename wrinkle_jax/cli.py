@@ -414,7 +414,8 @@ def _cmd_train_enhancer(args) -> int:
     from wrinkle_jax import train
 
     config = dataclasses.replace(
-        train.TrainConfig(), steps=args.steps, width=args.width, batch_size=args.batch,
+        train.TrainConfig(), steps=args.steps, batch_size=args.batch,
+        unet=dataclasses.replace(train.TrainConfig().unet, width=args.width),
         learning_rate=args.lr, seed=args.seed, eval_every=args.eval_every,
         checkpoint_every=args.checkpoint_every,
         **({"style_layers": tuple(args.style_layers)} if args.style_layers else {}))

@@ -48,7 +48,12 @@ class TrainConfig:
     """Enhancer training configuration (static, hashable, JSON-serializable).
 
     Attributes:
-      width, num_materials, residual, input_norm: the CINUNet.
+      unet: the U-Net's architecture (`nn.unet.UNetConfig`; e.g. ``detail_sigma`` > 0 makes
+        the model AND the loss work on detail maps -- input, output and target each with its
+        own large scale removed, on the input's branch -- so coarse-input/fine-target pairs
+        whose large scales diverge can be used without pixel alignment; ``noise_channels`` > 0
+        makes the batches carry random "origins" that place each patch in a noise field).
+      num_materials: rows of the CIN tables.
       batch_size: global batch (divisible by the number of devices).
       steps: total optimizer steps.
       learning_rate, b1, b2, weight_decay: Adam(W).
@@ -59,19 +64,7 @@ class TrainConfig:
         forms, so a run may resume with another one.
       relative_floor: None for the paper's absolute style loss, or the floor of the per-patch
         relative style loss (`nn.losses.enhancer_loss`); the "style" metric is then a ratio.
-      residual_base, unsharp_sigma, unsharp_amount, residual_highpass, blur_order: the
-        residual's base (`nn.unet.CINUNet`:
-        "input", or "unsharp" to start from unsharp masking with a learnable per-material gain).
-      detail_sigma: 0 (object space, the paper's), or the low-pass radius in texels of the
-        detail representation (`wrinkle_jax.detail`) that the model works in AND the loss is
-        taken on: style and content compare detail maps (input, output and target each with
-        its own large scale removed, on the input's branch), so coarse-input/fine-target pairs
-        whose large scales diverge can be used without pixel alignment.
-      noise_channels: fixed per-texel noise channels of the model's input (`nn.unet`); the
-        batches' random "origins" place each patch in a noise field.
-      noise_scale, upsample: the noise's lattice spacing (texels) and the decoder's
-        up-sampling ("transpose", "nearest" or "bilinear"), see `nn.unet.CINUNet`.
-      zero_init_output: with `residual`, start the output conv at zero so the untrained
+      zero_init_output: with a residual U-Net, start the output conv at zero so the untrained
         network is the identity (improvement 0) instead of input + random noise, whose style
         loss starts ~40x above the input's.
       seed: parameter init and data order.
@@ -79,10 +72,8 @@ class TrainConfig:
       checkpoint_every, keep_checkpoints: Orbax cadence and retention.
     """
 
-    width: int = 32
+    unet: unet.UNetConfig = unet.UNetConfig(width=32, residual=True)
     num_materials: int = 5
-    residual: bool = True
-    input_norm: str = "imagenet"
     batch_size: int = 8
     steps: int = 1000
     learning_rate: float = 1e-4
@@ -96,17 +87,8 @@ class TrainConfig:
     normalize_channels: bool = True
     pool: str = "avg"
     conv_impl: str = "im2col_bf16"
-    residual_base: str = "input"
-    unsharp_sigma: float = 8.0
-    unsharp_amount: float = 1.0
-    residual_highpass: float = 0.0
-    blur_order: int = 1
     zero_init_output: bool = True
     relative_floor: float | None = None
-    detail_sigma: float = 0.0
-    noise_channels: int = 0
-    noise_scale: int = 1
-    upsample: str = "transpose"
     seed: int = 0
     eval_every: int = 50
     eval_batches: int = 4
@@ -114,31 +96,23 @@ class TrainConfig:
     keep_checkpoints: int = 3
 
     def model(self) -> unet.CINUNet:
-        return unet.CINUNet(num_materials=self.num_materials, width=self.width,
-                            residual=self.residual, input_norm=self.input_norm,
-                            residual_base=self.residual_base,
-                            unsharp_sigma=self.unsharp_sigma,
-                            unsharp_amount=self.unsharp_amount,
-                            residual_highpass=self.residual_highpass,
-                            blur_order=self.blur_order, conv_impl=self.conv_impl,
-                            detail_sigma=self.detail_sigma,
-                            noise_channels=self.noise_channels,
-                            noise_scale=self.noise_scale, upsample=self.upsample)
+        return self.unet.module(self.num_materials, self.conv_impl)
 
     @property
     def vgg_conv_impl(self) -> str:
         return "im2col_bf16" if self.conv_impl == "im2col_bf16" else "xla"
 
     def to_json(self) -> dict:
-        return dataclasses.asdict(self)
+        """Flat: the U-Net's settings among the training fields (the run-config format)."""
+        own = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "unet"}
+        return {**self.unet.to_json(), **own}
 
     @classmethod
     def from_json(cls, d: dict) -> TrainConfig:
-        d = dict(d)
-        # Files written before blur_order existed used the order-0 (local mean) blur.
-        d.setdefault("blur_order", 0)
-        d["style_layers"] = tuple(d["style_layers"])
-        return cls(**d)
+        """Read `to_json`'s form, including run configs written before `unet` was nested."""
+        net, rest = unet.UNetConfig.split_json(d, cls.__dataclass_fields__["unet"].default)
+        rest["style_layers"] = tuple(rest["style_layers"])
+        return cls(unet=net, **rest)
 
 
 @jax.tree_util.register_dataclass
@@ -161,7 +135,7 @@ def optimizer(config: TrainConfig) -> optax.GradientTransformation:
 def create_train_state(config: TrainConfig, key, patch_size: int = 128) -> TrainState:
     """Fresh parameters and optimizer state (step 0)."""
     params = unet.init_params(config.model(), key, patch_size)
-    if config.residual and config.zero_init_output:
+    if config.unet.residual and config.zero_init_output:
         params = {**params, "out": jax.tree.map(jnp.zeros_like, params["out"])}
     return TrainState(jnp.zeros((), jnp.int32), params, optimizer(config).init(params))
 
@@ -176,10 +150,10 @@ def _forward(config: TrainConfig, params, batch):
 def loss_images(config: TrainConfig, batch: dict, out):
     """(input, output, target) in the representation the loss compares: the RGB forms
     themselves, or with `detail_sigma` their detail maps on the input's branch."""
-    if config.detail_sigma <= 0:
+    if config.unet.detail_sigma <= 0:
         return batch["input"], out, batch["target"]
     return detail.on_reference_branch_rgb(batch["input"], (out, batch["target"]), batch["mask"],
-                                          config.detail_sigma)
+                                          config.unet.detail_sigma)
 
 
 def loss_fn(params, batch, vgg_params, config: TrainConfig):
@@ -300,11 +274,11 @@ def restore_checkpoint(manager, template: TrainState, config: TrainConfig, step=
     abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, template)
     got = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
                                                         meta=ocp.args.JsonRestore()))
-    saved = TrainConfig.from_json(got["meta"]["config"])
+    saved = TrainConfig.from_json(got["meta"]["config"]).to_json()
+    want = config.to_json()
     free = ("steps", "eval_every", "eval_batches", "checkpoint_every", "keep_checkpoints",
             "conv_impl")
-    diff = {f.name for f in dataclasses.fields(TrainConfig)
-            if f.name not in free and getattr(saved, f.name) != getattr(config, f.name)}
+    diff = {k for k in want if k not in free and saved[k] != want[k]}
     if diff:
         raise ValueError(f"{manager.directory}: checkpoint was trained with a different "
                          f"config ({', '.join(sorted(diff))})")
@@ -341,17 +315,9 @@ def export_run(run_dir: str | os.PathLike, out_path: str | os.PathLike,
     cfg, state = restore_run(run)
     ds = PatchDataset(data_root, "train", scenes=train_scenes)
     entry = ds.entries[0]
-    econf = enhancer.EnhancerConfig(width=cfg.width, residual=cfg.residual,
-                                    input_norm=cfg.input_norm, materials=MATERIALS,
+    econf = enhancer.EnhancerConfig(unet=cfg.unet, materials=MATERIALS,
                                     patch_size=ds.patch_size, texel_size=entry["texel_size"],
-                                    coarse_pd=entry["config"]["coarse_pd"],
-                                    residual_base=cfg.residual_base,
-                                    unsharp_sigma=cfg.unsharp_sigma,
-                                    unsharp_amount=cfg.unsharp_amount,
-                                    residual_highpass=cfg.residual_highpass,
-                                    blur_order=cfg.blur_order, detail_sigma=cfg.detail_sigma,
-                                    noise_channels=cfg.noise_channels,
-                                    noise_scale=cfg.noise_scale, upsample=cfg.upsample)
+                                    coarse_pd=entry["config"]["coarse_pd"])
     rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if x]
     train_s = float(sum(r.get("step_s", 0.0) for r in rows if r["kind"] == "train"))
     evals = [r for r in rows if r["kind"] == "eval"]
@@ -465,7 +431,7 @@ def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.P
     if config.batch_size % mesh.size:
         raise ValueError(f"batch_size {config.batch_size} is not divisible by {mesh.size} devices")
     iterator = BatchIterator(train_set, config.batch_size, seed=config.seed,
-                             origins=config.noise_channels > 0)
+                             origins=config.unet.noise_channels > 0)
     manager = _manager(out_dir / "checkpoints", config)
     # rbg keys: threefry initialization compiles ~8x slower on CPU (see unet.init_params).
     key = jax.random.key(config.seed, impl="rbg")

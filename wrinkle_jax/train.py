@@ -115,6 +115,17 @@ class TrainConfig:
         return cls(unet=net, **rest)
 
 
+# The shipped model's training recipe (wrinkle_jax/assets/MODEL_CARD.md): its U-Net
+# (`unet.RECIPE_UNET`), the style loss on relu1_2..relu3_2 (layer_selection's relu2_2, relu3_1,
+# relu3_2, plus relu1_2 and relu2_1, where the content term otherwise undoes the sharpening:
+# experiments.per_layer_ratios) relative to each patch's input with floor 100, a light content
+# term, Adam at 2e-4. `experiments.train_default` and `wrinkle-jax train-enhancer` start here.
+RECIPE = TrainConfig(unet=unet.RECIPE_UNET, batch_size=8, steps=20_000, learning_rate=2e-4,
+                     style_layers=("relu1_2", "relu2_1", "relu2_2", "relu3_1", "relu3_2"),
+                     w_c=0.1, w_s=10.0, normalize_channels=False, relative_floor=100.0,
+                     eval_every=100, eval_batches=8, checkpoint_every=100)
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class TrainState:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import jax
@@ -28,12 +29,12 @@ def test_train_enhancer_exports_a_model_file_that_load_enhancer_reads(
     args = ["train-enhancer", "--data", str(tiny_patch_root), "--out", str(run), "--steps", "2",
             "--width", "4", "--batch", "4", "--style-layers", "relu1_2", "relu2_1"]
     assert cli.main([*args, "--export", str(model)]) == 0
-    out = capsys.readouterr().out
-    assert json.loads(out[out.index("{"):])["exported"] == str(model)
+    out = capsys.readouterr().out.strip().splitlines()
+    assert json.loads(out[-1])["exported"] == str(model)
+    assert json.loads("\n".join(out[:-1]))["step"] == 2  # the last metrics, then the export
     cfg, state = train.restore_run(run)
     # The shipped recipe, with the flags' changes only.
-    assert cfg.unet == train.RECIPE.unet.__class__(
-        **{**train.RECIPE.unet.to_json(), "width": 4})
+    assert cfg.unet == dataclasses.replace(train.RECIPE.unet, width=4)
     assert (cfg.steps, cfg.batch_size, cfg.style_layers) == (2, 4, ("relu1_2", "relu2_1"))
     assert cfg.w_c == train.RECIPE.w_c and cfg.relative_floor == train.RECIPE.relative_floor
     enh = wrinkle_jax.load_enhancer(model, conv_impl="im2col_f32")

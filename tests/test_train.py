@@ -204,24 +204,41 @@ def test_detail_noise_recipe_trains_and_scores_detail(data_root, tiny_vgg):
 def test_restore_run_and_export_run_give_a_model_file_of_the_run(data_root, tmp_path, tiny_vgg):
     from wrinkle_jax import enhancer
 
+    run = tmp_path / "run"
     cfg = dataclasses.replace(CONFIG, steps=2, zero_init_output=False)
-    got = train.train(cfg, data_root, tmp_path / "run", vgg_params=tiny_vgg, progress=False)
-    saved_cfg, state = train.restore_run(tmp_path / "run")
+    got = train.train(cfg, data_root, run, vgg_params=tiny_vgg, progress=False)
+    saved_cfg, state = train.restore_run(run)
     assert saved_cfg == cfg and int(state.step) == 2
     for a, b in zip(jax.tree.leaves(got["state"].params), jax.tree.leaves(state.params),
                     strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    path = train.export_run(tmp_path / "run", tmp_path / "m.npz", data_root)
+    path = train.export_run(run, tmp_path / "m.npz")  # the data facts from run/data.json
     enh = enhancer.load_enhancer(path, conv_impl="im2col_f32")
-    assert enh.meta["steps"] == 2
+    assert enh.meta["steps"] == 2 and enh.config.unet == cfg.unet
     assert train.TrainConfig.from_json(enh.meta["train_config"]) == cfg
     assert (enh.config.patch_size, enh.config.texel_size) == (32, 0.004)
-    x = data.PatchDataset(data_root, "train").get(np.arange(2))
+    ds = data.PatchDataset(data_root, "train")
+    assert enh.meta["train_patches"] == len(ds)
+    x = ds.get(np.arange(2))
     ref = dataclasses.replace(cfg, conv_impl="im2col_f32").model().apply(
         {"params": state.params}, x["input"], x["material"])
     out = enhancer.make_apply(enh, clip=False)(enh.params, x["input"], x["material"])
     # float16 storage: ~5e-4 relative rounding of the weights
     assert np.abs(np.asarray(out) - np.asarray(ref)).max() < 2e-2
     assert np.abs(np.asarray(ref) - x["input"]).max() > 1e-2  # a trained, non-identity net
-    with pytest.raises(FileNotFoundError):
+    # A run as older code wrote it: no data.json, and a config.json from before the detail,
+    # noise and up-sampling settings existed. It restores, and exports given its data set.
+    (run / "data.json").unlink()
+    old = json.loads((run / "config.json").read_text())
+    for key in ("detail_sigma", "noise_channels", "noise_scale", "upsample"):
+        del old[key]
+    (run / "config.json").write_text(json.dumps(old))
+    assert train.restore_run(run)[0] == cfg
+    with pytest.raises(FileNotFoundError, match="data.json"):
+        train.export_run(run, tmp_path / "x.npz")
+    again = enhancer.load_enhancer(train.export_run(run, tmp_path / "m2.npz", data_root))
+    assert again.config == enh.config and again.meta["train_sequences"] == enh.meta[
+        "train_sequences"]
+    assert not (tmp_path / "x.npz").exists()
+    with pytest.raises(FileNotFoundError, match="no config.json"):
         train.restore_run(tmp_path / "nothing")

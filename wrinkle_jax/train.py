@@ -301,6 +301,8 @@ def restore_run(run_dir: str | os.PathLike, step: int | None = None
     """The config and the train state of a run folder written by `train` (its
     ``config.json`` and ``checkpoints/``), at its last checkpoint or at `step`."""
     run = Path(run_dir)
+    if not (run / "config.json").is_file():
+        raise FileNotFoundError(f"{run}: no training run here (no config.json), so no checkpoint")
     cfg = TrainConfig.from_json(json.loads((run / "config.json").read_text()))
     manager = _manager(run / "checkpoints", cfg)
     template = create_train_state(cfg, jax.random.key(0, impl="rbg"))
@@ -308,35 +310,53 @@ def restore_run(run_dir: str | os.PathLike, step: int | None = None
     return cfg, state
 
 
+def _data_facts(ds: PatchDataset) -> dict:
+    """What a model file records about the patch data set it was trained on."""
+    entry = ds.entries[0]
+    return {"patch_size": ds.patch_size, "texel_size": entry["texel_size"],
+            "coarse_pd": entry["config"]["coarse_pd"], "train_patches": len(ds),
+            "train_sequences": [e["sequence"] for e in ds.entries],
+            "train_scenes": sorted({e["scene"] for e in ds.entries})}
+
+
 def export_run(run_dir: str | os.PathLike, out_path: str | os.PathLike,
-               data_root: str | os.PathLike, wall_s: float | None = None,
+               data_root: str | os.PathLike | None = None, wall_s: float | None = None,
                train_scenes: tuple[str, ...] | None = None) -> Path:
     """Write a run's last checkpoint as an enhancer model file (`enhancer.save_enhancer`,
-    float16) with the training facts in its metadata; returns `out_path`.
+    float16, loadable by `wrinkle_jax.load_enhancer`) with the training facts in its metadata;
+    returns `out_path`.
 
     Args:
-      data_root: the patch data set the run trained on (patch size, texel size, coarse
-        particle distance and the training sequences are read from it).
+      data_root: None: the data facts the run recorded (``data.json``, written by `train`);
+        or the patch data set the run trained on, read again (needed for runs from before
+        ``data.json`` existed), restricted to `train_scenes` if given.
       wall_s: seconds of wall time to record (``meta["wall_seconds_this_call"]``).
-      train_scenes: the scenes the run was restricted to, if any.
+
+    Raises:
+      FileNotFoundError: naming the folder, if it holds no run, no checkpoint, or (without
+        `data_root`) no ``data.json``.
     """
     from wrinkle_jax import MATERIALS, enhancer
 
     run = Path(run_dir)
     cfg, state = restore_run(run)
-    ds = PatchDataset(data_root, "train", scenes=train_scenes)
-    entry = ds.entries[0]
+    if data_root is not None:
+        facts = _data_facts(PatchDataset(data_root, "train", scenes=train_scenes))
+    elif (run / "data.json").is_file():
+        facts = json.loads((run / "data.json").read_text())
+    else:
+        raise FileNotFoundError(f"{run}: no data.json (a run written before it was recorded): "
+                                "give the data set it trained on")
     econf = enhancer.EnhancerConfig(unet=cfg.unet, materials=MATERIALS,
-                                    patch_size=ds.patch_size, texel_size=entry["texel_size"],
-                                    coarse_pd=entry["config"]["coarse_pd"])
+                                    patch_size=facts["patch_size"],
+                                    texel_size=facts["texel_size"], coarse_pd=facts["coarse_pd"])
     rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if x]
     train_s = float(sum(r.get("step_s", 0.0) for r in rows if r["kind"] == "train"))
     evals = [r for r in rows if r["kind"] == "eval"]
     meta = {"train_config": cfg.to_json(), "steps": int(state.step),
             "train_step_seconds": round(train_s, 1), "wall_seconds_this_call": wall_s,
-            "train_patches": len(ds), "train_sequences": [e["sequence"] for e in ds.entries],
-            "train_scenes": sorted({e["scene"] for e in ds.entries}),
-            "last_eval": evals[-1] if evals else None,
+            "train_patches": facts["train_patches"], "train_sequences": facts["train_sequences"],
+            "train_scenes": facts["train_scenes"], "last_eval": evals[-1] if evals else None,
             "exported": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())}
     return enhancer.save_enhancer(out_path, jax.device_get(state.params), econf, meta)
 
@@ -416,7 +436,9 @@ def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.P
     """Train (or resume training) the enhancer; returns the last metrics.
 
     Writes `out_dir/checkpoints/<step>/`, `out_dir/metrics.jsonl` (one JSON object per logged
-    train step and per evaluation), `out_dir/loss_curve.png` and `out_dir/config.json`.
+    train step and per evaluation), `out_dir/loss_curve.png`, `out_dir/config.json` and
+    `out_dir/data.json` (the data set's root, patch and texel size, coarse particle distance and
+    training sequences, which `export_run` writes into the model file).
 
     Args:
       time_limit_s: stop (with an evaluation and a checkpoint) after the first step that ends
@@ -463,6 +485,10 @@ def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.P
     elif metrics_path.exists():
         metrics_path.unlink()
     atomic_write_text(out_dir / "config.json", json.dumps(config.to_json(), indent=2))
+    atomic_write_text(out_dir / "data.json", json.dumps(
+        {"data_root": str(Path(data_root).absolute()),
+         "train_scenes_selected": None if train_scenes is None else list(train_scenes),
+         "eval_split": eval_split, **_data_facts(train_set)}, indent=1))
 
     step_fn = make_train_step(config, vgg_params, mesh)
     eval_step = make_eval_step(config, vgg_params)

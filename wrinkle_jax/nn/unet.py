@@ -16,6 +16,11 @@ Architecture (paper, "Network architecture", and the authors' published network)
 
 With width=64 and 5 materials the network has 8,510,083 parameters.
 
+Settings: `UNetConfig` holds the architecture (width, residual base, detail space, noise, ...)
+as one frozen, serializable config that the training, model-file and PatchGAN configs nest;
+`UNetConfig.module(num_materials, conv_impl)` builds the `CINUNet`. `RECIPE_UNET` is the
+shipped model's.
+
 Conditional instance normalization (Dumoulin et al. 2017): per-material scale and shift
 tables gathered by the material id of each sample, so one batch may mix materials; the
 normalization layer is injected as `norm` (a `functools.partial`, like BatchNorm in the Flax

@@ -29,6 +29,7 @@ import numpy as np
 
 from wrinkle_jax import enhancer, meshio, pipeline
 from wrinkle_jax.cli import _demo_sequence_path
+from wrinkle_jax.nn import unet
 
 BATCH_SIZES = (1, 4, 8, 16)
 
@@ -37,7 +38,7 @@ def load_model() -> tuple[enhancer.Enhancer, str]:
     if enhancer.DEFAULT_PATH.is_file():
         return enhancer.load_enhancer(), f"shipped ({enhancer.DEFAULT_PATH.name})"
     model = enhancer.init_enhancer(jax.random.key(0, impl="rbg"),
-                                   enhancer.EnhancerConfig(width=32))
+                                   enhancer.EnhancerConfig(unet.UNetConfig(width=32)))
     return model, "random width-32 (no shipped model yet)"
 
 

@@ -323,7 +323,8 @@ def bench_training(widths, reps, rng, vgg_params, quick):
                 variants += [(FAST, PLAIN), (EXACT, PLAIN)]
         runs, compile_s = {}, {}
         for unet_impl, vgg_impl in variants:
-            config = BenchConfig(width=width, batch_size=TRAIN_BATCH, conv_impl=unet_impl)
+            config = BenchConfig(unet=dataclasses.replace(base.unet, width=width),
+                                 batch_size=TRAIN_BATCH, conv_impl=unet_impl)
             state = train.create_train_state(config, jax.random.key(0, impl="rbg"))
             step = train.make_train_step(config, vgg_params, mesh)
             with vgg_conv_impl(vgg_impl):

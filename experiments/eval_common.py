@@ -427,7 +427,7 @@ def enhancer_method(enh: enhancer_lib.Enhancer, batch_size: int = 16,
     apply = enhancer_lib.make_apply(enh)
     timings = {} if timings is None else timings
     size = enh.config.patch_size
-    noise = bool(enh.config.noise_channels)  # texel-noise models read the patch origins
+    noise = bool(enh.config.unet.noise_channels)  # texel-noise models read the patch origins
     t0 = time.perf_counter()
     apply(enh.params, jnp.zeros((batch_size, size, size, 3), jnp.float32),
           jnp.zeros((batch_size,), jnp.int32),

@@ -220,16 +220,16 @@ def fidelity_lines(path: Path = ROOT / "experiments" / "results" / "fidelity" / 
 
 def card_text(enh: enhancer.Enhancer, results: dict, table: list[str], args) -> str:
     """The model card: what the model is, how it was trained, and the held-out table."""
-    c, m = enh.config, enh.meta
+    c, u, m = enh.config, enh.config.unet, enh.meta
     t = m.get("train_config", {})
     gains = [round(float(g), 3) for g in np.asarray(enh.params.get("unsharp_amount", []))]
     n_params = int(sum(np.size(x) for x in jax.tree.leaves(enh.params)))
     ms = results["methods"]["model"]["heldout"].get("net_ms_per_patch")
     hours = m.get("train_step_seconds", 0.0) / 3600
-    base = (f"the unsharp-masked input (sigma {c.unsharp_sigma:g} texels, masked blur of order "
-            f"{c.blur_order}, learned per-material gain, now "
+    base = (f"the unsharp-masked input (sigma {u.unsharp_sigma:g} texels, masked blur of order "
+            f"{u.blur_order}, learned per-material gain, now "
             f"{dict(zip(c.materials, gains, strict=True))})"
-            if c.residual_base == "unsharp" else "the input")
+            if u.residual_base == "unsharp" else "the input")
     return "\n".join([
         "# Model card: the default wrinkle-jax enhancer",
         "",
@@ -237,7 +237,7 @@ def card_text(enh: enhancer.Enhancer, results: dict, table: list[str], args) -> 
         "`python -m experiments.model_card --card wrinkle_jax/assets/MODEL_CARD.md`.",
         "",
         "## What it is",
-        f"- Material-conditioned (CIN) U-Net, width {c.width}, {n_params:,} parameters, stored "
+        f"- Material-conditioned (CIN) U-Net, width {u.width}, {n_params:,} parameters, stored "
         "float16. Residual: output = base + network, where the base is " + base + ". The output "
         "conv started at zero, so the untrained model was exactly unsharp masking.",
         f"- Input: RGB-form normal-map patches {c.patch_size}x{c.patch_size}, "
@@ -292,9 +292,9 @@ def card_text(enh: enhancer.Enhancer, results: dict, table: list[str], args) -> 
         "python -m experiments.short_runs width --minutes 5 --residual-base unsharp --tag unsharp2 "
         "--style-layers relu1_2,relu2_1,relu2_2,relu3_1,relu3_2 --normalize-channels 0 --w-c 0.1 "
         "--relative-floor 100 --only w32,w16,w64   # width study (order-0 blur, session 3)",
-        f"python -m experiments.train_default --width {c.width} --unsharp-sigma "
-        f"{c.unsharp_sigma:g} --residual-highpass {c.residual_highpass:g} --blur-order "
-        f"{c.blur_order} --minutes 48   # resumable; exports the weights",
+        f"python -m experiments.train_default --width {u.width} --unsharp-sigma "
+        f"{u.unsharp_sigma:g} --residual-highpass {u.residual_highpass:g} --blur-order "
+        f"{u.blur_order} --minutes 48   # resumable; exports the weights",
         f"python -m experiments.model_card --n {args.n} --n-seen {args.n_seen} "
         f"--n-tune {args.n_tune} --card wrinkle_jax/assets/MODEL_CARD.md",
         "```",

@@ -64,7 +64,7 @@ def load_state(run: Path, template: patchgan.GANState, config: patchgan.GANConfi
     """(state, iterator state, train seconds so far) from `run`, or None (none / other config)."""
     try:
         meta = json.loads((run / "state.json").read_text())
-        if meta["config"] != config.to_json():
+        if patchgan.GANConfig.from_json(meta["config"]) != config:
             return None
         leaves, tree = jax.tree_util.tree_flatten(template)
         with np.load(run / "state.npz") as z:
@@ -220,7 +220,7 @@ def main(argv=None) -> int:
     ap.add_argument("--n", type=int, default=480, help="held-out patches scored")
     ap.add_argument("--n-seen", type=int, default=160, help="training patches scored")
     ap.add_argument("--l1-weight", type=float, default=patchgan.GANConfig.l1_weight)
-    ap.add_argument("--width", type=int, default=patchgan.GANConfig.width,
+    ap.add_argument("--width", type=int, default=patchgan.GANConfig().unet.width,
                     help="generator width (default: the shipped model's)")
     ap.add_argument("--disc-width", type=int, default=patchgan.GANConfig.disc_width)
     ap.add_argument("--train-scenes", default=None,
@@ -231,8 +231,8 @@ def main(argv=None) -> int:
     scenes = tuple(args.train_scenes.split(",")) if args.train_scenes else None
     out, run = Path(args.out), Path(args.run)
     out.mkdir(parents=True, exist_ok=True)
-    config = patchgan.GANConfig(l1_weight=args.l1_weight, width=args.width,
-                                disc_width=args.disc_width)
+    unet = dataclasses.replace(patchgan.GANConfig().unet, width=args.width)
+    config = patchgan.GANConfig(unet=unet, l1_weight=args.l1_weight, disc_width=args.disc_width)
     got = train(config, Path(args.data), run, args.minutes, args.steps,
                 args.checkpoint_every, args.fresh, log=lambda s: print(s, flush=True),
                 train_scenes=scenes)

@@ -30,14 +30,6 @@ ROOT = Path(__file__).resolve().parents[1]
 LAYERS = ("relu1_2", "relu2_1", "relu2_2", "relu3_1", "relu3_2", "relu4_1", "relu5_1")
 
 
-def restore_params(run: Path):
-    cfg = train.TrainConfig.from_json(json.loads((run / "config.json").read_text()))
-    manager = train._manager(run / "checkpoints", cfg)
-    template = train.create_train_state(cfg, jax.random.key(0, impl="rbg"))
-    state, _ = train.restore_checkpoint(manager, template, cfg)
-    return cfg, state
-
-
 def per_layer_losses(vgg_params, inp, out, target, mask, batch: int = 8) -> dict:
     """{layer: (loss_in (N,), loss_out (N,))} on `LAYERS` (float32 XLA VGG)."""
     @jax.jit
@@ -86,7 +78,7 @@ def main(argv=None) -> None:
     ap.add_argument("--data", default=str(ROOT / "data" / "patches"))
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
-    cfg, state = restore_params(Path(args.run))
+    cfg, state = train.restore_run(args.run)
     held = short_runs.heldout_eval_set(args.data, args.n)
     vgg_params = vgg.load_vgg19()
     outs = {"run": short_runs.enhance(cfg, state.params, held),

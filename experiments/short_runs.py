@@ -47,9 +47,11 @@ def variants(study: str, base: train.TrainConfig,
              widths: tuple[int, ...] = (16, 32, 64)) -> dict[str, train.TrainConfig]:
     """The study's configurations: `base` with only the width (or residual) changed."""
     if study == "residual":
-        return {"residual": dataclasses.replace(base, width=32, residual=True),
-                "plain": dataclasses.replace(base, width=32, residual=False)}
-    return {f"w{w}": dataclasses.replace(base, width=w) for w in widths}
+        return {name: dataclasses.replace(
+                    base, unet=dataclasses.replace(base.unet, width=32, residual=residual))
+                for name, residual in (("residual", True), ("plain", False))}
+    return {f"w{w}": dataclasses.replace(base, unet=dataclasses.replace(base.unet, width=w))
+            for w in widths}
 
 
 def heldout_eval_set(root, n: int = 96) -> dict:

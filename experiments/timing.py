@@ -202,7 +202,7 @@ def main(argv=None) -> int:
     results = {
         "scene": args.scene, "material": args.material, "frames": args.frames,
         "seed": ec.TEST_SEED, "model": ec.portable_path(args.model),
-        "model_width": enh.config.width,
+        "model_width": enh.config.unet.width,
         "coarse_sim": coarse_info, "pipeline": pipe_info, "fine_sim": fine_info,
         "ratio": ratios(coarse_info["ms_per_frame"], fine_info["ms_per_frame"],
                         pipe_info["ms_per_frame"]),

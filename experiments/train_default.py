@@ -4,13 +4,14 @@
         [--run outputs/default_run] [--warm-start] > /dev/null 2>&1 &
     python -m experiments.train_default --export-only
 
-Trains `train.TrainConfig` with the chosen width / residual / style layers on `data/patches`
-(built by `experiments.make_dataset`), checkpointing to `--run` every 100 steps; running the
-command again resumes from the last checkpoint (`--resume` semantics) until `--steps` or the
-wall-clock budget `--minutes` is used up. `--warm-start` starts a fresh run from the shipped
-weights (`wrinkle_jax/assets/enhancer.npz`) -- for a later session on a new machine. At the end
-(or with `--export-only`) the last checkpoint's parameters are written, float16, to
-`wrinkle_jax/assets/enhancer.npz` with the training facts in its metadata.
+Trains the shipped recipe `train.RECIPE` (each flag changes one of its settings) on
+`data/patches` (built by `experiments.make_dataset`), checkpointing to `--run` every 100 steps;
+running the command again resumes from the last checkpoint (`--resume` semantics) until
+`--steps` or the wall-clock budget `--minutes` is used up. `--warm-start` starts a fresh run
+from the shipped weights (`wrinkle_jax/assets/enhancer.npz`) -- for a later session on a new
+machine. At the end (or with `--export-only`) the last checkpoint's parameters are written,
+float16, to `--out` (default `wrinkle_jax/assets/enhancer.npz`) with the training facts in its
+metadata (`train.export_run`).
 
 Sheet-only ablation (paper Fig. 8), same recipe and budget, trained on the sheet scene only:
 
@@ -23,6 +24,7 @@ Sheet-only ablation (paper Fig. 8), same recipe and budget, trained on the sheet
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -37,51 +39,25 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def config_from_args(args) -> train.TrainConfig:
-    return train.TrainConfig(width=args.width, residual=bool(args.residual),
-                             style_layers=tuple(args.style_layers.split(",")),
-                             steps=args.steps, eval_every=100, checkpoint_every=100,
-                             eval_batches=8, learning_rate=args.lr, w_s=args.w_s,
-                             w_c=args.w_c, normalize_channels=bool(args.normalize_channels),
-                             relative_floor=(args.relative_floor if args.relative_floor > 0
-                                             else None),
-                             relative_log=bool(args.relative_log),
-                             residual_base=args.residual_base, unsharp_sigma=args.unsharp_sigma,
-                             unsharp_amount=args.unsharp_amount,
-                             residual_highpass=args.residual_highpass,
-                             blur_order=args.blur_order, detail_sigma=args.detail_sigma,
-                             noise_channels=args.noise_channels, batch_size=args.batch_size,
-                             noise_scale=args.noise_scale, upsample=args.upsample)
+    """`train.RECIPE` with the flags of `add_recipe_args` (whose defaults are the recipe's)."""
+    net = dataclasses.replace(
+        train.RECIPE.unet, width=args.width, residual=bool(args.residual),
+        residual_base=args.residual_base, unsharp_sigma=args.unsharp_sigma,
+        unsharp_amount=args.unsharp_amount, residual_highpass=args.residual_highpass,
+        blur_order=args.blur_order, detail_sigma=args.detail_sigma,
+        noise_channels=args.noise_channels, noise_scale=args.noise_scale, upsample=args.upsample)
+    return dataclasses.replace(
+        train.RECIPE, unet=net, style_layers=tuple(args.style_layers.split(",")),
+        steps=args.steps, learning_rate=args.lr, w_s=args.w_s, w_c=args.w_c,
+        normalize_channels=bool(args.normalize_channels),
+        relative_floor=args.relative_floor if args.relative_floor > 0 else None,
+        relative_log=bool(args.relative_log),
+        batch_size=args.batch_size)
 
 
 def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None,
            train_scenes: tuple[str, ...] | None = None) -> Path:
-    cfg = train.TrainConfig.from_json(json.loads((run / "config.json").read_text()))
-    manager = train._manager(run / "checkpoints", cfg)
-    template = train.create_train_state(cfg, jax.random.key(0, impl="rbg"))
-    state, _ = train.restore_checkpoint(manager, template, cfg)
-    ds = data.PatchDataset(data_root, "train", scenes=train_scenes)
-    entry = ds.entries[0]
-    econf = enhancer.EnhancerConfig(width=cfg.width, residual=cfg.residual,
-                                    input_norm=cfg.input_norm, materials=MATERIALS,
-                                    patch_size=ds.patch_size, texel_size=entry["texel_size"],
-                                    coarse_pd=entry["config"]["coarse_pd"],
-                                    residual_base=cfg.residual_base,
-                                    unsharp_sigma=cfg.unsharp_sigma,
-                                    unsharp_amount=cfg.unsharp_amount,
-                                    residual_highpass=cfg.residual_highpass,
-                                    blur_order=cfg.blur_order, detail_sigma=cfg.detail_sigma,
-                                    noise_channels=cfg.noise_channels,
-                                    noise_scale=cfg.noise_scale, upsample=cfg.upsample)
-    rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if x]
-    train_s = float(sum(r.get("step_s", 0.0) for r in rows if r["kind"] == "train"))
-    evals = [r for r in rows if r["kind"] == "eval"]
-    meta = {"train_config": cfg.to_json(), "steps": int(state.step),
-            "train_step_seconds": round(train_s, 1), "wall_seconds_this_call": wall_s,
-            "train_patches": len(ds), "train_sequences": [e["sequence"] for e in ds.entries],
-            "train_scenes": sorted({e["scene"] for e in ds.entries}),
-            "last_eval": evals[-1] if evals else None,
-            "exported": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())}
-    return enhancer.save_enhancer(out, jax.device_get(state.params), econf, meta)
+    return train.export_run(run, out, data_root, wall_s, train_scenes)
 
 
 def material_gains(spec: str, sigma: float) -> list[float]:
@@ -105,45 +81,47 @@ def material_gains(spec: str, sigma: float) -> list[float]:
 
 
 def add_recipe_args(ap: argparse.ArgumentParser) -> None:
-    """The training recipe's flags (defaults: the shipped model's), read by `config_from_args`;
-    shared with `experiments.short_runs` so its studies vary one knob of the same recipe."""
-    ap.add_argument("--width", type=int, default=16,
+    """The training recipe's flags (defaults: `train.RECIPE`, the shipped model's), read by
+    `config_from_args`; shared with `experiments.short_runs` so its studies vary one knob of
+    the same recipe."""
+    r, u = train.RECIPE, train.RECIPE.unet
+    ap.add_argument("--width", type=int, default=u.width,
                     help="the width study's choice (experiments/results/width_unsharp2_study)")
-    ap.add_argument("--residual", type=int, default=1)
-    ap.add_argument("--style-layers", default="relu1_2,relu2_1,relu2_2,relu3_1,relu3_2",
+    ap.add_argument("--residual", type=int, default=int(u.residual))
+    ap.add_argument("--style-layers", default=",".join(r.style_layers),
                     help="layer_selection's relu2_2,relu3_1,relu3_2 plus relu1_2,relu2_1, where "
                          "the content term otherwise undoes the sharpening "
                          "(experiments.per_layer_ratios)")
-    ap.add_argument("--normalize-channels", type=int, default=0)
-    ap.add_argument("--w-c", type=float, default=0.1, help="content weight")
-    ap.add_argument("--steps", type=int, default=20_000)
-    ap.add_argument("--lr", type=float, default=2e-4)
-    ap.add_argument("--w-s", type=float, default=10.0)
-    ap.add_argument("--relative-floor", type=float, default=100.0,
+    ap.add_argument("--normalize-channels", type=int, default=int(r.normalize_channels))
+    ap.add_argument("--w-c", type=float, default=r.w_c, help="content weight")
+    ap.add_argument("--steps", type=int, default=r.steps)
+    ap.add_argument("--lr", type=float, default=r.learning_rate)
+    ap.add_argument("--w-s", type=float, default=r.w_s)
+    ap.add_argument("--relative-floor", type=float, default=r.relative_floor,
                     help="per-patch relative style loss floor; <= 0 for the paper's absolute loss")
-    ap.add_argument("--relative-log", type=int, default=0,
+    ap.add_argument("--relative-log", type=int, default=int(r.relative_log),
                     help="1: the log of the per-patch relative style loss (median-seeking)")
-    ap.add_argument("--residual-base", default="unsharp", choices=("input", "unsharp"))
-    ap.add_argument("--unsharp-sigma", type=float, default=16.0,
+    ap.add_argument("--residual-base", default=u.residual_base, choices=("input", "unsharp"))
+    ap.add_argument("--unsharp-sigma", type=float, default=u.unsharp_sigma,
                     help="texels; the best sigma of the unsharp-mask sweep on training patches")
-    ap.add_argument("--unsharp-amount", type=float, default=1.0,
+    ap.add_argument("--unsharp-amount", type=float, default=u.unsharp_amount,
                     help="initial per-material gain (learned)")
-    ap.add_argument("--residual-highpass", type=float, default=8.0,
+    ap.add_argument("--residual-highpass", type=float, default=u.residual_highpass,
                     help="texels; the residual can add detail but not shift orientation")
-    ap.add_argument("--blur-order", type=int, default=1, choices=(0, 1),
+    ap.add_argument("--blur-order", type=int, default=u.blur_order, choices=(0, 1),
                     help="masked blur of the unsharp base and the high-pass: 1 = local plane "
                          "(flat tilted panels pass unchanged), 0 = local mean (pre-session-4)")
-    ap.add_argument("--detail-sigma", type=float, default=0.0,
+    ap.add_argument("--detail-sigma", type=float, default=u.detail_sigma,
                     help="texels; > 0: the model and the loss work on detail maps "
                          "(wrinkle_jax.detail), for real coarse/fine pairs (data/pairs)")
-    ap.add_argument("--noise-channels", type=int, default=0,
+    ap.add_argument("--noise-channels", type=int, default=u.noise_channels,
                     help="fixed per-texel noise inputs (nn.unet.texel_noise)")
-    ap.add_argument("--noise-scale", type=int, default=1,
+    ap.add_argument("--noise-scale", type=int, default=u.noise_scale,
                     help="texels between the noise's lattice points (1: per-texel noise)")
-    ap.add_argument("--upsample", default="transpose",
+    ap.add_argument("--upsample", default=u.upsample,
                     choices=("transpose", "nearest", "bilinear"),
                     help="decoder up-sampling (CINUNet.upsample; bilinear: no checkerboard)")
-    ap.add_argument("--batch-size", type=int, default=8)
+    ap.add_argument("--batch-size", type=int, default=r.batch_size)
 
 
 def main(argv=None) -> None:
@@ -177,20 +155,18 @@ def main(argv=None) -> None:
         init = None
         if args.warm_start and not (run / "checkpoints").exists():
             shipped = enhancer.load_enhancer()
-            c = shipped.config
+            c, n = shipped.config.unet, cfg.unet
             if ((c.width, c.residual, c.residual_base, c.unsharp_sigma, c.blur_order)
-                    != (cfg.width, cfg.residual, cfg.residual_base, cfg.unsharp_sigma,
-                        cfg.blur_order)):
+                    != (n.width, n.residual, n.residual_base, n.unsharp_sigma, n.blur_order)):
                 raise SystemExit("--warm-start: the shipped model's width/residual/base/"
                                  "unsharp sigma/blur order differ from the flags")
             init = shipped.params
         if args.init_from and not (run / "checkpoints").exists():
-            from experiments.per_layer_ratios import restore_params
-            init = restore_params(Path(args.init_from))[1].params
+            init = train.restore_run(args.init_from)[1].params
         if args.material_gains and not (run / "checkpoints").exists():
-            if cfg.residual_base != "unsharp":
+            if cfg.unet.residual_base != "unsharp":
                 raise SystemExit("--material-gains needs --residual-base unsharp")
-            gains = material_gains(args.material_gains, cfg.unsharp_sigma)
+            gains = material_gains(args.material_gains, cfg.unet.unsharp_sigma)
             if init is None:
                 init = train.create_train_state(cfg, jax.random.key(cfg.seed, impl="rbg"),
                                                 data.PatchDataset(data_root).patch_size).params

@@ -83,8 +83,10 @@ def _tiny_model(path):
     import jax
 
     from wrinkle_jax import enhancer
+    from wrinkle_jax.nn import unet
 
-    config = enhancer.EnhancerConfig(width=4, patch_size=32, texel_size=0.004, residual=True)
+    config = enhancer.EnhancerConfig(unet.UNetConfig(width=4, residual=True), patch_size=32,
+                                     texel_size=0.004)
     enh = enhancer.init_enhancer(jax.random.key(0, impl="rbg"), config)
     enhancer.save_enhancer(path, enh.params, enh.config, meta={"name": "tiny"})
     return path

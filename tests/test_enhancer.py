@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 
 from wrinkle_jax import enhancer
+from wrinkle_jax.nn import unet
 
 KEY = jax.random.key(0, impl="rbg")
-SMALL = enhancer.EnhancerConfig(width=4, patch_size=32)
+SMALL = enhancer.EnhancerConfig(unet.UNetConfig(width=4), patch_size=32)
 
 
 @pytest.fixture(scope="module")
@@ -82,9 +83,9 @@ def test_non_finite_after_cast_is_refused(small, tmp_path):
 
 
 def test_unsharp_base_round_trips_with_its_gains(tmp_path):
-    conf = enhancer.EnhancerConfig(width=4, patch_size=32, residual=True,
-                                   residual_base="unsharp", unsharp_sigma=2.0,
-                                   unsharp_amount=1.5)
+    conf = enhancer.EnhancerConfig(unet.UNetConfig(width=4, residual=True,
+                                                   residual_base="unsharp", unsharp_sigma=2.0,
+                                                   unsharp_amount=1.5), patch_size=32)
     enh = enhancer.init_enhancer(KEY, conf, conv_impl="im2col_f32")
     params = {**enh.params, "unsharp_amount": enh.params["unsharp_amount"].at[1].set(0.25)}
     path = enhancer.save_enhancer(tmp_path / "m.npz", params, conf, dtype=np.float32)
@@ -94,7 +95,8 @@ def test_unsharp_base_round_trips_with_its_gains(tmp_path):
                                   [1.5, 0.25, 1.5, 1.5, 1.5])
     # A file whose config says "input" base but carries gains (or vice versa) is refused.
     bad = enhancer.save_enhancer(tmp_path / "bad.npz", params,
-                                 enhancer.EnhancerConfig(width=4, patch_size=32, residual=True),
+                                 enhancer.EnhancerConfig(unet.UNetConfig(width=4, residual=True),
+                                                         patch_size=32),
                                  dtype=np.float32)
     with pytest.raises(enhancer.EnhancerError, match="do not match"):
         enhancer.load_enhancer(bad)
@@ -105,13 +107,14 @@ def test_files_without_blur_order_keep_the_order0_blur():
     order-0 (local mean) blur; reading them must not silently switch to the new default."""
     from wrinkle_jax import train
 
-    d = enhancer.EnhancerConfig(residual=True, residual_base="unsharp").to_json()
+    d = enhancer.EnhancerConfig(unet.UNetConfig(residual=True, residual_base="unsharp")).to_json()
     assert d.pop("blur_order") == 1
-    assert enhancer.EnhancerConfig.from_json(d).blur_order == 0
+    assert enhancer.EnhancerConfig.from_json(d).unet.blur_order == 0
     t = train.TrainConfig().to_json()
     t.pop("blur_order")
-    assert train.TrainConfig.from_json(t).blur_order == 0
-    assert train.TrainConfig.from_json(train.TrainConfig(blur_order=1).to_json()).blur_order == 1
+    assert train.TrainConfig.from_json(t).unet.blur_order == 0
+    one = train.TrainConfig(unet.UNetConfig(blur_order=1))
+    assert train.TrainConfig.from_json(one.to_json()).unet.blur_order == 1
 
 
 def test_shipped_model_loads_and_enhances():
@@ -121,7 +124,7 @@ def test_shipped_model_loads_and_enhances():
 
     enh = enhancer.load_enhancer()
     c = enh.config
-    assert (c.residual, c.residual_base, c.blur_order, c.patch_size) == (True, "unsharp", 1, 128)
+    assert c.unet == unet.RECIPE_UNET and c.patch_size == 128
     assert enh.meta["steps"] > 0 and enh.meta["train_patches"] > 0
     assert enhancer.DEFAULT_PATH.stat().st_size < 10 * 2**20
     y, x = np.mgrid[0:128, 0:128] / 128.0
@@ -162,3 +165,49 @@ def test_enhance_patches_unit_normals_in_the_mask_independent_of_batching(small)
     one = enhancer.enhance_patches(apply, small.params, x[:2], 3, mask[:2], batch_size=2)
     np.testing.assert_allclose(
         one, enhancer.enhance_patches(apply, small.params, x[:2], [3, 3], mask[:2], 2), atol=0)
+
+
+def _shipped_model_files():
+    from pathlib import Path
+
+    results = Path(__file__).resolve().parents[1] / "experiments" / "results"
+    return [enhancer.DEFAULT_PATH, *sorted((results / "fidelity").glob("*.npz")),
+            results / "patchgan" / "patchgan.npz", results / "sheet_only" / "enhancer.npz"]
+
+
+@pytest.mark.parametrize("path", _shipped_model_files(), ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_shipped_model_files_and_their_run_configs_still_read(path):
+    """Every model file in the repository was written with the flat config (before
+    `UNetConfig` was nested): it loads (parameters matching its config), its config and the
+    training config in its metadata read back to the same JSON, and files written now keep
+    that form."""
+    from wrinkle_jax import train
+    from wrinkle_jax.nn import patchgan
+
+    assert path.is_file()
+    with np.load(path) as z:
+        raw = json.loads(bytes(z["config.json"]).decode())
+        meta = json.loads(bytes(z["meta.json"]).decode())
+    enh = enhancer.load_enhancer(path, conv_impl="im2col_f32")
+    again = json.loads(json.dumps(enh.config.to_json()))
+    assert {k: again[k] for k in raw} == raw
+    assert enh.config.unet.width == raw["width"] and enh.config.unet.residual == raw["residual"]
+    assert set(again) - set(raw) <= {f for f in unet.UNetConfig().to_json()}
+    for key, cls in (("train_config", train.TrainConfig), ("gan_config", patchgan.GANConfig)):
+        if key in meta:
+            cfg = cls.from_json(meta[key])
+            back = json.loads(json.dumps(cfg.to_json()))
+            assert {k: back[k] for k in meta[key]} == meta[key]
+            assert cfg.unet == enh.config.unet  # the run trained what the file holds
+    assert "train_config" in meta or "gan_config" in meta
+
+
+def test_config_json_is_flat_and_round_trips():
+    net = unet.UNetConfig(width=8, residual=True, residual_base="unsharp", detail_sigma=8.0,
+                          noise_channels=4, noise_scale=4, upsample="bilinear")
+    conf = enhancer.EnhancerConfig(net, materials=("a", "b"), patch_size=64)
+    d = json.loads(json.dumps(conf.to_json()))
+    assert d["width"] == 8 and d["upsample"] == "bilinear" and "unet" not in d
+    assert enhancer.EnhancerConfig.from_json(d) == conf
+    with pytest.raises(ValueError, match="unknown enhancer config fields.*colour"):
+        enhancer.EnhancerConfig.from_json({**d, "colour": 1})

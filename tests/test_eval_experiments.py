@@ -30,7 +30,7 @@ from wrinkle_jax import (
     patches,
     primitives,
 )
-from wrinkle_jax.nn import vgg
+from wrinkle_jax.nn import unet, vgg
 
 SIZE = (0.3, 0.2)  # sheet, meters
 TEXEL = 0.004
@@ -46,7 +46,8 @@ def tiny_vgg():
 
 @pytest.fixture(scope="module")
 def model():
-    config = enhancer.EnhancerConfig(width=4, patch_size=PATCH, texel_size=TEXEL, residual=True)
+    config = enhancer.EnhancerConfig(unet.UNetConfig(width=4, residual=True), patch_size=PATCH,
+                                     texel_size=TEXEL)
     return enhancer.init_enhancer(jax.random.key(0, impl="rbg"), config)
 
 
@@ -937,10 +938,10 @@ def test_recipe_flag_defaults_are_the_shipped_recipe_and_the_width_study_changes
     studies = short_runs.variants("width", cfg, (8, 32))
     assert list(studies) == ["w8", "w32"]
     for name, c in studies.items():
-        assert c.width == int(name[1:])
-        assert dataclasses.replace(c, width=cfg.width) == cfg
+        assert c.unet.width == int(name[1:])
+        assert dataclasses.replace(c, unet=dataclasses.replace(c.unet, width=cfg.unet.width)) == cfg
     res = short_runs.variants("residual", cfg)
-    assert not res["plain"].residual and res["residual"].residual
+    assert not res["plain"].unet.residual and res["residual"].unet.residual
 
 
 def _fake_fidelity_cell(name, kind, seed):

@@ -18,6 +18,7 @@ import pytest
 from experiments import eval_common as ec
 from experiments import fidelity_previews
 from wrinkle_jax import compare, enhancer, meshio, primitives
+from wrinkle_jax.nn import unet
 
 SIZE = 0.24  # meters
 PANEL = 96
@@ -50,7 +51,8 @@ def run(tmp_path_factory):
     paths = {"coarse": tmp / "coarse.npz", "fine": tmp / "fine.npz"}
     meshio.save_sequence(paths["coarse"], _sequence(coarse, 2))
     meshio.save_sequence(paths["fine"], _sequence(fine, 2))
-    config = enhancer.EnhancerConfig(width=4, patch_size=32, texel_size=0.004, residual=True)
+    config = enhancer.EnhancerConfig(unet.UNetConfig(width=4, residual=True), patch_size=32,
+                                     texel_size=0.004)
     enh = enhancer.init_enhancer(jax.random.key(0, impl="rbg"), config)
     model = enhancer.save_enhancer(tmp / "model.npz", enh.params, enh.config)
     calls = []

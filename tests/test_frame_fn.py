@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from wrinkle_jax import enhancer, lift, pipeline, primitives
+from wrinkle_jax.nn import unet
 
 
 @pytest.fixture
@@ -59,7 +60,7 @@ def test_frame_fn_gradients_match_central_differences_in_float64(x64):
     net = SmoothNet()
     params = net.init(jax.random.key(1), jnp.zeros((1, 16, 16, 3)), jnp.zeros((1,), int))
     model = enhancer.Enhancer(net, params["params"], enhancer.EnhancerConfig(
-        width=1, patch_size=16, texel_size=0.004), {})
+        unet.UNetConfig(width=1), patch_size=16, texel_size=0.004), {})
     # A converged solve: the lift's implicit gradient is exact at a stationary point.
     solver = lift.SolverConfig(max_iters=60, tol=1e-15, cg_tol=1e-10, cg_max_iters=400,
                                adjoint_tol=1e-12, adjoint_max_iters=2000)

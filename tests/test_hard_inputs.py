@@ -54,11 +54,13 @@ def root(tmp_path_factory):
     import jax
 
     from wrinkle_jax import enhancer
+    from wrinkle_jax.nn import unet
 
     root = tmp_path_factory.mktemp("hard")
     g = _sheet()
     _save_npz(root / "seq.npz", g)
-    config = enhancer.EnhancerConfig(width=4, patch_size=32, texel_size=0.004, residual=True)
+    config = enhancer.EnhancerConfig(unet.UNetConfig(width=4, residual=True), patch_size=32,
+                                     texel_size=0.004)
     enh = enhancer.init_enhancer(jax.random.key(0, impl="rbg"), config)
     enhancer.save_enhancer(root / "model.npz", enh.params, enh.config, meta={"name": "tiny"})
     meshio.save_obj(root / "sheet.obj", g)

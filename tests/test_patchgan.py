@@ -11,11 +11,10 @@ import numpy as np
 import pytest
 
 from wrinkle_jax import enhancer
-from wrinkle_jax.nn import patchgan, vgg
+from wrinkle_jax.nn import patchgan, unet, vgg
 
 SIZE = 32
-TINY = patchgan.GANConfig(width=4, disc_width=4, residual_base="input", residual_highpass=0.0,
-                          batch_size=4)
+TINY = patchgan.GANConfig(unet.UNetConfig(width=4, residual=True), disc_width=4, batch_size=4)
 
 
 def _key(seed=0):
@@ -177,7 +176,7 @@ def test_patchgan_script_trains_exports_and_scores(tmp_path, monkeypatch, tiny_p
                               spec=vgg.VGGSpec("custom", "REFLECT"))
     monkeypatch.setattr(script.vgg, "load_vgg19", lambda *a, **k: tiny_vgg)
     model = enhancer.init_enhancer(_key(1), enhancer.EnhancerConfig(
-        width=4, patch_size=SIZE, texel_size=0.004, residual=True))
+        unet.UNetConfig(width=4, residual=True), patch_size=SIZE, texel_size=0.004))
     model_path = enhancer.save_enhancer(tmp_path / "model.npz", model.params, model.config)
     out = tmp_path / "out"
     argv = ["--data", str(tiny_patch_root), "--run", str(tmp_path / "run"), "--out", str(out),

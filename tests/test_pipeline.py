@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from wrinkle_jax import bodies, enhancer, lift, meshio, normalmap, pipeline, primitives
+from wrinkle_jax.nn import unet
 
 BATCH = 4
 
@@ -38,7 +39,8 @@ def garment():
 def model():
     # Residual, so that zeroing its output layer makes an identity network of the same shapes
     # (one compile for both).
-    config = enhancer.EnhancerConfig(width=4, patch_size=32, texel_size=0.004, residual=True)
+    config = enhancer.EnhancerConfig(unet.UNetConfig(width=4, residual=True), patch_size=32,
+                                     texel_size=0.004)
     return enhancer.init_enhancer(jax.random.key(0, impl="rbg"), config)
 
 

@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 
 from wrinkle_jax import data, train
-from wrinkle_jax.nn import vgg
+from wrinkle_jax.nn import unet, vgg
 
-CONFIG = train.TrainConfig(width=4, batch_size=4, steps=4, learning_rate=1e-3,
-                           style_layers=("relu1_2", "relu2_1"), w_s=10.0, eval_every=2,
-                           eval_batches=1, checkpoint_every=2)
+CONFIG = train.TrainConfig(unet.UNetConfig(width=4, residual=True), batch_size=4, steps=4,
+                           learning_rate=1e-3, style_layers=("relu1_2", "relu2_1"), w_s=10.0,
+                           eval_every=2, eval_batches=1, checkpoint_every=2)
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +39,8 @@ def test_overfits_four_patches(data_root, tiny_vgg):
     batch = train.shard_batch(ds.get(np.arange(4)), train.data_mesh())
     # Random output layer: the start is far from the targets, so learning shows in 50 steps
     # (the identity start is tested in test_residual_network_starts_as_identity).
-    cfg = dataclasses.replace(CONFIG, width=8, zero_init_output=False)
+    cfg = dataclasses.replace(CONFIG, unet=dataclasses.replace(CONFIG.unet, width=8),
+                              zero_init_output=False)
     state = train.create_train_state(cfg, jax.random.key(1, impl="rbg"), patch_size=32)
     step = train.make_train_step(cfg, tiny_vgg)
     losses = []
@@ -63,7 +64,8 @@ def test_checkpoint_round_trip_is_bit_identical(tmp_path, tiny_vgg):
                     strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     with pytest.raises(ValueError, match="different config.*width"):
-        train.restore_checkpoint(manager, template, dataclasses.replace(CONFIG, width=8))
+        train.restore_checkpoint(manager, template, dataclasses.replace(
+            CONFIG, unet=dataclasses.replace(CONFIG.unet, width=8)))
 
 
 def test_resume_equals_straight_run(data_root, tmp_path, tiny_vgg):
@@ -108,11 +110,12 @@ SHARDED = textwrap.dedent("""
     import json, dataclasses, sys
     import jax, jax.numpy as jnp, numpy as np
     from wrinkle_jax import train
-    from wrinkle_jax.nn import vgg
+    from wrinkle_jax.nn import unet, vgg
     assert jax.device_count() == 2, jax.devices()
     # float32 convolutions: bfloat16 rounding would turn reduction-order differences between
     # the 1- and 2-device programs into ~1e-4 gradient differences.
-    cfg = train.TrainConfig(width=4, batch_size=4, style_layers=("relu1_2", "relu2_1"),
+    cfg = train.TrainConfig(unet.UNetConfig(width=4, residual=True), batch_size=4,
+                            style_layers=("relu1_2", "relu2_1"),
                             w_s=10.0, learning_rate=1e-3, conv_impl="im2col_f32")
     tiny = vgg.init_vgg19(jax.random.key(0, impl="rbg"), widths=(4, 8, 8, 8, 8), num_convs=4,
                           spec=vgg.VGGSpec("custom", "REFLECT"))
@@ -153,7 +156,7 @@ def test_sharded_step_matches_single_device():
 
 
 def test_residual_network_starts_as_identity():
-    cfg = dataclasses.replace(CONFIG, width=4, residual=True)
+    cfg = CONFIG
     state = train.create_train_state(cfg, jax.random.key(2, impl="rbg"), patch_size=32)
     x = jnp.asarray(np.random.default_rng(0).uniform(size=(2, 32, 32, 3)), jnp.float32)
     out = cfg.model().apply({"params": state.params}, x, jnp.array([0, 1]))
@@ -168,8 +171,9 @@ def test_detail_noise_recipe_trains_and_scores_detail(data_root, tiny_vgg):
     """The detail-space, texel-noise configuration: starts as the identity, learns, and its
     loss ignores a large-scale tilt of the target (only detail counts)."""
     # The tiny random VGG's Gram entries are ~1e-4 of the real one's: scale the style term.
-    cfg = dataclasses.replace(CONFIG, residual=True, detail_sigma=4.0, residual_highpass=8.0,
-                              noise_channels=2, input_norm="none", w_s=1e7)
+    net = unet.UNetConfig(width=4, residual=True, detail_sigma=4.0, residual_highpass=8.0,
+                          noise_channels=2, input_norm="none")
+    cfg = dataclasses.replace(CONFIG, unet=net, w_s=1e7)
     ds = data.PatchDataset(data_root, "train")
     it = data.BatchIterator(ds, 4, seed=0, origins=True)
     batch = train.shard_batch(next(it), train.data_mesh())
@@ -195,3 +199,46 @@ def test_detail_noise_recipe_trains_and_scores_detail(data_root, tiny_vgg):
     _, _, t1 = train.loss_images(cfg, tilted, batch["input"])
     m_ = np.asarray(batch["mask"])[..., 0] > 0
     np.testing.assert_allclose(np.asarray(t1)[..., 2][m_], np.asarray(t0)[..., 2][m_], atol=1e-4)
+
+
+def test_restore_run_and_export_run_give_a_model_file_of_the_run(data_root, tmp_path, tiny_vgg):
+    from wrinkle_jax import enhancer
+
+    run = tmp_path / "run"
+    cfg = dataclasses.replace(CONFIG, steps=2, zero_init_output=False)
+    got = train.train(cfg, data_root, run, vgg_params=tiny_vgg, progress=False)
+    saved_cfg, state = train.restore_run(run)
+    assert saved_cfg == cfg and int(state.step) == 2
+    for a, b in zip(jax.tree.leaves(got["state"].params), jax.tree.leaves(state.params),
+                    strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    path = train.export_run(run, tmp_path / "m.npz")  # the data facts from run/data.json
+    enh = enhancer.load_enhancer(path, conv_impl="im2col_f32")
+    assert enh.meta["steps"] == 2 and enh.config.unet == cfg.unet
+    assert train.TrainConfig.from_json(enh.meta["train_config"]) == cfg
+    assert (enh.config.patch_size, enh.config.texel_size) == (32, 0.004)
+    ds = data.PatchDataset(data_root, "train")
+    assert enh.meta["train_patches"] == len(ds)
+    x = ds.get(np.arange(2))
+    ref = dataclasses.replace(cfg, conv_impl="im2col_f32").model().apply(
+        {"params": state.params}, x["input"], x["material"])
+    out = enhancer.make_apply(enh, clip=False)(enh.params, x["input"], x["material"])
+    # float16 storage: ~5e-4 relative rounding of the weights
+    assert np.abs(np.asarray(out) - np.asarray(ref)).max() < 2e-2
+    assert np.abs(np.asarray(ref) - x["input"]).max() > 1e-2  # a trained, non-identity net
+    # A run as older code wrote it: no data.json, and a config.json from before the detail,
+    # noise and up-sampling settings existed. It restores, and exports given its data set.
+    (run / "data.json").unlink()
+    old = json.loads((run / "config.json").read_text())
+    for key in ("detail_sigma", "noise_channels", "noise_scale", "upsample"):
+        del old[key]
+    (run / "config.json").write_text(json.dumps(old))
+    assert train.restore_run(run)[0] == cfg
+    with pytest.raises(FileNotFoundError, match="data.json"):
+        train.export_run(run, tmp_path / "x.npz")
+    again = enhancer.load_enhancer(train.export_run(run, tmp_path / "m2.npz", data_root))
+    assert again.config == enh.config and again.meta["train_sequences"] == enh.meta[
+        "train_sequences"]
+    assert not (tmp_path / "x.npz").exists()
+    with pytest.raises(FileNotFoundError, match="no config.json"):
+        train.restore_run(tmp_path / "nothing")

@@ -319,3 +319,27 @@ def test_resize_decoders_avoid_the_transposed_conv_checkerboard():
     with pytest.raises(ValueError, match="upsample"):
         unet.CINUNet(num_materials=2, width=4, upsample="pixelshuffle").init(
             jax.random.key(0), x, jnp.array([0, 1]))
+
+
+def test_unet_config_builds_the_module_it_describes():
+    """`UNetConfig`'s fields are `CINUNet`'s attributes with the same defaults, and `module`
+    passes every one of them (so no setting can be dropped between a config and the net)."""
+    import dataclasses
+
+    names = [f.name for f in dataclasses.fields(unet.UNetConfig)]
+    default = unet.CINUNet()
+    assert all(getattr(default, n) == v for n, v in unet.UNetConfig().to_json().items())
+    changed = {"width": 8, "residual": True, "input_norm": "none", "residual_base": "unsharp",
+               "unsharp_sigma": 3.0, "unsharp_amount": 0.5, "residual_highpass": 5.0,
+               "blur_order": 0, "detail_sigma": 4.0, "noise_channels": 2, "noise_scale": 3,
+               "upsample": "bilinear"}
+    assert sorted(changed) == sorted(names)
+    assert all(getattr(default, n) != v for n, v in changed.items())
+    model = unet.UNetConfig(**changed).module(num_materials=3, conv_impl="im2col_f32")
+    assert all(getattr(model, n) == v for n, v in changed.items())
+    assert (model.num_materials, model.conv_impl) == (3, "im2col_f32")
+    # Flat JSON of an outer config: own keys stay, missing settings take the outer default
+    # except blur_order (files from before it existed used order 0).
+    net, rest = unet.UNetConfig.split_json({"width": 8, "steps": 3}, unet.RECIPE_UNET)
+    assert rest == {"steps": 3}
+    assert net == dataclasses.replace(unet.RECIPE_UNET, width=8, blur_order=0)

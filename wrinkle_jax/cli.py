@@ -11,7 +11,8 @@ Exit codes: 0 success, 1 failure (bad input file, runtime error), 2 bad usage, 1
                         [--chunk C] [--template T.obj] [--force] [--json]
     wrinkle-jax bake INPUT --out DIR [--texel-size M] [--frames A:B] [--flat] [--units U]
     wrinkle-jax assets fetch makehuman [--force]
-    wrinkle-jax train-enhancer --data DIR --out DIR [--steps N] [--width W] [--batch B] [--resume]
+    wrinkle-jax train-enhancer --data DIR --out DIR [--steps N] [--minutes M] [--width W]
+                               [--batch B] [--resume] [--export PATH [--export-only]]
     wrinkle-jax simulate SCENE --material NAME --resolution fine|coarse --frames N --out PATH
     wrinkle-jax train-classifier --data DIR --out PATH;  wrinkle-jax classify INPUT [--json]
 """
@@ -412,18 +413,33 @@ def _cmd_train_enhancer(args) -> int:
     import dataclasses
 
     from wrinkle_jax import train
+    from wrinkle_jax.validate import UsageError
 
-    config = dataclasses.replace(
-        train.TrainConfig(), steps=args.steps, width=args.width, batch_size=args.batch,
-        learning_rate=args.lr, seed=args.seed, eval_every=args.eval_every,
-        checkpoint_every=args.checkpoint_every,
-        **({"style_layers": tuple(args.style_layers)} if args.style_layers else {}))
-    if not Path(args.data, "index").is_dir():
-        print(f"wrinkle-jax train-enhancer: error: {args.data}: not a patch data set "
-              "(no index/ folder; build one with wrinkle_jax.data.build_dataset)", file=sys.stderr)
-        return 1
-    result = train.train(config, args.data, args.out, resume=args.resume)
-    print(json.dumps({k: v for k, v in result["last"].items()}, indent=2))
+    if args.export_only and not args.export:
+        raise UsageError("--export-only needs --export PATH")
+    if not args.export_only:
+        if args.data is None:
+            raise UsageError("--data is required to train (--export-only --export PATH "
+                             "exports an existing run)")
+        if not Path(args.data, "index").is_dir():
+            print(f"wrinkle-jax train-enhancer: error: {args.data}: not a patch data set "
+                  "(no index/ folder; build one with wrinkle_jax.data.build_dataset)",
+                  file=sys.stderr)
+            return 1
+        r = train.RECIPE
+        flags = {"steps": args.steps, "batch_size": args.batch, "learning_rate": args.lr,
+                 "seed": args.seed, "eval_every": args.eval_every,
+                 "checkpoint_every": args.checkpoint_every,
+                 "style_layers": args.style_layers and tuple(args.style_layers)}
+        net = r.unet if args.width is None else dataclasses.replace(r.unet, width=args.width)
+        config = dataclasses.replace(r, unet=net,
+                                     **{k: v for k, v in flags.items() if v is not None})
+        result = train.train(config, args.data, args.out, resume=args.resume,
+                             time_limit_s=None if args.minutes is None else 60 * args.minutes)
+        print(json.dumps({k: v for k, v in result["last"].items()}, indent=2))
+    if args.export:
+        path = train.export_run(args.out, args.export)
+        print(json.dumps({"exported": str(path), "bytes": path.stat().st_size}))
     return 0
 
 
@@ -550,19 +566,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_assets_fetch)
 
     p = sub.add_parser("train-enhancer", help="train the CIN U-Net on a patch data set",
-                       description="Train (or resume) the enhancer; writes checkpoints, "
-                       "metrics.jsonl and loss_curve.png into --out.")
-    p.add_argument("--data", required=True, help="patch data set folder (data.build_dataset)")
+                       description="Train (or resume) the enhancer with the shipped recipe "
+                       "(wrinkle_jax.train.RECIPE; the flags change it); writes checkpoints, "
+                       "config.json, data.json, metrics.jsonl and loss_curve.png into --out, "
+                       "and with --export a model file for wrinkle_jax.load_enhancer.")
+    p.add_argument("--data", default=None,
+                   help="patch data set folder (data.build_dataset); required to train")
     p.add_argument("--out", required=True, help="run folder")
-    p.add_argument("--steps", type=int, default=1000)
-    p.add_argument("--width", type=int, default=32)
-    p.add_argument("--batch", type=int, default=8)
-    p.add_argument("--lr", type=float, default=1e-4)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--eval-every", type=int, default=50)
-    p.add_argument("--checkpoint-every", type=int, default=100)
+    # Defaults (None): wrinkle_jax.train.RECIPE's, read when training (the parser stays light).
+    p.add_argument("--steps", type=int, default=None, help="default: the recipe's (20000)")
+    p.add_argument("--minutes", type=float, default=None,
+                   help="stop after this much wall time (with a checkpoint; --resume goes on)")
+    p.add_argument("--width", type=int, default=None, help="default: the recipe's (16)")
+    p.add_argument("--batch", type=int, default=None)
+    p.add_argument("--lr", type=float, default=None)
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--eval-every", type=int, default=None)
+    p.add_argument("--checkpoint-every", type=int, default=None)
     p.add_argument("--style-layers", nargs="+", default=None, help="VGG layers of the style loss")
     p.add_argument("--resume", action="store_true", help="continue from the last checkpoint")
+    p.add_argument("--export", default=None, metavar="PATH",
+                   help="then write the run's last checkpoint as a model file (.npz, float16)")
+    p.add_argument("--export-only", action="store_true",
+                   help="only export --out's last checkpoint to --export (no training)")
     p.set_defaults(func=_cmd_train_enhancer)
 
     from wrinkle_jax.sim.command import add_simulate_parser

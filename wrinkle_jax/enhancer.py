@@ -13,7 +13,8 @@ inference convolutions) and are cast back to float32 on load.
 
 Example:
     >>> import jax, numpy as np
-    >>> enh = init_enhancer(jax.random.key(0, impl="rbg"), EnhancerConfig(width=4))
+    >>> enh = init_enhancer(jax.random.key(0, impl="rbg"),
+    ...                     EnhancerConfig(unet=unet.UNetConfig(width=4)))
     >>> apply = make_apply(enh)
     >>> out = apply(enh.params, np.full((2, 32, 32, 3), 0.5, np.float32), np.array([0, 3]))
     >>> out.shape
@@ -51,48 +52,21 @@ class EnhancerConfig:
     """What a model needs at inference.
 
     Attributes:
-      width: U-Net first-level channels.
-      residual: the U-Net returns input + network output.
-      input_norm: "imagenet" or "none" (see `nn.unet.CINUNet`).
+      unet: the U-Net's architecture (`nn.unet.UNetConfig`).
       materials: material names in the order of the CIN tables.
       patch_size: patch side in texels the model was trained on.
       texel_size: meters of cloth per texel of the normal maps it was trained on.
       coarse_pd: particle distance (m) of the coarse inputs it was trained for.
-      residual_base, unsharp_sigma, unsharp_amount, residual_highpass, blur_order: the
-        residual's base and its high-pass (`nn.unet.CINUNet`).
-      detail_sigma, noise_channels, noise_scale: the detail representation the model works in
-        and its fixed per-texel noise inputs (`nn.unet.CINUNet`); 0 for models without them.
-      upsample: the decoder's up-sampling, "transpose", "nearest" or "bilinear" (`nn.unet.CINUNet`).
     """
 
-    width: int = 32
-    residual: bool = False
-    input_norm: str = "imagenet"
+    unet: unet.UNetConfig = unet.UNetConfig(width=32)
     materials: tuple[str, ...] = MATERIALS
     patch_size: int = 128
     texel_size: float = normalmap.DEFAULT_TEXEL_SIZE
     coarse_pd: float = 0.03
-    residual_base: str = "input"
-    unsharp_sigma: float = 8.0
-    unsharp_amount: float = 1.0
-    residual_highpass: float = 0.0
-    blur_order: int = 1
-    detail_sigma: float = 0.0
-    noise_channels: int = 0
-    noise_scale: int = 1
-    upsample: str = "transpose"
 
     def model(self, conv_impl: str = "im2col_bf16") -> unet.CINUNet:
-        return unet.CINUNet(num_materials=len(self.materials), width=self.width,
-                            residual=self.residual, input_norm=self.input_norm,
-                            residual_base=self.residual_base,
-                            unsharp_sigma=self.unsharp_sigma,
-                            unsharp_amount=self.unsharp_amount,
-                            residual_highpass=self.residual_highpass,
-                            blur_order=self.blur_order, conv_impl=conv_impl,
-                            detail_sigma=self.detail_sigma,
-                            noise_channels=self.noise_channels,
-                            noise_scale=self.noise_scale, upsample=self.upsample)
+        return self.unet.module(len(self.materials), conv_impl)
 
     def material_id(self, name: str) -> int:
         if name not in self.materials:
@@ -101,19 +75,20 @@ class EnhancerConfig:
         return self.materials.index(name)
 
     def to_json(self) -> dict:
-        return dataclasses.asdict(self)
+        """Flat: the U-Net's settings among the model's own fields (the model-file format)."""
+        own = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "unet"}
+        return {**self.unet.to_json(), **own}
 
     @classmethod
     def from_json(cls, d: dict) -> EnhancerConfig:
-        d = dict(d)
-        # Files written before blur_order existed used the order-0 (local mean) blur.
-        d.setdefault("blur_order", 0)
-        d["materials"] = tuple(d["materials"])
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(d) - names
+        """Read `to_json`'s form, including model files written before `unet` was nested."""
+        net, rest = unet.UNetConfig.split_json(d, cls.__dataclass_fields__["unet"].default)
+        names = {f.name for f in dataclasses.fields(cls)} - {"unet"}
+        unknown = set(rest) - names
         if unknown:
             raise ValueError(f"unknown enhancer config fields {sorted(unknown)}")
-        return cls(**d)
+        rest["materials"] = tuple(rest["materials"])
+        return cls(unet=net, **rest)
 
 
 class Enhancer(NamedTuple):
@@ -180,7 +155,7 @@ def load_enhancer(path: str | os.PathLike | None = None,
         wrong = sorted(k for k in set(want_shapes) & set(got_shapes)
                        if want_shapes[k] != got_shapes[k])[:3]
         raise EnhancerError(f"{path}: parameters do not match the config (width "
-                            f"{config.width}); missing {missing}, wrong shape {wrong}")
+                            f"{config.unet.width}); missing {missing}, wrong shape {wrong}")
     return Enhancer(model, params, config, meta)
 
 

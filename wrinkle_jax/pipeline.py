@@ -31,10 +31,11 @@ Contract:
 Example:
     >>> import jax, numpy as np
     >>> from wrinkle_jax import enhancer, meshio, primitives
+    >>> from wrinkle_jax.nn.unet import UNetConfig
     >>> g = primitives.grid_sheet(6, 6, size=(0.12, 0.12))
     >>> seq = meshio.make_sequence(np.stack([g.vertices] * 2), g)
     >>> enh = enhancer.init_enhancer(jax.random.key(0, impl="rbg"),
-    ...     enhancer.EnhancerConfig(width=4, patch_size=32, texel_size=0.004))
+    ...     enhancer.EnhancerConfig(UNetConfig(width=4), patch_size=32, texel_size=0.004))
     >>> res = enhance_sequence(seq, "silk_charmeuse", enhancer=enh, lift=False)
     >>> res.normal_maps.shape[0], sorted(res.timings)[:3]
     (2, ['bake', 'classify', 'compile'])
@@ -309,7 +310,7 @@ def _compile(pipe: Pipeline) -> float:
 
 def _noise_origins(pipe: Pipeline):
     """The patch origins for models with texel noise (fixed to the cloth), else None."""
-    return jnp.asarray(pipe.origins) if pipe.enhancer.config.noise_channels else None
+    return jnp.asarray(pipe.origins) if pipe.enhancer.config.unet.noise_channels else None
 
 
 def _padded_mask(pipe: Pipeline):
@@ -462,7 +463,7 @@ def frame_fn(pipe: Pipeline, body=None) -> Callable[..., FrameResult]:
     static = _FrameStatic(apply=_network_apply(pipe.enhancer), smooth=cfg.smooth,
                           padded_shape=pipe.padded_shape, shape=pipe.shape,
                           size=pipe.enhancer.config.patch_size, batch_size=cfg.batch_size,
-                          window=cfg.window, noise=bool(pipe.enhancer.config.noise_channels),
+                          window=cfg.window, noise=bool(pipe.enhancer.config.unet.noise_channels),
                           lift=lift)
     setup = dict(plan=pipe.plan, padded_mask=_padded_mask(pipe),
                  origins=jnp.asarray(pipe.origins), mask=jnp.asarray(pipe.mask),

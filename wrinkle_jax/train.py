@@ -48,7 +48,12 @@ class TrainConfig:
     """Enhancer training configuration (static, hashable, JSON-serializable).
 
     Attributes:
-      width, num_materials, residual, input_norm: the CINUNet.
+      unet: the U-Net's architecture (`nn.unet.UNetConfig`; e.g. ``detail_sigma`` > 0 makes
+        the model AND the loss work on detail maps -- input, output and target each with its
+        own large scale removed, on the input's branch -- so coarse-input/fine-target pairs
+        whose large scales diverge can be used without pixel alignment; ``noise_channels`` > 0
+        makes the batches carry random "origins" that place each patch in a noise field).
+      num_materials: rows of the CIN tables.
       batch_size: global batch (divisible by the number of devices).
       steps: total optimizer steps.
       learning_rate, b1, b2, weight_decay: Adam(W).
@@ -61,19 +66,7 @@ class TrainConfig:
         relative style loss (`nn.losses.enhancer_loss`); the "style" metric is then a ratio.
       relative_log: the log of that ratio instead (the median-seeking form; "style" is then
         a log ratio, 0 = as far from the target as the input).
-      residual_base, unsharp_sigma, unsharp_amount, residual_highpass, blur_order: the
-        residual's base (`nn.unet.CINUNet`:
-        "input", or "unsharp" to start from unsharp masking with a learnable per-material gain).
-      detail_sigma: 0 (object space, the paper's), or the low-pass radius in texels of the
-        detail representation (`wrinkle_jax.detail`) that the model works in AND the loss is
-        taken on: style and content compare detail maps (input, output and target each with
-        its own large scale removed, on the input's branch), so coarse-input/fine-target pairs
-        whose large scales diverge can be used without pixel alignment.
-      noise_channels: fixed per-texel noise channels of the model's input (`nn.unet`); the
-        batches' random "origins" place each patch in a noise field.
-      noise_scale, upsample: the noise's lattice spacing (texels) and the decoder's
-        up-sampling ("transpose", "nearest" or "bilinear"), see `nn.unet.CINUNet`.
-      zero_init_output: with `residual`, start the output conv at zero so the untrained
+      zero_init_output: with a residual U-Net, start the output conv at zero so the untrained
         network is the identity (improvement 0) instead of input + random noise, whose style
         loss starts ~40x above the input's.
       seed: parameter init and data order.
@@ -81,10 +74,8 @@ class TrainConfig:
       checkpoint_every, keep_checkpoints: Orbax cadence and retention.
     """
 
-    width: int = 32
+    unet: unet.UNetConfig = unet.UNetConfig(width=32, residual=True)
     num_materials: int = 5
-    residual: bool = True
-    input_norm: str = "imagenet"
     batch_size: int = 8
     steps: int = 1000
     learning_rate: float = 1e-4
@@ -98,18 +89,9 @@ class TrainConfig:
     normalize_channels: bool = True
     pool: str = "avg"
     conv_impl: str = "im2col_bf16"
-    residual_base: str = "input"
-    unsharp_sigma: float = 8.0
-    unsharp_amount: float = 1.0
-    residual_highpass: float = 0.0
-    blur_order: int = 1
     zero_init_output: bool = True
     relative_floor: float | None = None
     relative_log: bool = False
-    detail_sigma: float = 0.0
-    noise_channels: int = 0
-    noise_scale: int = 1
-    upsample: str = "transpose"
     seed: int = 0
     eval_every: int = 50
     eval_batches: int = 4
@@ -117,31 +99,34 @@ class TrainConfig:
     keep_checkpoints: int = 3
 
     def model(self) -> unet.CINUNet:
-        return unet.CINUNet(num_materials=self.num_materials, width=self.width,
-                            residual=self.residual, input_norm=self.input_norm,
-                            residual_base=self.residual_base,
-                            unsharp_sigma=self.unsharp_sigma,
-                            unsharp_amount=self.unsharp_amount,
-                            residual_highpass=self.residual_highpass,
-                            blur_order=self.blur_order, conv_impl=self.conv_impl,
-                            detail_sigma=self.detail_sigma,
-                            noise_channels=self.noise_channels,
-                            noise_scale=self.noise_scale, upsample=self.upsample)
+        return self.unet.module(self.num_materials, self.conv_impl)
 
     @property
     def vgg_conv_impl(self) -> str:
         return "im2col_bf16" if self.conv_impl == "im2col_bf16" else "xla"
 
     def to_json(self) -> dict:
-        return dataclasses.asdict(self)
+        """Flat: the U-Net's settings among the training fields (the run-config format)."""
+        own = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "unet"}
+        return {**self.unet.to_json(), **own}
 
     @classmethod
     def from_json(cls, d: dict) -> TrainConfig:
-        d = dict(d)
-        # Files written before blur_order existed used the order-0 (local mean) blur.
-        d.setdefault("blur_order", 0)
-        d["style_layers"] = tuple(d["style_layers"])
-        return cls(**d)
+        """Read `to_json`'s form, including run configs written before `unet` was nested."""
+        net, rest = unet.UNetConfig.split_json(d, cls.__dataclass_fields__["unet"].default)
+        rest["style_layers"] = tuple(rest["style_layers"])
+        return cls(unet=net, **rest)
+
+
+# The shipped model's training recipe (wrinkle_jax/assets/MODEL_CARD.md): its U-Net
+# (`unet.RECIPE_UNET`), the style loss on relu1_2..relu3_2 (layer_selection's relu2_2, relu3_1,
+# relu3_2, plus relu1_2 and relu2_1, where the content term otherwise undoes the sharpening:
+# experiments.per_layer_ratios) relative to each patch's input with floor 100, a light content
+# term, Adam at 2e-4. `experiments.train_default` and `wrinkle-jax train-enhancer` start here.
+RECIPE = TrainConfig(unet=unet.RECIPE_UNET, batch_size=8, steps=20_000, learning_rate=2e-4,
+                     style_layers=("relu1_2", "relu2_1", "relu2_2", "relu3_1", "relu3_2"),
+                     w_c=0.1, w_s=10.0, normalize_channels=False, relative_floor=100.0,
+                     eval_every=100, eval_batches=8, checkpoint_every=100)
 
 
 @jax.tree_util.register_dataclass
@@ -164,7 +149,7 @@ def optimizer(config: TrainConfig) -> optax.GradientTransformation:
 def create_train_state(config: TrainConfig, key, patch_size: int = 128) -> TrainState:
     """Fresh parameters and optimizer state (step 0)."""
     params = unet.init_params(config.model(), key, patch_size)
-    if config.residual and config.zero_init_output:
+    if config.unet.residual and config.zero_init_output:
         params = {**params, "out": jax.tree.map(jnp.zeros_like, params["out"])}
     return TrainState(jnp.zeros((), jnp.int32), params, optimizer(config).init(params))
 
@@ -179,10 +164,10 @@ def _forward(config: TrainConfig, params, batch):
 def loss_images(config: TrainConfig, batch: dict, out):
     """(input, output, target) in the representation the loss compares: the RGB forms
     themselves, or with `detail_sigma` their detail maps on the input's branch."""
-    if config.detail_sigma <= 0:
+    if config.unet.detail_sigma <= 0:
         return batch["input"], out, batch["target"]
     return detail.on_reference_branch_rgb(batch["input"], (out, batch["target"]), batch["mask"],
-                                          config.detail_sigma)
+                                          config.unet.detail_sigma)
 
 
 def loss_fn(params, batch, vgg_params, config: TrainConfig):
@@ -303,15 +288,80 @@ def restore_checkpoint(manager, template: TrainState, config: TrainConfig, step=
     abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, template)
     got = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
                                                         meta=ocp.args.JsonRestore()))
-    saved = TrainConfig.from_json(got["meta"]["config"])
+    saved = TrainConfig.from_json(got["meta"]["config"]).to_json()
+    want = config.to_json()
     free = ("steps", "eval_every", "eval_batches", "checkpoint_every", "keep_checkpoints",
             "conv_impl")
-    diff = {f.name for f in dataclasses.fields(TrainConfig)
-            if f.name not in free and getattr(saved, f.name) != getattr(config, f.name)}
+    diff = {k for k in want if k not in free and saved[k] != want[k]}
     if diff:
         raise ValueError(f"{manager.directory}: checkpoint was trained with a different "
                          f"config ({', '.join(sorted(diff))})")
     return got["state"], IteratorState(**got["meta"]["iterator"])
+
+
+def restore_run(run_dir: str | os.PathLike, step: int | None = None
+                ) -> tuple[TrainConfig, TrainState]:
+    """The config and the train state of a run folder written by `train` (its
+    ``config.json`` and ``checkpoints/``), at its last checkpoint or at `step`."""
+    run = Path(run_dir)
+    if not (run / "config.json").is_file():
+        raise FileNotFoundError(f"{run}: no training run here (no config.json), so no checkpoint")
+    cfg = TrainConfig.from_json(json.loads((run / "config.json").read_text()))
+    manager = _manager(run / "checkpoints", cfg)
+    template = create_train_state(cfg, jax.random.key(0, impl="rbg"))
+    state, _ = restore_checkpoint(manager, template, cfg, step)
+    return cfg, state
+
+
+def _data_facts(ds: PatchDataset) -> dict:
+    """What a model file records about the patch data set it was trained on."""
+    entry = ds.entries[0]
+    return {"patch_size": ds.patch_size, "texel_size": entry["texel_size"],
+            "coarse_pd": entry["config"]["coarse_pd"], "train_patches": len(ds),
+            "train_sequences": [e["sequence"] for e in ds.entries],
+            "train_scenes": sorted({e["scene"] for e in ds.entries})}
+
+
+def export_run(run_dir: str | os.PathLike, out_path: str | os.PathLike,
+               data_root: str | os.PathLike | None = None, wall_s: float | None = None,
+               train_scenes: tuple[str, ...] | None = None) -> Path:
+    """Write a run's last checkpoint as an enhancer model file (`enhancer.save_enhancer`,
+    float16, loadable by `wrinkle_jax.load_enhancer`) with the training facts in its metadata;
+    returns `out_path`.
+
+    Args:
+      data_root: None: the data facts the run recorded (``data.json``, written by `train`);
+        or the patch data set the run trained on, read again (needed for runs from before
+        ``data.json`` existed), restricted to `train_scenes` if given.
+      wall_s: seconds of wall time to record (``meta["wall_seconds_this_call"]``).
+
+    Raises:
+      FileNotFoundError: naming the folder, if it holds no run, no checkpoint, or (without
+        `data_root`) no ``data.json``.
+    """
+    from wrinkle_jax import MATERIALS, enhancer
+
+    run = Path(run_dir)
+    cfg, state = restore_run(run)
+    if data_root is not None:
+        facts = _data_facts(PatchDataset(data_root, "train", scenes=train_scenes))
+    elif (run / "data.json").is_file():
+        facts = json.loads((run / "data.json").read_text())
+    else:
+        raise FileNotFoundError(f"{run}: no data.json (a run written before it was recorded): "
+                                "give the data set it trained on")
+    econf = enhancer.EnhancerConfig(unet=cfg.unet, materials=MATERIALS,
+                                    patch_size=facts["patch_size"],
+                                    texel_size=facts["texel_size"], coarse_pd=facts["coarse_pd"])
+    rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if x]
+    train_s = float(sum(r.get("step_s", 0.0) for r in rows if r["kind"] == "train"))
+    evals = [r for r in rows if r["kind"] == "eval"]
+    meta = {"train_config": cfg.to_json(), "steps": int(state.step),
+            "train_step_seconds": round(train_s, 1), "wall_seconds_this_call": wall_s,
+            "train_patches": facts["train_patches"], "train_sequences": facts["train_sequences"],
+            "train_scenes": facts["train_scenes"], "last_eval": evals[-1] if evals else None,
+            "exported": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())}
+    return enhancer.save_enhancer(out_path, jax.device_get(state.params), econf, meta)
 
 
 # --------------------------------------------------------------------------------------------
@@ -393,7 +443,9 @@ def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.P
     """Train (or resume training) the enhancer; returns the last metrics.
 
     Writes `out_dir/checkpoints/<step>/`, `out_dir/metrics.jsonl` (one JSON object per logged
-    train step and per evaluation), `out_dir/loss_curve.png` and `out_dir/config.json`.
+    train step and per evaluation), `out_dir/loss_curve.png`, `out_dir/config.json` and
+    `out_dir/data.json` (the data set's root, patch and texel size, coarse particle distance and
+    training sequences, which `export_run` writes into the model file).
 
     Args:
       time_limit_s: stop (with an evaluation and a checkpoint) after the first step that ends
@@ -419,7 +471,7 @@ def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.P
     if config.batch_size % mesh.size:
         raise ValueError(f"batch_size {config.batch_size} is not divisible by {mesh.size} devices")
     iterator = BatchIterator(train_set, config.batch_size, seed=config.seed,
-                             origins=config.noise_channels > 0)
+                             origins=config.unet.noise_channels > 0)
     manager = _manager(out_dir / "checkpoints", config)
     # rbg keys: threefry initialization compiles ~8x slower on CPU (see unet.init_params).
     key = jax.random.key(config.seed, impl="rbg")
@@ -440,6 +492,10 @@ def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.P
     elif metrics_path.exists():
         metrics_path.unlink()
     atomic_write_text(out_dir / "config.json", json.dumps(config.to_json(), indent=2))
+    atomic_write_text(out_dir / "data.json", json.dumps(
+        {"data_root": str(Path(data_root).absolute()),
+         "train_scenes_selected": None if train_scenes is None else list(train_scenes),
+         "eval_split": eval_split, **_data_facts(train_set)}, indent=1))
 
     step_fn = make_train_step(config, vgg_params, mesh)
     eval_step = make_eval_step(config, vgg_params)

@@ -7,10 +7,10 @@ judges (coarse, detailed) pairs patch by patch, and an L1 data term ties the out
 registered ground truth. The model is garment-specific and has no material input.
 
 Here, to compare LOSSES rather than architectures, the generator is this library's U-Net
-(`nn.unet.CINUNet`) with the shipped model's residual structure (`GANConfig` defaults: width
-16, unsharp-mask base with a learnable gain, high-passed residual) but ONE row of
-normalization parameters (no material conditioning: every sample uses row 0, i.e. instance
-normalization with a learned affine), trained with
+(`nn.unet.CINUNet`) with the shipped model's residual structure (`GANConfig.unet` defaults to
+`nn.unet.RECIPE_UNET`: width 16, unsharp-mask base with a learnable gain, high-passed
+residual) but ONE row of normalization parameters (no material conditioning: every sample
+uses row 0, i.e. instance normalization with a learned affine), trained with
 
     L_D = BCE(D(x, y), 1) + BCE(D(x, G(x)), 0)                       (halved)
     L_G = BCE(D(x, G(x)), 1) + l1_weight * |G(x) - y|_1 (masked mean)
@@ -46,9 +46,10 @@ class GANConfig:
     """PatchGAN baseline configuration (static, hashable, JSON-serializable).
 
     Attributes:
-      width, residual, input_norm, residual_base, unsharp_sigma, unsharp_amount,
-        residual_highpass, blur_order, zero_init_output, conv_impl: the generator
-        (`nn.unet.CINUNet` with one material row); defaults are the shipped model's.
+      unet: the generator's architecture (`nn.unet.UNetConfig`, built with one material
+        row); default: the shipped model's (`nn.unet.RECIPE_UNET`).
+      zero_init_output, conv_impl: the generator's initialization (with a residual U-Net, its
+        output conv starts at zero) and convolution form.
       disc_width: channels of D's first convolution (doubling per stride-2 layer).
       disc_layers: stride-2 convolutions of D after the first (3: the 70 x 70 PatchGAN).
       l1_weight: weight of the masked L1 data term (pix2pix: 100).
@@ -57,14 +58,7 @@ class GANConfig:
       seed: initialization and data order.
     """
 
-    width: int = 16
-    residual: bool = True
-    input_norm: str = "imagenet"
-    residual_base: str = "unsharp"
-    unsharp_sigma: float = 16.0
-    unsharp_amount: float = 1.0
-    residual_highpass: float = 8.0
-    blur_order: int = 1
+    unet: unet.UNetConfig = unet.RECIPE_UNET
     zero_init_output: bool = True
     conv_impl: str = "im2col_bf16"
     disc_width: int = 32
@@ -77,12 +71,7 @@ class GANConfig:
     seed: int = 0
 
     def generator(self) -> unet.CINUNet:
-        return unet.CINUNet(num_materials=1, width=self.width, residual=self.residual,
-                            input_norm=self.input_norm, residual_base=self.residual_base,
-                            unsharp_sigma=self.unsharp_sigma,
-                            unsharp_amount=self.unsharp_amount,
-                            residual_highpass=self.residual_highpass,
-                            blur_order=self.blur_order, conv_impl=self.conv_impl)
+        return self.unet.module(1, self.conv_impl)
 
     def discriminator(self) -> PatchDiscriminator:
         return PatchDiscriminator(width=self.disc_width, layers=self.disc_layers)
@@ -91,19 +80,20 @@ class GANConfig:
         """The `enhancer.EnhancerConfig` of the generator (one material, `ANY_MATERIAL`)."""
         from wrinkle_jax import enhancer
 
-        return enhancer.EnhancerConfig(
-            width=self.width, residual=self.residual, input_norm=self.input_norm,
-            materials=(ANY_MATERIAL,), patch_size=patch_size, texel_size=texel_size,
-            coarse_pd=coarse_pd, residual_base=self.residual_base,
-            unsharp_sigma=self.unsharp_sigma, unsharp_amount=self.unsharp_amount,
-            residual_highpass=self.residual_highpass, blur_order=self.blur_order)
+        return enhancer.EnhancerConfig(unet=self.unet, materials=(ANY_MATERIAL,),
+                                       patch_size=patch_size, texel_size=texel_size,
+                                       coarse_pd=coarse_pd)
 
     def to_json(self) -> dict:
-        return dataclasses.asdict(self)
+        """Flat: the generator's U-Net settings among the GAN's own fields."""
+        own = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "unet"}
+        return {**self.unet.to_json(), **own}
 
     @classmethod
     def from_json(cls, d: dict) -> GANConfig:
-        return cls(**d)
+        """Read `to_json`'s form, including files written before `unet` was nested."""
+        net, rest = unet.UNetConfig.split_json(d, cls.__dataclass_fields__["unet"].default)
+        return cls(unet=net, **rest)
 
 
 class PatchDiscriminator(nn.Module):
@@ -186,7 +176,7 @@ def create_gan_state(config: GANConfig, key, patch_size: int = 128) -> GANState:
     """Fresh G (zero output layer with `zero_init_output`: it starts as its base) and D."""
     kg, kd = jax.random.split(key)
     g = unet.init_params(config.generator(), kg, patch_size)
-    if config.residual and config.zero_init_output:
+    if config.unet.residual and config.zero_init_output:
         g = {**g, "out": jax.tree.map(jnp.zeros_like, g["out"])}
     x = jnp.zeros((1, patch_size, patch_size, 3), jnp.float32)
     m = jnp.ones((1, patch_size, patch_size, 1), jnp.float32)

@@ -16,6 +16,11 @@ Architecture (paper, "Network architecture", and the authors' published network)
 
 With width=64 and 5 materials the network has 8,510,083 parameters.
 
+Settings: `UNetConfig` holds the architecture (width, residual base, detail space, noise, ...)
+as one frozen, serializable config that the training, model-file and PatchGAN configs nest;
+`UNetConfig.module(num_materials, conv_impl)` builds the `CINUNet`. `RECIPE_UNET` is the
+shipped model's.
+
 Conditional instance normalization (Dumoulin et al. 2017): per-material scale and shift
 tables gathered by the material id of each sample, so one batch may mix materials; the
 normalization layer is injected as `norm` (a `functools.partial`, like BatchNorm in the Flax
@@ -54,6 +59,7 @@ and has no global residual: use `CINUNet(input_norm="imagenet", residual=False)`
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 from collections.abc import Callable
@@ -252,6 +258,61 @@ class CINUNet(nn.Module):
         if self.detail_sigma > 0:
             out = detail.from_detail_rgb(out, large, branch, mask)
         return out
+
+
+@dataclasses.dataclass(frozen=True)
+class UNetConfig:
+    """The U-Net's architecture settings: what `CINUNet` computes and which parameters it has,
+    apart from the number of materials (the model's material list sets it) and the convolution
+    form (same parameters for every form). Static, hashable; one of these is nested in every
+    config that builds a U-Net (`train.TrainConfig`, `enhancer.EnhancerConfig`,
+    `nn.patchgan.GANConfig`).
+
+    The fields and their defaults are `CINUNet`'s attributes of the same names (see there);
+    `RECIPE_UNET` is the shipped model's. On disk the settings are stored flat, among the
+    outer config's own fields (`split_json`), so every file written before this class existed
+    still reads.
+    """
+
+    width: int = 64
+    residual: bool = False
+    input_norm: str = "imagenet"
+    residual_base: str = "input"
+    unsharp_sigma: float = 8.0
+    unsharp_amount: float = 1.0
+    residual_highpass: float = 0.0
+    blur_order: int = 1
+    detail_sigma: float = 0.0
+    noise_channels: int = 0
+    noise_scale: int = 1
+    upsample: str = "transpose"
+
+    def module(self, num_materials: int, conv_impl: str = "xla") -> CINUNet:
+        """The `CINUNet` with these settings for `num_materials` materials."""
+        return CINUNet(num_materials=num_materials, conv_impl=conv_impl, **self.to_json())
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def split_json(cls, d: dict, default: UNetConfig) -> tuple[UNetConfig, dict]:
+        """Split an outer config's flat JSON dict into (the U-Net's settings, the other keys).
+
+        Settings missing from `d` take `default`'s values, except `blur_order`: files written
+        before it existed were trained with the order-0 (local mean) blur, so it reads as 0.
+        """
+        names = {f.name for f in dataclasses.fields(cls)}
+        own = {k: v for k, v in d.items() if k in names}
+        own.setdefault("blur_order", 0)
+        return (dataclasses.replace(default, **own),
+                {k: v for k, v in d.items() if k not in names})
+
+
+# The shipped model's U-Net (wrinkle_jax/assets/enhancer.npz, MODEL_CARD.md): width 16 (the
+# width study's choice), a global residual on the unsharp-masked input (sigma 16 texels, a
+# learned per-material gain starting at 1) with the residual high-passed at 8 texels.
+RECIPE_UNET = UNetConfig(width=16, residual=True, residual_base="unsharp", unsharp_sigma=16.0,
+                         unsharp_amount=1.0, residual_highpass=8.0, blur_order=1)
 
 
 class _ResizeConv:

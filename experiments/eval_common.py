@@ -372,8 +372,9 @@ def load_first_frames(path: Path, frames: int) -> meshio.GarmentSequence:
     return dataclasses.replace(seq, frames=np.ascontiguousarray(seq.frames[:frames]))
 
 
-# Alignment lives in the library (`wrinkle_jax.aligned`); the names stay importable from here.
-from wrinkle_jax.aligned import (  # noqa: E402,F401
+# Alignment lives in the library (`wrinkle_jax.evaluation.patchsets`); the names stay
+# importable from here.
+from wrinkle_jax.evaluation.patchsets import (  # noqa: E402,F401
     AlignedPair,
     PatchSet,
     aligned_pair,

@@ -45,7 +45,7 @@ import numpy as np
 from experiments import eval_common as ec
 from experiments import table1
 from wrinkle_jax import enhancer as enhancer_lib
-from wrinkle_jax import evaluation, material_index, metrics, normalmap, patches, pipeline
+from wrinkle_jax import evaluation, material_index, normalmap, patches, pipeline
 from wrinkle_jax.nn import vgg
 
 PATCH = "patch"
@@ -65,7 +65,7 @@ def neighbour_angles(normals: np.ndarray, mask: np.ndarray, axis: int):
     b = np.take(normals, np.arange(1, normals.shape[axis]), axis=axis)
     ma = np.take(mask, np.arange(mask.shape[axis] - 1), axis=axis)
     mb = np.take(mask, np.arange(1, mask.shape[axis]), axis=axis)
-    return metrics.normal_angles(a, b), ma & mb
+    return evaluation.normal_angles(a, b), ma & mb
 
 
 def border_pairs(origins: np.ndarray, size: int, length: int, axis: int) -> np.ndarray:

@@ -36,7 +36,7 @@ C1 = CD(a, c), C2 = CD(b, c); DR = 100 |C1 - C2| / C1 (the paper's form) and the
 DR_signed = 100 (C1 - C2) / C1 (> 0: the method's patches sit closer to the fine ones than the
 input's do; < 0: further away). Two spaces:
   * embedded (the paper's): per method, the 2D spectral embedding
-    (`wrinkle_jax.metrics.spectral_embedding`: Gaussian affinity with the median
+    (`wrinkle_jax.evaluation.spectral_embedding`: Gaussian affinity with the median
     bandwidth, symmetric normalized Laplacian) of a u b u c, scaled to unit RMS distance from
     its centroid (the raw eigenmap shrinks with the number of points; DR does not depend on
     it). C1 therefore differs slightly between methods. The embedding depends on the points
@@ -74,9 +74,9 @@ import numpy as np
 
 from experiments import eval_common as ec
 from experiments import table1
-from wrinkle_jax import evaluation, material_index, metrics, patches
+from wrinkle_jax import evaluation, material_index, patches
+from wrinkle_jax.evaluation import chamfer_distance, chamfer_from_sq_dists, decrease_ratio, sq_dists
 from wrinkle_jax.fileio import atomic_write_bytes
-from wrinkle_jax.metrics import chamfer_distance, chamfer_from_sq_dists, decrease_ratio, sq_dists
 from wrinkle_jax.nn import vgg
 
 MODEL = table1.MODEL
@@ -191,7 +191,7 @@ def compare_sets(d2, labels) -> dict:
     a, b, c = (labels == s for s in (SET_A, SET_B, SET_C))
     if not (a.any() and b.any() and c.any()):
         raise ValueError("each of the sets a, b and c needs at least one point")
-    emb = unit_rms(metrics.spectral_embedding(points_from_sq_dists(d2), dim=2))
+    emb = unit_rms(evaluation.spectral_embedding(points_from_sq_dists(d2), dim=2))
     return {"embedded": chamfer_scores(chamfer_distance(emb[a], emb[c]),
                                        chamfer_distance(emb[b], emb[c])),
             "full": chamfer_scores(chamfer_from_sq_dists(d2[np.ix_(a, c)]),

@@ -38,7 +38,7 @@ import numpy as np
 
 from experiments import eval_common as ec
 from wrinkle_jax import enhancer as enhancer_lib
-from wrinkle_jax import metrics, normalmap, pipeline
+from wrinkle_jax import evaluation, normalmap, pipeline
 from wrinkle_jax.meshio import GarmentSequence
 
 SERIES = ("coarse", "output", "fine")
@@ -83,7 +83,7 @@ def sequence_flicker(coarse: GarmentSequence, fine: GarmentSequence | None,
         if prev is not None:
             for k in series:
                 mask = fine_plan.mask if k == "fine" else pipe.mask
-                series[k].append(metrics.mean_angular_change(prev[k], cur[k], mask))
+                series[k].append(evaluation.mean_angular_change(prev[k], cur[k], mask))
         prev = cur
         if progress is not None:
             progress(1)

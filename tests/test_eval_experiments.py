@@ -25,7 +25,6 @@ from wrinkle_jax import (
     evaluation,
     material_index,
     meshio,
-    metrics,
     normalmap,
     patches,
     primitives,
@@ -164,7 +163,7 @@ def test_coarse_and_fine_maps_share_one_grid_and_their_patches_align_in_uv():
     inside = pair.mask[..., 0] > 0
     for plan, tol in ((pair.fine, 0.5), (pair.coarse, 4.0)):
         baked = ec.bake_map(plan, fine.frames[0] if plan is pair.fine else coarse.frames[0])
-        assert metrics.mean_angular_change(baked, truth, pair.mask) < tol
+        assert evaluation.mean_angular_change(baked, truth, pair.mask) < tol
     # The coarse mesh's own layout (scale from its stretched 3D areas) drifts off the grid.
     own = normalmap.make_plan(coarse.garment, texel_size=TEXEL)
     assert own.layout.pixels_per_uv != pytest.approx(pair.layout.pixels_per_uv)
@@ -177,9 +176,9 @@ def test_coarse_and_fine_maps_share_one_grid_and_their_patches_align_in_uv():
     assert ps.input.shape == ps.target.shape == (len(origins), size, size, 3)
     truth_p = ec.cut(np.asarray(patches.pad_to_patch(truth, size)[0]), origins, size)
     for k in range(len(origins)):
-        assert metrics.mean_angular_change(ps.input[k] * 2 - 1, truth_p[k], ps.mask[k]) < 4.0
+        assert evaluation.mean_angular_change(ps.input[k] * 2 - 1, truth_p[k], ps.mask[k]) < 4.0
         # The fine map resolves the fold: a patch one texel off would be > 1 degree away.
-        assert metrics.mean_angular_change(ps.target[k] * 2 - 1, truth_p[k], ps.mask[k]) < 0.5
+        assert evaluation.mean_angular_change(ps.target[k] * 2 - 1, truth_p[k], ps.mask[k]) < 0.5
     fine_rgb = np.asarray(patches.pad_to_patch(
         normalmap.to_rgb(ec.bake_map(pair.fine, fine.frames[0])), size)[0]) * mask
     np.testing.assert_array_equal(ps.target, np.asarray(patches.extract(fine_rgb, origins, size)))
@@ -463,9 +462,10 @@ def test_flicker_of_a_rigid_rotation_is_its_angle_and_of_a_static_map_zero():
     seq = _rotating_sheet(4, 3.0)
     plan = normalmap.make_plan(seq.garment, texel_size=TEXEL)
     maps = np.stack([ec.bake_map(plan, f) for f in seq.frames])
-    np.testing.assert_allclose(metrics.flicker_series(maps, plan.mask), 3.0, atol=1e-3)
-    np.testing.assert_allclose(metrics.flicker_series(maps[[1, 1, 1]], plan.mask), 0.0, atol=1e-4)
-    assert metrics.mean_angular_change(maps[0], maps[1], np.zeros_like(plan.mask)) == 0.0
+    np.testing.assert_allclose(evaluation.flicker_series(maps, plan.mask), 3.0, atol=1e-3)
+    np.testing.assert_allclose(evaluation.flicker_series(maps[[1, 1, 1]], plan.mask), 0.0,
+                               atol=1e-4)
+    assert evaluation.mean_angular_change(maps[0], maps[1], np.zeros_like(plan.mask)) == 0.0
 
 
 def test_sequence_flicker_static_is_zero_and_rotation_moves_coarse_and_fine(model):
@@ -610,10 +610,10 @@ def test_gram_features_are_upper_triangles_with_layers_scaled_to_unit_median_nor
                                rtol=1e-5)
     # Layer-by-layer distances equal the distances of the concatenated features.
     np.testing.assert_allclose(table2.scaled_sq_dists(flat, None, scales),
-                               metrics.sq_dists(feats), rtol=1e-9, atol=1e-12)
+                               evaluation.sq_dists(feats), rtol=1e-9, atol=1e-12)
     other = table2.upper_triangle({"small": sym(2, 2, 1.0), "big": sym(2, 4, 1000.0)})
     np.testing.assert_allclose(table2.scaled_sq_dists(other, flat, scales),
-                               metrics.sq_dists(table2.scaled_features(other, scales), feats),
+                               evaluation.sq_dists(table2.scaled_features(other, scales), feats),
                                rtol=1e-9)
     assert table2.layer_scales({"zero": np.zeros((2, 3), np.float32)}) == {"zero": 1.0}
     with pytest.raises(ValueError, match="Gram"):
@@ -633,12 +633,12 @@ def test_set_c_frames_are_between_table1_frames_never_on_them():
 
 def test_embedding_from_the_distance_matrix_equals_the_embedding_of_the_points():
     x = np.random.default_rng(2).normal(size=(30, 50))
-    d2 = metrics.sq_dists(x)
+    d2 = evaluation.sq_dists(x)
     pts = table2.points_from_sq_dists(d2)
-    np.testing.assert_allclose(metrics.sq_dists(pts), d2, atol=1e-9)
+    np.testing.assert_allclose(evaluation.sq_dists(pts), d2, atol=1e-9)
     # Eigenvectors are defined up to sign.
-    np.testing.assert_allclose(np.abs(metrics.spectral_embedding(pts)),
-                               np.abs(metrics.spectral_embedding(x)), atol=1e-9)
+    np.testing.assert_allclose(np.abs(evaluation.spectral_embedding(pts)),
+                               np.abs(evaluation.spectral_embedding(x)), atol=1e-9)
 
 
 def _three_sets(n=20, seed=0):
@@ -658,11 +658,13 @@ def test_cell_comparison_finds_b_nearer_to_c_than_a_and_a_swap_reverses_it():
     res = {"frame": np.zeros(len(a), np.int32), "origin": np.zeros((len(a), 2), np.int32),
            "frame_c": np.ones(len(c), np.int32), "origin_c": np.zeros((len(c), 2), np.int32),
            "scales": {}, "n_candidates": 1, "timings": {},
-           "d2_ref": metrics.sq_dists(ac),
-           "d2_method": {"near": np.concatenate([metrics.sq_dists(b, ac), metrics.sq_dists(b)], 1),
-                         "same": np.concatenate([metrics.sq_dists(a, ac), metrics.sq_dists(a)], 1)}}
+           "d2_ref": evaluation.sq_dists(ac),
+           "d2_method": {"near": np.concatenate([evaluation.sq_dists(b, ac),
+                                                 evaluation.sq_dists(b)], 1),
+                         "same": np.concatenate([evaluation.sq_dists(a, ac),
+                                                 evaluation.sq_dists(a)], 1)}}
     d2, labels = table2.union_sq_dists(res["d2_ref"], res["d2_method"]["near"], len(a))
-    np.testing.assert_allclose(d2, metrics.sq_dists(np.concatenate([a, b, c])), atol=1e-12)
+    np.testing.assert_allclose(d2, evaluation.sq_dists(np.concatenate([a, b, c])), atol=1e-12)
     rec = table2.cell_record(res)
     near, same = rec["methods"]["near"], rec["methods"]["same"]
     for space in table2.SPACES:

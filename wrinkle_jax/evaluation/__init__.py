@@ -1,0 +1,48 @@
+"""Evaluation: scores, baselines, set and temporal metrics, aligned patch sets.
+
+Modules (by concept):
+
+    scores      the paper's improvement score and the detail-only `score_patches`
+    stats       summaries: per-group means, bootstrap intervals, paired differences
+    baselines   identity, unsharp masking, down/up-sampling (NumPy/OpenCV, masked)
+    bands       band energies of detail maps, the 2-texel checkerboard artefact
+    sets        sets of patches without correspondence (paper Table 2): Chamfer, DR, embedding
+    flicker     frame-to-frame angular change of normal maps
+    patchsets   coarse and fine maps on one pixel grid, aligned patch sets
+
+The names of `scores`, `stats`, `baselines`, `bands`, `sets` and `flicker` are re-exported
+here (`evaluation.score_patches`, `evaluation.unsharp_mask`, `evaluation.chamfer_distance`,
+...). `patchsets` (which needs the baking stack) is imported as a submodule:
+`from wrinkle_jax.evaluation import patchsets`.
+
+Conventions: patches are in the RGB form of normal maps ((n + 1) / 2, in [0, 1]), NHWC
+float32, with an (N, S, S, 1) float32 {0, 1} mask; normal maps are (H, W, 3) unit vectors.
+"""
+
+from wrinkle_jax.evaluation.bands import BAND_SIGMAS, band_rms, checker_rms
+from wrinkle_jax.evaluation.baselines import identity, resample, unsharp_mask
+from wrinkle_jax.evaluation.flicker import flicker_series, mean_angular_change, normal_angles
+from wrinkle_jax.evaluation.scores import (
+    EVAL_LAYERS,
+    ImprovementScore,
+    detail_triplet,
+    improvement_score,
+    improvement_score_from_losses,
+    score_patches,
+    scores_from_losses,
+)
+from wrinkle_jax.evaluation.sets import (
+    chamfer_distance,
+    chamfer_from_sq_dists,
+    decrease_ratio,
+    spectral_embedding,
+    sq_dists,
+)
+from wrinkle_jax.evaluation.stats import bootstrap_ci, paired_difference, summarize
+
+__all__ = ["BAND_SIGMAS", "EVAL_LAYERS", "ImprovementScore", "band_rms", "bootstrap_ci",
+           "chamfer_distance", "chamfer_from_sq_dists", "checker_rms", "decrease_ratio",
+           "detail_triplet", "flicker_series", "identity", "improvement_score",
+           "improvement_score_from_losses", "mean_angular_change", "normal_angles",
+           "paired_difference", "resample", "score_patches", "scores_from_losses",
+           "spectral_embedding", "sq_dists", "summarize", "unsharp_mask"]

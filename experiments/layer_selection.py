@@ -31,8 +31,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.eval_common import portable_path
 from wrinkle_jax import data, evaluation
+from wrinkle_jax.evaluation.suite import portable_path
 from wrinkle_jax.nn import losses, vgg
 
 ROOT = Path(__file__).resolve().parents[1]

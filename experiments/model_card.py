@@ -16,7 +16,7 @@ coarse particle distance, target = the fine map; plus `--n-seen` patches of the 
   * the model.
 
 Score: the paper's improvement score on relu1_2..relu5_1 plus the signed form (the numbers of
-`evaluation.score_patches`, computed by `eval_common.method_losses` with shared Grams). Writes
+`evaluation.score_patches`, computed by `evaluation.gram.method_losses` with shared Grams). Writes
 `experiments/results/model_card/results.json` and `table.md`.
 """
 
@@ -30,8 +30,8 @@ import cv2
 import jax
 import numpy as np
 
-from experiments import eval_common
 from wrinkle_jax import MATERIALS, data, enhancer, evaluation
+from wrinkle_jax.evaluation import gram, suite
 from wrinkle_jax.nn import vgg
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -64,15 +64,15 @@ def unsharp_sweep(vgg_params, data_root, n_tune: int, order: int) -> tuple[dict,
     `SWEEP` on `n_tune` TRAINING patches (offset from the scored ones), and the best pair.
 
     The input's and target's Gram matrices are computed once for the whole sweep
-    (`eval_common.method_losses`), so each setting costs one VGG pass per patch.
+    (`evaluation.gram.method_losses`), so each setting costs one VGG pass per patch.
     """
     ds = data.PatchDataset(data_root, "train")
     idx = np.unique(np.linspace(0, len(ds) - 1, n_tune).round().astype(int) + 7) % len(ds)
     tune = ds.get(idx)
     outs = {f"order={order},sigma={s:g},amount={a:g}":
             evaluation.unsharp_mask(tune["input"], tune["mask"], s, a, order) for s, a in SWEEP}
-    losses = eval_common.method_losses(vgg_params, tune["input"], tune["target"], tune["mask"],
-                                       outs)
+    losses = gram.method_losses(vgg_params, tune["input"], tune["target"], tune["mask"],
+                                outs)
     sweep = {}
     for key in outs:
         sc = evaluation.scores_from_losses(losses["input"], losses[key])
@@ -124,7 +124,7 @@ def main(argv=None) -> None:
         "lanczos x2 down/up": lambda b: evaluation.resample(b["input"], b["mask"], 2.0,
                                                             up=cv2.INTER_LANCZOS4),
     }
-    results = {"model": eval_common.portable_path(args.model), "model_meta": enh.meta,
+    results = {"model": suite.portable_path(args.model), "model_meta": enh.meta,
                "unsharp_sweep": sweep, "n_heldout": len(held["input"]),
                "n_seen": len(seen["input"]), "methods": {}}
     for split, batch in (("heldout", held), ("seen", seen)):
@@ -135,8 +135,8 @@ def main(argv=None) -> None:
         outs["model"], ms = run_model(enh, batch)
         # The input's and target's Gram matrices are shared by all methods (same numbers as
         # evaluation.score_patches; tests/test_eval_experiments.py checks it).
-        losses = eval_common.method_losses(vgg_params, batch["input"], batch["target"],
-                                           batch["mask"], outs)
+        losses = gram.method_losses(vgg_params, batch["input"], batch["target"],
+                                    batch["mask"], outs)
         for name in outs:
             sc = evaluation.scores_from_losses(losses["input"], losses[name])
             kind = np.array([g.split("|")[0] for g in groups])

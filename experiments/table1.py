@@ -8,7 +8,7 @@ Cells (12): garment {flared_skirt (seen in training), dress, cape (unseen)} x ma
 {silk_charmeuse, denim_light} x motion {dance (seen), walk (unseen)}, seed 1 (training used
 seed 0, so even the seen cell is an unseen performance). Scenes: skirt_dance, skirt_walk,
 dress_dance, cape_walk from `wrinkle_jax.sim.scenes`; dress_walk and cape_dance are the dress
-and cape scenes with the motion replaced (`eval_common.scene_for`). Each cell uses the first
+and cape scenes with the motion replaced (`evaluation.cells.scene_for`). Each cell uses the first
 `--frames` frames of a fine (PD 10 mm) and a coarse (PD 30 mm) simulation: files of
 `data/sequences` (the 300-frame test sequences) are reused when their scene config, material
 and seed match; missing ones (skirt_dance seed 1, dress_walk, cape_dance) are simulated into
@@ -16,9 +16,9 @@ and seed match; missing ones (skirt_dance seed 1, dress_walk, cape_dance) are si
 machine).
 
 Patches (paper: patch level): both meshes are baked on ONE pixel grid at the model's texel
-size (`eval_common.shared_layout`: the fine mesh's meters-per-UV, the union of the UV bounds),
-so a patch origin is the same cloth in both maps. Candidate patches are the model-size patches
-of a grid (stride half a patch) in which the texels covered by BOTH meshes make up at least
+size (`evaluation.patchsets.shared_layout`: the fine mesh's meters-per-UV, the union of the UV
+bounds), so a patch origin is the same cloth in both maps. Candidate patches are the model-size
+patches of a grid (stride half a patch) in which the texels covered by BOTH meshes make up at least
 `--min-coverage` (0.5); in every `--frame-stride`-th frame, `--patches-per-frame` of them are
 drawn at random (seeded by cell and frame). Input N = the coarse map, target N_hat = the fine
 map of the same frame, both cut to that mask.
@@ -29,12 +29,12 @@ training patches (`experiments/results/model_card/results.json`, else sigma 8 am
 bicubic and Lanczos x2
 down/up-sampling; the model (run on the patch itself, material given); and the wrong-material
 ablation (paper Fig. 10): the model told the other table material (silk_charmeuse <->
-denim_light; `eval_common.wrong_material`; off with --no-wrong-material).
+denim_light; `evaluation.methods.wrong_material`; off with --no-wrong-material).
 
 Score: `wrinkle_jax.evaluation`'s improvement score on EVAL_LAYERS (relu1_2 ... relu5_1), the
 paper's |.| form and the signed form (negative = further from the target's style than the
 input). The Gram matrices of the input and the target are computed once per patch and shared
-by the methods (`eval_common.method_losses`, equal to `evaluation.score_patches`).
+by the methods (`evaluation.gram.method_losses`, equal to `evaluation.score_patches`).
 
 Cost (2 CPU cores): a VGG19 pass to relu5_1 costs ~0.15-0.2 s per 128x128 patch on an idle
 machine and ~0.4-0.5 s with another job on the cores; a patch needs 2 + 6 passes (input,
@@ -61,9 +61,11 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments import eval_common as ec
 from wrinkle_jax import MATERIALS, evaluation, material_index, patches
 from wrinkle_jax import enhancer as enhancer_lib
+from wrinkle_jax.evaluation import cells as cell_lib
+from wrinkle_jax.evaluation import gram, patchsets, suite
+from wrinkle_jax.evaluation import methods as method_lib
 from wrinkle_jax.fileio import atomic_write_bytes
 from wrinkle_jax.nn import vgg
 
@@ -123,9 +125,9 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
     """
     size = sampling.patch_size
     stride = size // 2 if sampling.grid_stride is None else sampling.grid_stride
-    pair = ec.aligned_pair(fine.garment, coarse.garment, sampling.texel_size)
+    pair = patchsets.aligned_pair(fine.garment, coarse.garment, sampling.texel_size)
     mask = np.asarray(patches.pad_to_patch(pair.mask, size)[0])
-    cand, cov = ec.candidate_origins(mask, size, stride, sampling.min_coverage)
+    cand, cov = patchsets.candidate_origins(mask, size, stride, sampling.min_coverage)
     if not len(cand):
         raise ValueError(f"no {size}x{size} patch reaches {sampling.min_coverage:.0%} coverage "
                          "by both meshes")
@@ -136,9 +138,10 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
     timings = {"bake_s": 0.0, "methods_s": {k: 0.0 for k in methods}, "score_s": 0.0}
     counter: dict = {}
     for t in sampling.frame_indices:
-        sel = ec.choose_origins(cand, sampling.patches_per_frame, (sampling.seed, *cell_seed, t))
+        sel = patchsets.choose_origins(cand, sampling.patches_per_frame,
+                                       (sampling.seed, *cell_seed, t))
         t0 = time.perf_counter()
-        ps = ec.aligned_patches(pair, fine.frames[t], coarse.frames[t], sel, size, mid)
+        ps = patchsets.aligned_patches(pair, fine.frames[t], coarse.frames[t], sel, size, mid)
         timings["bake_s"] += time.perf_counter() - t0
         outs = {}
         for name, fn in methods.items():
@@ -146,8 +149,8 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
             outs[name] = fn(ps)
             timings["methods_s"][name] += time.perf_counter() - t0
         t0 = time.perf_counter()
-        got = ec.method_losses(vgg_params, ps.input, ps.target, ps.mask, outs,
-                               batch_size=sampling.score_batch, counter=counter)
+        got = gram.method_losses(vgg_params, ps.input, ps.target, ps.mask, outs,
+                                 batch_size=sampling.score_batch, counter=counter)
         timings["score_s"] += time.perf_counter() - t0
         loss_in.append(got["input"])
         for k in methods:
@@ -175,8 +178,8 @@ def summary(scores: dict) -> dict:
 
 
 def cell_scores(cell_result: dict) -> dict[str, dict]:
-    """Per-method score dicts (`eval_common.scores_from_losses`) of one evaluated cell."""
-    return {k: ec.scores_from_losses(cell_result["loss_input"], v)
+    """Per-method score dicts (`evaluation.scores_from_losses``) of one evaluated cell."""
+    return {k: evaluation.scores_from_losses(cell_result["loss_input"], v)
             for k, v in cell_result["loss"].items()}
 
 
@@ -191,7 +194,7 @@ def pooled_scores(results: list[dict]) -> dict[str, dict]:
 # --------------------------------------------------------------------------------------------
 
 
-def _cell_path(out: Path, cell: ec.Cell) -> Path:
+def _cell_path(out: Path, cell: cell_lib.Cell) -> Path:
     return out / "cells" / f"{cell.scene.name}__{cell.material}.npz"
 
 
@@ -220,7 +223,7 @@ def cell_part(fingerprint: dict, keys: tuple[str, ...] = CELL_KEYS) -> dict:
     """The part of a fingerprint that defines the patches, with portable sequence paths."""
     fp = json.loads(json.dumps({k: fingerprint.get(k) for k in keys}))
     if isinstance(fp.get("sequences"), dict):
-        fp["sequences"] = {k: ec.portable_path(v) for k, v in fp["sequences"].items()}
+        fp["sequences"] = {k: suite.portable_path(v) for k, v in fp["sequences"].items()}
     return fp
 
 
@@ -231,7 +234,7 @@ def legacy_sources(fingerprint: dict, methods: list[str]) -> dict[str, str]:
     src = None
     if model and Path(model).exists() and Path(model).stat().st_mtime == fingerprint.get(
             "model_mtime"):
-        src = f"model {ec.file_digest(model)}"
+        src = f"model {suite.file_digest(model)}"
     out = {}
     for m in methods:
         if m == MODEL:
@@ -279,8 +282,8 @@ def merge_cell(cached: dict, new: dict, order: list[str]) -> dict:
             or not np.array_equal(cached["origin"], new["origin"])
             or not np.allclose(cached["loss_input"], new["loss_input"], rtol=1e-4)):
         raise ValueError("stored cell and rescored methods are not on the same patches")
-    loss = ec.merge_methods(cached["loss"], new["loss"], order)
-    timings = ec.merge_timings(cached["timings"], new["timings"], ("score_s", "vgg_passes"))
+    loss = cell_lib.merge_methods(cached["loss"], new["loss"], order)
+    timings = cell_lib.merge_timings(cached["timings"], new["timings"], ("score_s", "vgg_passes"))
     return {**cached, "loss": loss, "timings": timings}
 
 
@@ -317,14 +320,14 @@ def table_markdown(results: dict) -> str:
                  else "paper's |.| form, mean ± std over patches")
         lines += [f"## Model, {title}", "",
                   "| material | motion | " + " | ".join(
-                      f"{g} ({'seen' if g == ec.SEEN_GARMENT else 'unseen'})"
+                      f"{g} ({'seen' if g == cell_lib.SEEN_GARMENT else 'unseen'})"
                       for g in garments) + " |",
                   "|---|---|" + "---|" * len(garments)]
         for ma in results["config"]["materials"]:
             for mo in results["config"]["motions"]:
-                row = [ma, f"{mo} ({'seen' if mo == ec.SEEN_MOTION else 'unseen'})"]
+                row = [ma, f"{mo} ({'seen' if mo == cell_lib.SEEN_MOTION else 'unseen'})"]
                 for g in garments:
-                    key = ec.Cell(g, mo, ma).key
+                    key = cell_lib.Cell(g, mo, ma).key
                     row.append(_fmt(cells[key]["methods"][MODEL], signed) if key in cells
                                else "-")
                 lines.append("| " + " | ".join(row) + " |")
@@ -347,13 +350,13 @@ def table_markdown(results: dict) -> str:
 # --------------------------------------------------------------------------------------------
 
 
-def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params, sampling: Sampling,
-        out: Path, fingerprint_of: Callable[[ec.Cell], dict], fresh: bool = False,
+def run(cells: list[cell_lib.Cell], sequences: dict, methods: dict, vgg_params, sampling: Sampling,
+        out: Path, fingerprint_of: Callable[[cell_lib.Cell], dict], fresh: bool = False,
         log: Callable[[str], None] = print, sources: dict[str, str] | None = None
         ) -> dict[str, dict]:
     """Evaluate (or reload from `<out>/cells/`) every cell, printing progress and an ETA.
 
-    Stored cells are reused method by method (`eval_common.run_cells`): a method whose stored
+    Stored cells are reused method by method (`evaluation.cells.run_cells`): a method whose stored
     source equals `sources[name]` (default: the name) is not rescored; a new one costs 2 VGG
     passes per patch (the input and target Grams) plus its own.
 
@@ -361,8 +364,8 @@ def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params, sampli
       cell key -> `evaluate_cell` result restricted to `methods` (timings also hold "cell_s").
     """
     def evaluate(cell, names, progress):
-        fine = ec.load_first_frames(sequences[cell.key]["fine"], sampling.frames)
-        coarse = ec.load_first_frames(sequences[cell.key]["coarse"], sampling.frames)
+        fine = cell_lib.load_first_frames(sequences[cell.key]["fine"], sampling.frames)
+        coarse = cell_lib.load_first_frames(sequences[cell.key]["coarse"], sampling.frames)
         res = evaluate_cell(fine, coarse, cell.material, {k: methods[k] for k in names},
                             vgg_params, sampling, cell.patch_seed, progress)
         sig = {k: round(float(np.mean(s["improvement_signed"][s["valid"]])), 1)
@@ -370,11 +373,11 @@ def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params, sampli
         log(f"{cell.key}: signed means {sig}")
         return res
 
-    return ec.run_cells(cells, methods, sources, path_of=lambda c: _cell_path(out, c),
-                        fingerprint_of=fingerprint_of, load=load_cell, save=save_cell,
-                        evaluate=evaluate, merge=merge_cell, field="loss",
-                        units=lambda names: len(sampling.frame_indices), unit="frames",
-                        fresh=fresh, log=log)
+    return cell_lib.run_cells(cells, methods, sources, path_of=lambda c: _cell_path(out, c),
+                              fingerprint_of=fingerprint_of, load=load_cell, save=save_cell,
+                              evaluate=evaluate, merge=merge_cell, field="loss",
+                              units=lambda names: len(sampling.frame_indices), unit="frames",
+                              fresh=fresh, log=log)
 
 
 # --------------------------------------------------------------------------------------------
@@ -393,7 +396,7 @@ def add_cell_args(ap, out_default: Path, frame_stride_help: str = "score every k
     ap.add_argument("--min-coverage", type=float, default=0.5,
                     help="minimum fraction of patch texels covered by both meshes")
     ap.add_argument("--seed", type=int, default=0, help="seed of the patch draw")
-    ec.add_sequence_args(ap)
+    cell_lib.add_sequence_args(ap)
     ap.add_argument("--out", default=str(out_default))
     ap.add_argument("--fresh", action="store_true", help="ignore stored cells and recompute")
     ap.add_argument("--extra", action="append", default=[], metavar="NAME=PATH",
@@ -406,8 +409,8 @@ class Setup:
     """What a table script evaluates: model, sampling, cells, their sequence files, methods.
 
     Attributes:
-      enh: the model; sampling: `Sampling`; cells: `eval_common.Cell`s.
-      sequences: cell key -> `eval_common.cell_sequences` (fine/coarse paths and info).
+      enh: the model; sampling: `Sampling`; cells: `evaluation.cells.Cell`s.
+      sequences: cell key -> `evaluation.cells.cell_sequences` (fine/coarse paths and info).
       sim_s: seconds spent finding or simulating the sequences.
       methods: name -> (PatchSet) -> outputs; sources: name -> source of its outputs.
       unsharp: blur order -> (sigma, amount, source); net_timings: the model's timings.
@@ -427,10 +430,10 @@ class Setup:
     def unsharp_text(self) -> str:
         return "; ".join(f"order {o}: {u[2]}" for o, u in self.unsharp.items())
 
-    def fingerprint_of(self, cell: ec.Cell, **extra) -> dict:
+    def fingerprint_of(self, cell: cell_lib.Cell, **extra) -> dict:
         """What defines the cell's patches: sampling, sequence files (portable), `extra`."""
         return {"sampling": dataclasses.asdict(self.sampling), **extra,
-                "sequences": {r: ec.portable_path(self.sequences[cell.key][r])
+                "sequences": {r: suite.portable_path(self.sequences[cell.key][r])
                               for r in ("fine", "coarse")}}
 
 
@@ -445,33 +448,34 @@ def setup_from_args(ap, args, min_frame_stride: int = 1, wrong_material: bool = 
     for name in args.materials.split(","):
         if name not in MATERIALS:
             ap.error(f"unknown material {name!r}")
-    enh = ec.load_model_or_usage_error(ap, args.model)
+    enh = suite.load_model_or_usage_error(ap, args.model)
     sampling = Sampling(frames=args.frames, frame_stride=args.frame_stride,
                         patches_per_frame=args.patches_per_frame,
                         patch_size=enh.config.patch_size, texel_size=enh.config.texel_size,
                         min_coverage=args.min_coverage, seed=args.seed,
                         score_batch=min(args.patches_per_frame, 16))
-    cells = ec.table_cells(args.garments.split(","), args.materials.split(","),
-                           args.motions.split(","))
+    cells = cell_lib.table_cells(args.garments.split(","), args.materials.split(","),
+                                 args.motions.split(","))
     t0 = time.perf_counter()  # simulate what is missing (resumable)
-    sequences = {c.key: ec.cell_sequences(c, args.frames, ec.TEST_SEED, (Path(args.sequences),),
-                                          Path(args.sim_out)) for c in cells}
+    sequences = {c.key: cell_lib.cell_sequences(c, args.frames, cell_lib.TEST_SEED,
+                                                (Path(args.sequences),), Path(args.sim_out))
+                 for c in cells}
     sim_s = time.perf_counter() - t0
     methods, sources, unsharp, net_timings = {}, {}, {}, {}
     if with_methods:
-        unsharp = {o: ec.unsharp_setting(order=o) for o in (0, 1)}
-        methods = ec.baseline_methods({o: u[:2] for o, u in unsharp.items()})
-        methods[MODEL] = ec.enhancer_method(enh, batch_size=sampling.score_batch,
-                                            timings=net_timings)
-        model_src = f"model {ec.file_digest(args.model)}"
+        unsharp = {o: method_lib.unsharp_setting(order=o) for o in (0, 1)}
+        methods = method_lib.baseline_methods({o: u[:2] for o, u in unsharp.items()})
+        methods[MODEL] = method_lib.enhancer_method(enh, batch_size=sampling.score_batch,
+                                                    timings=net_timings)
+        model_src = f"model {suite.file_digest(args.model)}"
         sources = {k: k for k in methods} | {MODEL: model_src}
         if wrong_material:
             # Paper Fig. 10: the right patches, the other table material's CIN parameters.
-            methods[WRONG] = ec.enhancer_method(enh, batch_size=sampling.score_batch,
-                                                material_of=ec.wrong_material)
+            methods[WRONG] = method_lib.enhancer_method(enh, batch_size=sampling.score_batch,
+                                                        material_of=method_lib.wrong_material)
             sources[WRONG] = f"{model_src} wrong material"
         try:
-            extra, extra_src = ec.model_methods(args.extra, sampling.score_batch)
+            extra, extra_src = method_lib.model_methods(args.extra, sampling.score_batch)
         except (ValueError, enhancer_lib.EnhancerError) as err:
             ap.error(f"--extra: {err}")
         methods.update(extra)
@@ -481,8 +485,8 @@ def setup_from_args(ap, args, min_frame_stride: int = 1, wrong_material: bool = 
 
 
 def main(argv=None) -> int:
-    ap = ec.script_parser(__doc__)
-    add_cell_args(ap, ec.RESULTS / "table1")
+    ap = suite.script_parser(__doc__)
+    add_cell_args(ap, suite.RESULTS / "table1")
     ap.add_argument("--no-wrong-material", action="store_true",
                     help="skip the wrong-material ablation (the model told the other material)")
     args = ap.parse_args(argv)
@@ -515,8 +519,8 @@ def main(argv=None) -> int:
             "material": cell.material, "kind": cell.kind, "n_patches": int(len(r["frame"])),
             "n_candidates_per_frame": r["n_candidates"],
             "frames_scored": sorted(set(r["frame"].tolist())),
-            "fine": ec.portable_path(sequences[cell.key]["fine"]),
-            "coarse": ec.portable_path(sequences[cell.key]["coarse"]),
+            "fine": suite.portable_path(sequences[cell.key]["fine"]),
+            "coarse": suite.portable_path(sequences[cell.key]["coarse"]),
             "sequence_source": {res: sequences[cell.key][f"{res}_info"]["source"]
                                 for res in ("fine", "coarse")},
             "methods": {k: summary(v) for k, v in sc.items()}, "timings": r["timings"]}
@@ -528,7 +532,8 @@ def main(argv=None) -> int:
     score_s = sum(t["score_s"] for t in cell_t)
     passes = sum(t["vgg_passes"] for t in cell_t) * sampling.score_batch
     sampling_text = (
-        f"Sampling: first {sampling.frames} frames of each sequence (seed {ec.TEST_SEED}); frames "
+        f"Sampling: first {sampling.frames} frames of each sequence "
+        f"(seed {cell_lib.TEST_SEED}); frames "
         f"{_frames_text(sampling.frame_indices)} ({len(sampling.frame_indices)} frames); "
         f"{sampling.patches_per_frame} random {sampling.patch_size}x{sampling.patch_size} "
         f"patches per frame ({sampling.texel_size * 1e3:g} mm texels) among the grid patches "
@@ -536,7 +541,7 @@ def main(argv=None) -> int:
         f"mesh. Input: coarse simulation (PD 30 mm); target: fine simulation (PD 10 mm) of the "
         f"same frame. Unsharp: {unsharp_src}.")
     results = {
-        "model": ec.portable_path(args.model), "model_config": enh.config.to_json(),
+        "model": suite.portable_path(args.model), "model_config": enh.config.to_json(),
         "model_meta": {k: v for k, v in enh.meta.items() if not isinstance(v, dict | list)},
         "methods": list(methods), "method_sources": sources,
         "unsharp": {f"order {o}": {"sigma": u[0], "amount": u[1], "source": u[2]}
@@ -544,7 +549,7 @@ def main(argv=None) -> int:
         "score": "evaluation.score_patches equivalent on " + ", ".join(evaluation.EVAL_LAYERS),
         "sampling": dataclasses.asdict(sampling), "sampling_text": sampling_text,
         "config": {"garments": args.garments.split(","), "materials": args.materials.split(","),
-                   "motions": args.motions.split(","), "seed": ec.TEST_SEED,
+                   "motions": args.motions.split(","), "seed": cell_lib.TEST_SEED,
                    "scenes": {c.key: json.loads(c.scene.to_json()) for c in cells}},
         "cells": cells_out, "by_kind": by_kind, "all": everything,
         "timings": {
@@ -556,11 +561,11 @@ def main(argv=None) -> int:
                                      / n_all if n_all else None),
             "network_compile_s": net_timings.get("compile_s"),
             "sequences_s": sim_s, "this_run_s": time.perf_counter() - t_all},
-        "machine": ec.machine_info(),
+        "machine": suite.machine_info(),
         "command": "python -m experiments.table1 " + " ".join(
             sys.argv[1:] if argv is None else argv),
     }
-    ec.write_json(out / "results.json", results)
+    suite.write_json(out / "results.json", results)
     (out / "table.md").write_text(table_markdown(results))
     flat = {}
     for key, r in results_by_cell.items():

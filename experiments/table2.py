@@ -24,7 +24,7 @@ simulated when Table 1 has run. Per cell, three sets of patches (paper Sec. 6):
 All patches are cut to the texels covered by both meshes (the mask of Table 1's scores).
 
 Features: the masked, normalized Gram matrices G_l / R_l on `evaluation.EVAL_LAYERS` (relu1_2,
-relu2_1, relu3_1, relu4_1, relu5_1; `eval_common.gram_matrices`, as Table 1's score), each
+relu2_1, relu3_1, relu4_1, relu5_1; `evaluation.gram.gram_matrices`, as Table 1's score), each
 flattened to its upper triangle (C_l (C_l + 1) / 2 values), divided by that layer's median
 vector norm over a and c of the cell (every layer then has a median norm of 1 and contributes
 comparably, although relu5_1 has 63 times relu1_2's values; the scale does not depend on the
@@ -72,10 +72,18 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments import eval_common as ec
 from experiments import table1
 from wrinkle_jax import evaluation, material_index, patches
-from wrinkle_jax.evaluation import chamfer_distance, chamfer_from_sq_dists, decrease_ratio, sq_dists
+from wrinkle_jax.evaluation import cells as cell_lib
+from wrinkle_jax.evaluation import (
+    chamfer_distance,
+    chamfer_from_sq_dists,
+    decrease_ratio,
+    gram,
+    patchsets,
+    sq_dists,
+    suite,
+)
 from wrinkle_jax.fileio import atomic_write_bytes
 from wrinkle_jax.nn import vgg
 
@@ -227,7 +235,7 @@ def c_frame_indices(frame_indices: Iterable[int], frames: int, frame_stride: int
 
 def set_features(vgg_params, images, mask, batch_size: int, counter: dict | None = None
                  ) -> dict[str, np.ndarray]:
-    """Upper triangles of the normalized masked Grams (`eval_common.gram_matrices` on
+    """Upper triangles of the normalized masked Grams (`evaluation.gram.gram_matrices` on
     `evaluation.EVAL_LAYERS`) of (N, S, S, 3) RGB-form images with (N, S, S, 1) masks:
     layer -> (N, C_l (C_l + 1) / 2) float32. Fixed batch shape (the last batch padded);
     counter["vgg_passes"] accumulates batches."""
@@ -237,7 +245,7 @@ def set_features(vgg_params, images, mask, batch_size: int, counter: dict | None
     for s in range(0, n, batch_size):
         k = min(batch_size, n - s)
         idx = np.resize(np.arange(s, s + k), batch_size)
-        grams = ec.gram_matrices(vgg_params, np.asarray(images)[idx], np.asarray(mask)[idx])
+        grams = gram.gram_matrices(vgg_params, np.asarray(images)[idx], np.asarray(mask)[idx])
         counter["vgg_passes"] = counter.get("vgg_passes", 0) + 1
         for name, v in upper_triangle({kk: np.asarray(g)[:k] for kk, g in grams.items()}).items():
             parts.setdefault(name, []).append(v)
@@ -256,7 +264,7 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
       methods: name -> (PatchSet) -> (K, S, S, 3) RGB-form outputs (the b sets).
       vgg_params: `vgg.load_vgg19()` (or a small VGG in tests).
       sampling: `table1.Sampling` (a's frames and origins are exactly Table 1's).
-      cell_seed: extra seed entropy for the patch draws (`eval_common.Cell.patch_seed`).
+      cell_seed: extra seed entropy for the patch draws (`evaluation.cells.Cell.patch_seed`).
       progress: called with (patches, what) after each set's features.
     Returns:
       {"frame", "origin": (N_a,) int32 frames and (N_a, 2) origins of a (and every b),
@@ -268,9 +276,9 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
     """
     size = sampling.patch_size
     stride = size // 2 if sampling.grid_stride is None else sampling.grid_stride
-    pair = ec.aligned_pair(fine.garment, coarse.garment, sampling.texel_size)
+    pair = patchsets.aligned_pair(fine.garment, coarse.garment, sampling.texel_size)
     mask = np.asarray(patches.pad_to_patch(pair.mask, size)[0])
-    cand, _ = ec.candidate_origins(mask, size, stride, sampling.min_coverage)
+    cand, _ = patchsets.candidate_origins(mask, size, stride, sampling.min_coverage)
     if not len(cand):
         raise ValueError(f"no {size}x{size} patch reaches {sampling.min_coverage:.0%} coverage "
                          "by both meshes")
@@ -283,13 +291,14 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
     t0 = time.perf_counter()
     sets_ab, sets_c = [], []
     for t, tc in zip(sampling.frame_indices, frames_c, strict=True):
-        sel = ec.choose_origins(cand, sampling.patches_per_frame, (sampling.seed, *cell_seed, t))
-        sets_ab.append(ec.aligned_patches(pair, fine.frames[t], coarse.frames[t], sel, size,
+        sel = patchsets.choose_origins(cand, sampling.patches_per_frame,
+                                       (sampling.seed, *cell_seed, t))
+        sets_ab.append(patchsets.aligned_patches(pair, fine.frames[t], coarse.frames[t], sel, size,
                                           mid))
-        sel_c = ec.choose_origins(cand, sampling.patches_per_frame,
-                                  (sampling.seed, *cell_seed, t, tc))
-        sets_c.append(ec.aligned_patches(pair, fine.frames[tc], coarse.frames[tc], sel_c, size,
-                                         mid))
+        sel_c = patchsets.choose_origins(cand, sampling.patches_per_frame,
+                                         (sampling.seed, *cell_seed, t, tc))
+        sets_c.append(patchsets.aligned_patches(pair, fine.frames[tc], coarse.frames[tc], sel_c,
+                                                size, mid))
     timings["bake_s"] = time.perf_counter() - t0
     inp = np.concatenate([p.input for p in sets_ab])
     mask_ab = np.concatenate([p.mask for p in sets_ab])
@@ -375,7 +384,7 @@ def cell_record(res: dict) -> dict:
 # --------------------------------------------------------------------------------------------
 
 
-def _cell_path(out: Path, cell: ec.Cell) -> Path:
+def _cell_path(out: Path, cell: cell_lib.Cell) -> Path:
     return out / "cells" / f"{cell.scene.name}__{cell.material}.npz"
 
 
@@ -437,9 +446,9 @@ def merge_records(old: dict, new: dict, order: list[str]) -> dict:
         np.isclose(old["scales"][k], new["scales"][k], rtol=1e-4) for k in old["scales"])
     if not (same and scales_ok):
         raise ValueError("stored cell and new methods are not on the same sets a and c")
-    methods = ec.merge_methods(old["methods"], new["methods"], order)
-    timings = ec.merge_timings(old["timings"], new["timings"],
-                               ("features_s", "distances_s", "compare_s", "vgg_passes"))
+    methods = cell_lib.merge_methods(old["methods"], new["methods"], order)
+    timings = cell_lib.merge_timings(old["timings"], new["timings"],
+                                     ("features_s", "distances_s", "compare_s", "vgg_passes"))
     return {**old, "methods": methods, "timings": timings}
 
 
@@ -448,8 +457,8 @@ def merge_records(old: dict, new: dict, order: list[str]) -> dict:
 # --------------------------------------------------------------------------------------------
 
 
-def group_of(cell: ec.Cell) -> str:
-    return GROUPS[0] if cell.garment == ec.SEEN_GARMENT else GROUPS[1]
+def group_of(cell: cell_lib.Cell) -> str:
+    return GROUPS[0] if cell.garment == cell_lib.SEEN_GARMENT else GROUPS[1]
 
 
 def mean_scores(records: list[dict]) -> dict:
@@ -491,14 +500,14 @@ def table_markdown(results: dict) -> str:
                  else "full Gram feature space")
         lines += [f"## Model, {where}: C1 / C2 / DR (signed DR)", "",
                   "| material | motion | " + " | ".join(
-                      f"{g} ({'seen' if g == ec.SEEN_GARMENT else 'unseen'})"
+                      f"{g} ({'seen' if g == cell_lib.SEEN_GARMENT else 'unseen'})"
                       for g in cfg["garments"]) + " |",
                   "|---|---|" + "---|" * len(cfg["garments"])]
         for ma in cfg["materials"]:
             for mo in cfg["motions"]:
-                row = [ma, f"{mo} ({'seen' if mo == ec.SEEN_MOTION else 'unseen'})"]
+                row = [ma, f"{mo} ({'seen' if mo == cell_lib.SEEN_MOTION else 'unseen'})"]
                 for g in cfg["garments"]:
-                    key = ec.Cell(g, mo, ma).key
+                    key = cell_lib.Cell(g, mo, ma).key
                     row.append(_fmt(cells[key]["methods"][MODEL][space], paper=True)
                                if key in cells else "-")
                 lines.append("| " + " | ".join(row) + " |")
@@ -519,7 +528,7 @@ def table_markdown(results: dict) -> str:
     return "\n".join(lines)
 
 
-def plot_embeddings(path: Path, cells: list[ec.Cell], records: dict[str, dict],
+def plot_embeddings(path: Path, cells: list[cell_lib.Cell], records: dict[str, dict],
                     ncols: int, method: str = MODEL) -> None:
     """One scatter per cell of `method`'s 2D embedding: a grey, b colored, c black."""
     import matplotlib
@@ -547,7 +556,7 @@ def plot_embeddings(path: Path, cells: list[ec.Cell], records: dict[str, dict],
         ax.axis("off")
     axes.ravel()[0].legend(fontsize=6, loc="best")
     fig.tight_layout()
-    ec.save_figure(fig, path, dpi=90)
+    suite.save_figure(fig, path, dpi=90)
 
 
 # --------------------------------------------------------------------------------------------
@@ -555,13 +564,13 @@ def plot_embeddings(path: Path, cells: list[ec.Cell], records: dict[str, dict],
 # --------------------------------------------------------------------------------------------
 
 
-def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params,
-        sampling: table1.Sampling, out: Path, fingerprint_of: Callable[[ec.Cell], dict],
+def run(cells: list[cell_lib.Cell], sequences: dict, methods: dict, vgg_params,
+        sampling: table1.Sampling, out: Path, fingerprint_of: Callable[[cell_lib.Cell], dict],
         fresh: bool = False, log: Callable[[str], None] = print,
         sources: dict[str, str] | None = None) -> dict[str, dict]:
     """Evaluate (or reload from `<out>/cells/`) every cell, printing progress and an ETA.
 
-    As `table1.run`, stored cells are reused method by method (`eval_common.run_cells`); a new
+    As `table1.run`, stored cells are reused method by method (`evaluation.cells.run_cells`); a new
     method costs the features of a and c again (2 VGG passes per location) plus its own b.
 
     Returns:
@@ -570,8 +579,8 @@ def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params,
     per_loc = len(sampling.frame_indices) * sampling.patches_per_frame
 
     def evaluate(cell, names, progress):
-        fine = ec.load_first_frames(sequences[cell.key]["fine"], sampling.frames)
-        coarse = ec.load_first_frames(sequences[cell.key]["coarse"], sampling.frames)
+        fine = cell_lib.load_first_frames(sequences[cell.key]["fine"], sampling.frames)
+        coarse = cell_lib.load_first_frames(sequences[cell.key]["coarse"], sampling.frames)
         rec = cell_record(evaluate_cell(fine, coarse, cell.material,
                                         {k: methods[k] for k in names}, vgg_params, sampling,
                                         cell.patch_seed, progress))
@@ -580,16 +589,16 @@ def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params,
         log(f"{cell.key}: signed DR (embedded, full) {sig}")
         return rec
 
-    return ec.run_cells(cells, methods, sources, path_of=lambda c: _cell_path(out, c),
-                        fingerprint_of=fingerprint_of, load=load_cell, save=save_cell,
-                        evaluate=evaluate, merge=merge_records, field="methods",
-                        units=lambda names: per_loc * (2 + len(names)),
-                        unit="patch features", fresh=fresh, log=log)
+    return cell_lib.run_cells(cells, methods, sources, path_of=lambda c: _cell_path(out, c),
+                              fingerprint_of=fingerprint_of, load=load_cell, save=save_cell,
+                              evaluate=evaluate, merge=merge_records, field="methods",
+                              units=lambda names: per_loc * (2 + len(names)),
+                              unit="patch features", fresh=fresh, log=log)
 
 
 def main(argv=None) -> int:
-    ap = ec.script_parser(__doc__)
-    table1.add_cell_args(ap, ec.RESULTS / "table2", frame_stride_help=(
+    ap = suite.script_parser(__doc__)
+    table1.add_cell_args(ap, suite.RESULTS / "table2", frame_stride_help=(
         "set a uses every k-th frame, set c the frames midway between (k >= 2)"))
     args = ap.parse_args(argv)
     out = Path(args.out)
@@ -632,8 +641,8 @@ def main(argv=None) -> int:
             "n_candidates_per_frame": r["n_candidates"],
             "frames_a": sorted(set(r["frame"].tolist())),
             "frames_c": sorted(set(r["frame_c"].tolist())),
-            "fine": ec.portable_path(sequences[cell.key]["fine"]),
-            "coarse": ec.portable_path(sequences[cell.key]["coarse"]),
+            "fine": suite.portable_path(sequences[cell.key]["fine"]),
+            "coarse": suite.portable_path(sequences[cell.key]["coarse"]),
             "sequence_source": {res: sequences[cell.key][f"{res}_info"]["source"]
                                 for res in ("fine", "coarse")},
             "layer_scales": r["scales"],
@@ -645,7 +654,7 @@ def main(argv=None) -> int:
     features_s = sum(t["features_s"] for t in cell_t)
     passes = sum(t["vgg_passes"] for t in cell_t) * sampling.score_batch
     sampling_text = (
-        f"Sampling: first {sampling.frames} frames of each sequence (seed {ec.TEST_SEED}). "
+        f"Sampling: first {sampling.frames} frames of each sequence (seed {cell_lib.TEST_SEED}). "
         f"(a) coarse simulation (PD 30 mm) at Table 1's frames "
         f"{table1._frames_text(sampling.frame_indices)} and patches: "
         f"{sampling.patches_per_frame} random {sampling.patch_size}x{sampling.patch_size} "
@@ -657,7 +666,7 @@ def main(argv=None) -> int:
         f"{', '.join(evaluation.EVAL_LAYERS)}, each layer divided by its median norm over a "
         f"and c. Unsharp: {unsharp_src}.")
     results = {
-        "model": ec.portable_path(args.model), "model_config": enh.config.to_json(),
+        "model": suite.portable_path(args.model), "model_config": enh.config.to_json(),
         "model_meta": {k: v for k, v in enh.meta.items() if not isinstance(v, dict | list)},
         "methods": list(methods), "method_sources": sources,
         "unsharp": {f"order {o}": {"sigma": u[0], "amount": u[1], "source": u[2]}
@@ -666,7 +675,7 @@ def main(argv=None) -> int:
                  "b": "a method's output on a (every method in turn)",
                  "c": "fine-map patches at frames t + stride // 2 (t - stride // 2 past the "
                       "end), origins drawn independently"},
-        "features": "upper triangles of eval_common.gram_matrices on "
+        "features": "upper triangles of evaluation.gram.gram_matrices on "
                     + ", ".join(evaluation.EVAL_LAYERS)
                     + ", each layer divided by its median vector norm over a u c, concatenated",
         "chamfer": "CD(P, Q) = (mean_p min_q |p - q| + mean_q min_p |p - q|) / 2; C1 = CD(a, c), "
@@ -677,7 +686,7 @@ def main(argv=None) -> int:
         "sampling": dataclasses.asdict(sampling), "frames_c": frames_c,
         "sampling_text": sampling_text,
         "config": {"garments": args.garments.split(","), "materials": args.materials.split(","),
-                   "motions": args.motions.split(","), "seed": ec.TEST_SEED,
+                   "motions": args.motions.split(","), "seed": cell_lib.TEST_SEED,
                    "scenes": {c.key: json.loads(c.scene.to_json()) for c in cells}},
         "cells": cells_out, "by_group": by_group, "all": mean_scores(list(records.values())),
         "timings": {
@@ -692,11 +701,11 @@ def main(argv=None) -> int:
                                      / n_all if n_all else None),
             "network_compile_s": net_timings.get("compile_s"),
             "sequences_s": sim_s, "this_run_s": time.perf_counter() - t_all},
-        "machine": ec.machine_info(),
+        "machine": suite.machine_info(),
         "command": "python -m experiments.table2 " + " ".join(
             sys.argv[1:] if argv is None else argv),
     }
-    ec.write_json(out / "results.json", results)
+    suite.write_json(out / "results.json", results)
     table = table_markdown(results)
     (out / "table.md").write_text(table)
     plot_embeddings(out / "embeddings.png", cells, records, ncols=len(results["config"]

@@ -1,4 +1,4 @@
-"""Tests for the evaluation scripts (`experiments.eval_common`, `.table1`, `.table2`, `.temporal`,
+"""Tests for the evaluation scripts (`.table1`, `.table2`, `.temporal`, `.stride`, `.report`,
 `.timing`) on tiny analytic sheets, a tiny VGG and a tiny random enhancer (no simulation, no real
 VGG).
 
@@ -17,7 +17,6 @@ import jax
 import numpy as np
 import pytest
 
-from experiments import eval_common as ec
 from experiments import report, stride, table1, table2, temporal, timing
 from wrinkle_jax import (
     MATERIALS,
@@ -29,7 +28,11 @@ from wrinkle_jax import (
     patches,
     primitives,
 )
+from wrinkle_jax.evaluation import cells as cell_lib
+from wrinkle_jax.evaluation import gram, patchsets, suite
+from wrinkle_jax.evaluation import methods as method_lib
 from wrinkle_jax.nn import vgg
+from wrinkle_jax.sim import scenes
 
 SIZE = (0.3, 0.2)  # sheet, meters
 TEXEL = 0.004
@@ -97,19 +100,19 @@ def test_method_losses_equal_score_patches_and_share_the_input_and_target_passes
                "unsharp": evaluation.unsharp_mask(inp, mask, 2.0, 1.0),
                "oracle": target}
     counter = {}
-    got = ec.method_losses(tiny_vgg, inp, target, mask, outputs, batch_size=2, counter=counter)
+    got = gram.method_losses(tiny_vgg, inp, target, mask, outputs, batch_size=2, counter=counter)
     # 3 batches (2 + 2 + 1 padded): target and input once each, identity reuses the input.
     assert counter["vgg_passes"] == 3 * (2 + 3)
     for name, out in outputs.items():
         ref = evaluation.score_patches(tiny_vgg, inp, out, target, mask, batch_size=2)
-        sc = ec.scores_from_losses(got["input"], got[name])
+        sc = evaluation.scores_from_losses(got["input"], got[name])
         np.testing.assert_allclose(sc["loss_input"], ref["loss_input"], rtol=1e-5)
         np.testing.assert_allclose(sc["loss_output"], ref["loss_output"], rtol=1e-5, atol=1e-12)
         np.testing.assert_allclose(sc["improvement_signed"], ref["improvement_signed"],
                                    rtol=1e-4, atol=1e-3)
         np.testing.assert_array_equal(sc["valid"], ref["valid"])
-    ident = ec.scores_from_losses(got["input"], got["identity"])
-    oracle = ec.scores_from_losses(got["input"], got["oracle"])
+    ident = evaluation.scores_from_losses(got["input"], got["identity"])
+    oracle = evaluation.scores_from_losses(got["input"], got["oracle"])
     assert ident["valid"].all()
     np.testing.assert_array_equal(ident["improvement"], 0.0)
     np.testing.assert_allclose(oracle["improvement_signed"], 100.0, atol=1e-3)
@@ -121,15 +124,15 @@ def test_unsharp_setting_reads_the_sweep_best_or_falls_back(tmp_path):
                                                "sigma=12,amount=1.5": 7.5,
                                                "sigma=8,amount=4": -60.0}}))
     # Keys without "order=" predate the order-1 blur: they are order 0.
-    assert ec.unsharp_setting(p, order=0)[:2] == (12.0, 1.5)
-    assert ec.unsharp_setting(p, order=1)[:2] == ec.DEFAULT_UNSHARP
+    assert method_lib.unsharp_setting(p, order=0)[:2] == (12.0, 1.5)
+    assert method_lib.unsharp_setting(p, order=1)[:2] == method_lib.DEFAULT_UNSHARP
     p.write_text(json.dumps({"unsharp_sweep": {"order=0,sigma=8,amount=1.5": 9.0,
                                                "order=1,sigma=12,amount=1": 8.0,
                                                "order=1,sigma=16,amount=2": 5.0}}))
-    assert ec.unsharp_setting(p, order=0)[:2] == (8.0, 1.5)
-    assert ec.unsharp_setting(p, order=1)[:2] == (12.0, 1.0)
-    assert ec.unsharp_setting(tmp_path / "missing.json")[:2] == ec.DEFAULT_UNSHARP
-    names = list(ec.baseline_methods({0: (8.0, 1.5), 1: (12.0, 1.0)}))
+    assert method_lib.unsharp_setting(p, order=0)[:2] == (8.0, 1.5)
+    assert method_lib.unsharp_setting(p, order=1)[:2] == (12.0, 1.0)
+    assert method_lib.unsharp_setting(tmp_path / "missing.json")[:2] == method_lib.DEFAULT_UNSHARP
+    names = list(method_lib.baseline_methods({0: (8.0, 1.5), 1: (12.0, 1.0)}))
     assert names[1:3] == ["unsharp order 0 (sigma=8,amount=1.5)",
                           "unsharp order 1 (sigma=12,amount=1)"]
 
@@ -154,7 +157,7 @@ def test_coarse_and_fine_maps_share_one_grid_and_their_patches_align_in_uv():
     # Stretch the coarse rest mesh by 1 %: its own layout_for scale would differ.
     coarse = dataclasses.replace(coarse, garment=coarse.garment.replace(
         vertices=np.asarray(coarse.garment.vertices) * 1.01))
-    pair = ec.aligned_pair(fine.garment, coarse.garment, TEXEL)
+    pair = patchsets.aligned_pair(fine.garment, coarse.garment, TEXEL)
     assert pair.fine.layout == pair.coarse.layout == pair.layout
     assert pair.layout.pixels_per_uv == pytest.approx(1.0 / TEXEL)  # the fine (reference) scale
     fm, cm = np.asarray(pair.fine.mask), np.asarray(pair.coarse.mask)
@@ -162,7 +165,7 @@ def test_coarse_and_fine_maps_share_one_grid_and_their_patches_align_in_uv():
     truth = _analytic_normals(pair.layout)
     inside = pair.mask[..., 0] > 0
     for plan, tol in ((pair.fine, 0.5), (pair.coarse, 4.0)):
-        baked = ec.bake_map(plan, fine.frames[0] if plan is pair.fine else coarse.frames[0])
+        baked = patchsets.bake_map(plan, fine.frames[0] if plan is pair.fine else coarse.frames[0])
         assert evaluation.mean_angular_change(baked, truth, pair.mask) < tol
     # The coarse mesh's own layout (scale from its stretched 3D areas) drifts off the grid.
     own = normalmap.make_plan(coarse.garment, texel_size=TEXEL)
@@ -171,32 +174,32 @@ def test_coarse_and_fine_maps_share_one_grid_and_their_patches_align_in_uv():
     # on the fold (the fine map's ripples tilt normals by < 33 degrees).
     size = PATCH
     mask = np.asarray(patches.pad_to_patch(pair.mask, size)[0])
-    origins, cov = ec.candidate_origins(mask, size, size // 2, 0.5)
-    ps = ec.aligned_patches(pair, fine.frames[0], coarse.frames[0], origins, size, 0)
+    origins, cov = patchsets.candidate_origins(mask, size, size // 2, 0.5)
+    ps = patchsets.aligned_patches(pair, fine.frames[0], coarse.frames[0], origins, size, 0)
     assert ps.input.shape == ps.target.shape == (len(origins), size, size, 3)
-    truth_p = ec.cut(np.asarray(patches.pad_to_patch(truth, size)[0]), origins, size)
+    truth_p = patchsets.cut(np.asarray(patches.pad_to_patch(truth, size)[0]), origins, size)
     for k in range(len(origins)):
         assert evaluation.mean_angular_change(ps.input[k] * 2 - 1, truth_p[k], ps.mask[k]) < 4.0
         # The fine map resolves the fold: a patch one texel off would be > 1 degree away.
         assert evaluation.mean_angular_change(ps.target[k] * 2 - 1, truth_p[k], ps.mask[k]) < 0.5
     fine_rgb = np.asarray(patches.pad_to_patch(
-        normalmap.to_rgb(ec.bake_map(pair.fine, fine.frames[0])), size)[0]) * mask
+        normalmap.to_rgb(patchsets.bake_map(pair.fine, fine.frames[0])), size)[0]) * mask
     np.testing.assert_array_equal(ps.target, np.asarray(patches.extract(fine_rgb, origins, size)))
-    np.testing.assert_array_equal(ps.mask, ec.cut(mask, origins, size))
+    np.testing.assert_array_equal(ps.mask, patchsets.cut(mask, origins, size))
     assert inside.any() and not ps.input[ps.mask[..., 0] == 0].any()
 
 
 def test_candidate_origins_are_exactly_the_grid_patches_with_enough_coverage():
     mask = np.zeros((100, 130, 1), np.float32)
     mask[10:70, 20:110] = 1
-    origins, cov = ec.candidate_origins(mask, 32, 16, 0.5)
+    origins, cov = patchsets.candidate_origins(mask, 32, 16, 0.5)
     all_origins = patches.tile(mask, 32, 16)
     brute = np.array([mask[r:r + 32, c:c + 32].mean() for r, c in all_origins])
     np.testing.assert_array_equal(origins, all_origins[brute >= 0.5])
     np.testing.assert_allclose(cov, brute[brute >= 0.5], rtol=1e-6)
-    chosen = ec.choose_origins(origins, 3, (1, 2))
+    chosen = patchsets.choose_origins(origins, 3, (1, 2))
     assert len(chosen) == 3 and {tuple(o) for o in chosen} <= {tuple(o) for o in origins}
-    np.testing.assert_array_equal(chosen, ec.choose_origins(origins, 3, (1, 2)))  # seeded
+    np.testing.assert_array_equal(chosen, patchsets.choose_origins(origins, 3, (1, 2)))  # seeded
 
 
 # --------------------------------------------------------------------------------------------
@@ -212,7 +215,7 @@ def test_evaluate_cell_identity_scores_zero_and_the_target_scores_100(tiny_vgg, 
     fine, coarse = _pair()
     methods = {"identity": lambda p: evaluation.identity(p.input, p.mask),
                "oracle": lambda p: p.target,
-               table1.MODEL: ec.enhancer_method(model, batch_size=2)}
+               table1.MODEL: method_lib.enhancer_method(model, batch_size=2)}
     res = table1.evaluate_cell(fine, coarse, "denim_light", methods, tiny_vgg, SAMPLING)
     np.testing.assert_array_equal(res["frame"], [0, 0, 2, 2])
     assert res["origin"].shape == (4, 2) and (res["coverage"] >= 0.5).all()
@@ -229,12 +232,12 @@ def test_evaluate_cell_identity_scores_zero_and_the_target_scores_100(tiny_vgg, 
 
 def test_model_method_outputs_unit_normals_inside_the_mask_only(model):
     fine, coarse = _pair(1)
-    pair = ec.aligned_pair(fine.garment, coarse.garment, TEXEL)
+    pair = patchsets.aligned_pair(fine.garment, coarse.garment, TEXEL)
     mask = np.asarray(patches.pad_to_patch(pair.mask, PATCH)[0])
-    origins, _ = ec.candidate_origins(mask, PATCH, PATCH // 2, 0.1)
-    ps = ec.aligned_patches(pair, fine.frames[0], coarse.frames[0], origins[:3], PATCH, 4)
+    origins, _ = patchsets.candidate_origins(mask, PATCH, PATCH // 2, 0.1)
+    ps = patchsets.aligned_patches(pair, fine.frames[0], coarse.frames[0], origins[:3], PATCH, 4)
     timings = {}
-    out = ec.enhancer_method(model, batch_size=2, timings=timings)(ps)
+    out = method_lib.enhancer_method(model, batch_size=2, timings=timings)(ps)
     inside = ps.mask[..., 0] > 0
     np.testing.assert_allclose(np.linalg.norm(out[inside] * 2 - 1, axis=-1), 1.0, atol=1e-5)
     assert not out[~inside].any()
@@ -242,7 +245,7 @@ def test_model_method_outputs_unit_normals_inside_the_mask_only(model):
 
 
 def test_run_cells_reuses_by_source_adds_missing_methods_and_upgrades_legacy_files(tmp_path):
-    cells = ec.table_cells(["dress"], ["silk_charmeuse"], ["dance", "walk"])
+    cells = cell_lib.table_cells(["dress"], ["silk_charmeuse"], ["dance", "walk"])
     a, b = cells
     store = {  # a: legacy file with m1 only; b: current file with m1 from another source
         a.key: {"loss": {"m1": 1}, "sources": {"m1": "m1"}, "legacy": True, "timings": {}},
@@ -267,17 +270,17 @@ def test_run_cells_reuses_by_source_adds_missing_methods_and_upgrades_legacy_fil
                   save=lambda p, r, f, src: saved.__setitem__(p.name, (r, src)),
                   evaluate=evaluate, merge=merge, field="loss", units=lambda n: 1, unit="x",
                   log=lambda m: None)
-    got = ec.run_cells(cells, {"m1": None}, None, **common)
+    got = cell_lib.run_cells(cells, {"m1": None}, None, **common)
     assert evaluated == [(b.key, ["m1"])]  # b's m1 came from another source
     assert got[a.key]["loss"] == {"m1": 1} and got[b.key]["loss"] == {"m1": 10}
     name_a = a.key.replace("/", "_")
     assert saved[name_a][1] == {"m1": "m1"}  # the legacy file was rewritten with its sources
     evaluated.clear()
-    got = ec.run_cells(cells, {"m1": None, "m3": None}, {"m1": "m1", "m3": "s3"}, **common)
+    got = cell_lib.run_cells(cells, {"m1": None, "m3": None}, {"m1": "m1", "m3": "s3"}, **common)
     assert (a.key, ["m3"]) in evaluated and got[a.key]["loss"] == {"m1": 1, "m3": 10}
     assert saved[name_a][1] == {"m1": "m1", "m3": "s3"}
     evaluated.clear()
-    ec.run_cells(cells, {"m1": None}, None, **common, fresh=True)
+    cell_lib.run_cells(cells, {"m1": None}, None, **common, fresh=True)
     assert evaluated == [(a.key, ["m1"]), (b.key, ["m1"])]
     # Patches that no longer match the stored ones: every method is evaluated again.
     evaluated.clear()
@@ -285,7 +288,7 @@ def test_run_cells_reuses_by_source_adds_missing_methods_and_upgrades_legacy_fil
     def refuse(old, new, order):
         raise ValueError("different patches")
 
-    ec.run_cells(cells[:1], {"m1": None, "m4": None}, None, **{**common, "merge": refuse})
+    cell_lib.run_cells(cells[:1], {"m1": None, "m4": None}, None, **{**common, "merge": refuse})
     assert evaluated == [(a.key, ["m4"]), (a.key, ["m1", "m4"])]
 
 
@@ -294,14 +297,14 @@ def test_legacy_cell_sources_trust_an_unchanged_model_file_only(tmp_path):
     f.write_bytes(b"weights")
     fp = {"model": str(f), "model_mtime": f.stat().st_mtime}
     src = table1.legacy_sources(fp, ["identity", table1.MODEL, table1.WRONG])
-    digest = ec.file_digest(f)
+    digest = suite.file_digest(f)
     assert digest.startswith("sha256:") and len(digest) == 7 + 16
     assert src == {"identity": "identity", table1.MODEL: f"model {digest}",
                    table1.WRONG: f"model {digest} wrong material"}
     stale = table1.legacy_sources({**fp, "model_mtime": 1.0}, [table1.MODEL])
     assert stale[table1.MODEL] == "unknown model"
-    assert ec.portable_path(ec.ROOT / "data" / "x.npz") == "data/x.npz"
-    assert ec.portable_path(tmp_path / "y") == str((tmp_path / "y").resolve())
+    assert suite.portable_path(suite.ROOT / "data" / "x.npz") == "data/x.npz"
+    assert suite.portable_path(tmp_path / "y") == str((tmp_path / "y").resolve())
 
 
 def test_merge_cell_adds_methods_on_the_same_patches_only():
@@ -320,10 +323,10 @@ def test_merge_cell_adds_methods_on_the_same_patches_only():
 
 def test_wrong_material_swaps_the_table_materials_and_the_method_tells_the_model_so(model):
     silk, denim = material_index("silk_charmeuse"), material_index("denim_light")
-    assert ec.wrong_material(silk) == denim and ec.wrong_material(denim) == silk
-    assert ec.wrong_material(material_index("wool_melton")) == silk
+    assert method_lib.wrong_material(silk) == denim and method_lib.wrong_material(denim) == silk
+    assert method_lib.wrong_material(material_index("wool_melton")) == silk
     with pytest.raises(ValueError):
-        ec.wrong_material(silk, materials=("silk_charmeuse",))
+        method_lib.wrong_material(silk, materials=("silk_charmeuse",))
     # Give every material its own CIN parameters, so the material id changes the output.
     key = jax.random.key(3, impl="rbg")
     leaves, tree = jax.tree_util.tree_flatten(model.params)
@@ -332,12 +335,13 @@ def test_wrong_material_swaps_the_table_materials_and_the_method_tells_the_model
         x + 0.3 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys, strict=True)])
     noisy = model._replace(params=params)
     fine, coarse = _pair(1)
-    pair = ec.aligned_pair(fine.garment, coarse.garment, TEXEL)
+    pair = patchsets.aligned_pair(fine.garment, coarse.garment, TEXEL)
     mask = np.asarray(patches.pad_to_patch(pair.mask, PATCH)[0])
-    origins, _ = ec.candidate_origins(mask, PATCH, PATCH // 2, 0.1)
-    ps = ec.aligned_patches(pair, fine.frames[0], coarse.frames[0], origins[:2], PATCH, silk)
-    wrong = ec.enhancer_method(noisy, batch_size=2, material_of=ec.wrong_material)(ps)
-    right = ec.enhancer_method(noisy, batch_size=2)
+    origins, _ = patchsets.candidate_origins(mask, PATCH, PATCH // 2, 0.1)
+    ps = patchsets.aligned_patches(pair, fine.frames[0], coarse.frames[0], origins[:2], PATCH, silk)
+    wrong = method_lib.enhancer_method(noisy, batch_size=2,
+                                       material_of=method_lib.wrong_material)(ps)
+    right = method_lib.enhancer_method(noisy, batch_size=2)
     np.testing.assert_allclose(wrong, right(dataclasses.replace(ps, material_id=denim)),
                                atol=1e-6)
     assert np.abs(wrong - right(ps)).max() > 1e-3
@@ -357,13 +361,14 @@ def _spy_on_evaluate_cell(monkeypatch, module) -> list:
 
 
 def _write_cell_files(root, garment, motion, material, frames=3):
-    """Tiny fine/coarse sheet files that `eval_common.cell_sequences` accepts for a cell."""
-    sc = ec.scene_for(garment, motion)
-    meta = {"scene_config": sc.to_json(), "material": material, "seed": ec.TEST_SEED}
+    """Tiny fine/coarse sheet files that `evaluation.cells.cell_sequences` accepts for a cell."""
+    sc = cell_lib.scene_for(garment, motion)
+    meta = {"scene_config": sc.to_json(), "material": material, "seed": cell_lib.TEST_SEED}
     fine, coarse = _pair(frames)
     for res, seq in (("fine", fine), ("coarse", coarse)):
         seq = meshio.make_sequence(seq.frames, seq.garment, metadata=meta)
-        meshio.save_sequence(ec.sequence_file(root, sc.name, material, res, ec.TEST_SEED), seq)
+        path = cell_lib.sequence_file(root, sc.name, material, res, cell_lib.TEST_SEED)
+        meshio.save_sequence(path, seq)
 
 
 def test_table1_main_writes_results_and_resumes_from_stored_cells(tmp_path, monkeypatch,
@@ -428,13 +433,13 @@ def test_table1_main_writes_results_and_resumes_from_stored_cells(tmp_path, monk
 
 
 def test_scene_for_reuses_existing_scenes_and_derives_new_ones():
-    assert ec.scene_for("dress", "dance") is ec.scenes.SCENES["dress_dance"]
-    assert ec.scene_for("flared_skirt", "walk") is ec.scenes.SCENES["skirt_walk"]
-    cape = ec.scene_for("cape", "dance")
-    base = ec.scenes.SCENES["cape_walk"]
+    assert cell_lib.scene_for("dress", "dance") is scenes.SCENES["dress_dance"]
+    assert cell_lib.scene_for("flared_skirt", "walk") is scenes.SCENES["skirt_walk"]
+    cape = cell_lib.scene_for("cape", "dance")
+    base = scenes.SCENES["cape_walk"]
     assert cape.name == "cape_dance" and cape.motion == "dance"
     assert (cape.pins, cape.attach_to, cape.preroll_s) == (base.pins, base.attach_to, 2.0)
-    kinds = {c.key: c.kind for c in ec.table_cells()}
+    kinds = {c.key: c.kind for c in cell_lib.table_cells()}
     assert len(kinds) == 12
     assert kinds["skirt_dance/denim_light"] == "seen garment, seen motion"
     assert kinds["skirt_walk/denim_light"] == "seen garment, unseen motion"
@@ -461,7 +466,7 @@ def _rotating_sheet(frames, degrees_per_frame, nx=12, ny=8):
 def test_flicker_of_a_rigid_rotation_is_its_angle_and_of_a_static_map_zero():
     seq = _rotating_sheet(4, 3.0)
     plan = normalmap.make_plan(seq.garment, texel_size=TEXEL)
-    maps = np.stack([ec.bake_map(plan, f) for f in seq.frames])
+    maps = np.stack([patchsets.bake_map(plan, f) for f in seq.frames])
     np.testing.assert_allclose(evaluation.flicker_series(maps, plan.mask), 3.0, atol=1e-3)
     np.testing.assert_allclose(evaluation.flicker_series(maps[[1, 1, 1]], plan.mask), 0.0,
                                atol=1e-4)
@@ -544,7 +549,7 @@ def test_time_simulation_counts_simulated_frames_and_separates_the_first_call(mo
 
     monkeypatch.setattr(timing.scenes, "simulate", fake_simulate)
     monkeypatch.setattr(timing.scenes, "setup_scene", lambda *a, **k: None)
-    _, info = timing.time_simulation(ec.scenes.SCENES["dress_dance"], "silk_charmeuse",
+    _, info = timing.time_simulation(scenes.SCENES["dress_dance"], "silk_charmeuse",
                                      "coarse", frames=70)
     assert calls == [1, 70]
     assert info["simulated_frames"] == 5 + 70 - 1 and len(info["chunk_ms_per_frame"]) == 3
@@ -721,10 +726,10 @@ def test_table2_main_uses_table1_patches_writes_results_and_resumes(tmp_path, mo
     assert "| silk_charmeuse | dance (seen) |" in table and "dress (unseen)" in table
     assert (out / "embeddings.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # Set a is Table 1's patches: same frames and origins.
-    c = ec.Cell("dress", "dance", "silk_charmeuse")
-    fine, coarse = (ec.load_first_frames(ec.sequence_file(seqs, "dress_dance", c.material, r,
-                                                          ec.TEST_SEED), 4)
-                    for r in ("fine", "coarse"))
+    c = cell_lib.Cell("dress", "dance", "silk_charmeuse")
+    fine, coarse = (cell_lib.load_first_frames(
+        cell_lib.sequence_file(seqs, "dress_dance", c.material, r, cell_lib.TEST_SEED), 4)
+        for r in ("fine", "coarse"))
     sampling = table1.Sampling(frames=4, frame_stride=2, patches_per_frame=3, patch_size=PATCH,
                                texel_size=TEXEL, score_batch=3)
     t1 = table1.evaluate_cell(fine, coarse, c.material, {}, tiny_vgg, sampling,
@@ -810,7 +815,7 @@ def test_stride_identity_network_scores_zero_and_leaves_the_coarse_seams(tiny_vg
     res = stride.evaluate_cell(fine, coarse, "denim_light", ident, [8, 16, 24], tiny_vgg,
                                sampling, [0, 2], batch_size=2)
     for name in (stride.PATCH, 8, 16, 24):
-        sc = ec.scores_from_losses(res["loss_input"], res["loss"][name])
+        sc = evaluation.scores_from_losses(res["loss_input"], res["loss"][name])
         np.testing.assert_allclose(sc["improvement_signed"][sc["valid"]], 0.0, atol=1e-3)
     for s in (8, 16, 24):
         assert stride.seam_ratio(res["seams"][s]) == pytest.approx(
@@ -872,7 +877,7 @@ def test_report_assembles_stored_results_and_names_what_is_missing(tmp_path, mon
                         "--out", str(results / "table1")]) == 0
     (results / "timing").mkdir()
     (results / "timing" / "results.json").write_text(
-        (ec.RESULTS / "timing" / "results.json").read_text())  # the committed timing run
+        (suite.RESULTS / "timing" / "results.json").read_text())  # the committed timing run
     out = tmp_path / "REPORT.md"
     assert report.main(["--results", str(results), "--out", str(out)]) == 0
     text = out.read_text()
@@ -891,10 +896,10 @@ def test_report_assembles_stored_results_and_names_what_is_missing(tmp_path, mon
     for name in ("model_card", "sheet_only"):
         (results / name).mkdir()
         (results / name / "results.json").write_text(
-            (ec.RESULTS / "model_card" / "results.json").read_text())
+            (suite.RESULTS / "model_card" / "results.json").read_text())
     assert report.main(["--results", str(results), "--out", str(out)]) == 0
     text = out.read_text()
-    card = json.loads((ec.RESULTS / "model_card" / "results.json").read_text())
+    card = json.loads((suite.RESULTS / "model_card" / "results.json").read_text())
     unseen = card["methods"]["model"]["heldout"]["by_kind"]["unseen garment"]["signed_mean"]
     assert f"| sheet only | {unseen:+.1f} |" in text
     # ... and the headline compares it, and the model with its best baseline, in one line each
@@ -978,7 +983,7 @@ def test_fidelity_summary_and_report_section():
     assert m["new"]["object"]["signed_median"] == pytest.approx(20.0, abs=1e-3)
     assert m["new"]["band_ratio_to_fine"]["16_64mm"] == pytest.approx(0.05 / 0.06)
     assert set(m["new"]["detail"]["cell_medians"]) == {c["cell"] for c in cells}
-    rep = report.Report(ec.RESULTS)
+    rep = report.Report(suite.RESULTS)
     report.fidelity_section(rep, {"unseen garment": got})
     text = "\n".join(rep.lines)
     assert "| new | +70.0 (+70.0) | +30.0 [+30.0, +30.0] |  | +20.0 (+20.0) |" in text

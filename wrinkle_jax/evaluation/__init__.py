@@ -38,11 +38,11 @@ from wrinkle_jax.evaluation.sets import (
     spectral_embedding,
     sq_dists,
 )
-from wrinkle_jax.evaluation.stats import bootstrap_ci, paired_difference, summarize
+from wrinkle_jax.evaluation.stats import bootstrap_ci, paired_difference, series_stats, summarize
 
 __all__ = ["BAND_SIGMAS", "EVAL_LAYERS", "ImprovementScore", "band_rms", "bootstrap_ci",
            "chamfer_distance", "chamfer_from_sq_dists", "checker_rms", "decrease_ratio",
            "detail_triplet", "flicker_series", "identity", "improvement_score",
            "improvement_score_from_losses", "mean_angular_change", "normal_angles",
-           "paired_difference", "resample", "score_patches", "scores_from_losses",
+           "paired_difference", "resample", "score_patches", "scores_from_losses", "series_stats",
            "spectral_embedding", "sq_dists", "summarize", "unsharp_mask"]

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["bootstrap_ci", "paired_difference", "summarize"]
+__all__ = ["bootstrap_ci", "paired_difference", "series_stats", "summarize"]
 
 
 def summarize(scores: dict[str, np.ndarray], groups: np.ndarray | None = None) -> dict:
@@ -67,3 +67,13 @@ def paired_difference(a, b, valid=None, n_boot: int = 2000, seed: int = 0) -> di
             "mean_diff": float(d.mean()),
             "mean_diff_ci": bootstrap_ci(d, np.mean, n_boot, seed=seed),
             "win_rate": float((d > 0).mean())}
+
+
+def series_stats(x: np.ndarray) -> dict:
+    """mean, std, median, p95, max of a 1-D series (JSON-ready floats)."""
+    x = np.asarray(x, np.float64)
+    if not len(x):
+        return {"n": 0}
+    return {"n": int(len(x)), "mean": float(x.mean()), "std": float(x.std()),
+            "median": float(np.median(x)), "p95": float(np.percentile(x, 95)),
+            "max": float(x.max())}

@@ -31,32 +31,13 @@ import jax
 import numpy as np
 
 from wrinkle_jax import MATERIALS, data, enhancer, evaluation
-from wrinkle_jax.evaluation import gram, suite
+from wrinkle_jax.evaluation import cells as cell_lib
+from wrinkle_jax.evaluation import gram, patchsets, suite
+from wrinkle_jax.evaluation import methods as method_lib
 from wrinkle_jax.nn import vgg
 
 ROOT = Path(__file__).resolve().parents[1]
-UNSEEN_GARMENT = {"dress_dance", "cape_walk"}
 SWEEP = [(s, a) for s in (2.0, 4.0, 8.0, 12.0, 16.0, 24.0) for a in (0.5, 1.0, 1.5, 2.0, 3.0)]
-
-
-def take(ds: data.PatchDataset, n: int) -> dict:
-    idx = np.unique(np.linspace(0, len(ds) - 1, min(n, len(ds))).round().astype(int))
-    b = ds.get(idx)
-    b["scene"] = np.array([ds.entries[j]["scene"] for j in ds.sequence_of[idx]])
-    return b
-
-
-def run_model(enh: enhancer.Enhancer, batch: dict, size: int = 16) -> tuple[np.ndarray, float]:
-    """The model's unit-normal outputs on a batch of patches and its ms per patch (compile
-    excluded)."""
-    apply = enhancer.make_apply(enh)
-    n0 = min(size, len(batch["input"]))
-    enhancer.enhance_patches(apply, enh.params, batch["input"][:n0], batch["material"][:n0],
-                             batch["mask"][:n0], size)  # compile outside the timing
-    timings: dict = {}
-    out = enhancer.enhance_patches(apply, enh.params, batch["input"], batch["material"],
-                                   batch["mask"], size, timings)
-    return out, 1e3 * timings["network_s"] / max(len(out), 1)
 
 
 def unsharp_sweep(vgg_params, data_root, n_tune: int, order: int) -> tuple[dict, tuple]:
@@ -104,8 +85,8 @@ def main(argv=None) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
     vgg_params = vgg.load_vgg19()
     enh = enhancer.load_enhancer(args.model)
-    held = take(data.PatchDataset(args.data, "heldout"), args.n)
-    seen = take(data.PatchDataset(args.data, "train"), args.n_seen)
+    held = patchsets.take(data.PatchDataset(args.data, "heldout"), args.n)
+    seen = patchsets.take(data.PatchDataset(args.data, "train"), args.n_seen)
 
     sweep, best = {}, {}
     for order in (0, 1):
@@ -129,10 +110,10 @@ def main(argv=None) -> None:
                "n_seen": len(seen["input"]), "methods": {}}
     for split, batch in (("heldout", held), ("seen", seen)):
         groups = np.array([
-            f"{'unseen garment' if sc in UNSEEN_GARMENT else 'seen garment'}|{sc}|"
+            f"{'unseen garment' if sc in cell_lib.UNSEEN_GARMENT else 'seen garment'}|{sc}|"
             f"{MATERIALS[m]}" for sc, m in zip(batch["scene"], batch["material"], strict=True)])
         outs = {name: fn(batch) for name, fn in methods.items()}
-        outs["model"], ms = run_model(enh, batch)
+        outs["model"], ms = method_lib.run_model(enh, batch)
         # The input's and target's Gram matrices are shared by all methods (same numbers as
         # evaluation.score_patches; tests/test_eval_experiments.py checks it).
         losses = gram.method_losses(vgg_params, batch["input"], batch["target"],

@@ -38,9 +38,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import model_card
 from wrinkle_jax import MATERIALS, data, enhancer, evaluation
-from wrinkle_jax.evaluation import gram, suite
+from wrinkle_jax.evaluation import cells as cell_lib
+from wrinkle_jax.evaluation import gram, patchsets, suite
 from wrinkle_jax.evaluation import methods as method_lib
 from wrinkle_jax.fileio import atomic_write_bytes, atomic_write_text
 from wrinkle_jax.nn import patchgan, vgg
@@ -168,7 +168,7 @@ def plot_curves(metrics_path: Path, out_png: Path) -> None:
 
 def score(vgg_params, batch: dict, outs: dict[str, np.ndarray]) -> dict:
     """Per method: summaries overall, by kind (seen/unseen garment), scene and material."""
-    kind = np.array(["unseen garment" if s in model_card.UNSEEN_GARMENT else "seen garment"
+    kind = np.array(["unseen garment" if s in cell_lib.UNSEEN_GARMENT else "seen garment"
                      for s in batch["scene"]])
     mat = np.array([MATERIALS[m] for m in batch["material"]])
     losses = gram.method_losses(vgg_params, batch["input"], batch["target"], batch["mask"], outs)
@@ -251,15 +251,15 @@ def main(argv=None) -> int:
     plot_curves(run / "metrics.jsonl", out / "loss_curve.png")
     sigma, amount, src = method_lib.unsharp_setting(order=1)
     vgg_params = vgg.load_vgg19()
-    held = model_card.take(data.PatchDataset(args.data, "heldout"), args.n)
-    seen = model_card.take(ds, args.n_seen)
+    held = patchsets.take(data.PatchDataset(args.data, "heldout"), args.n)
+    seen = patchsets.take(ds, args.n_seen)
     scores, ms = {}, {}
     for split, batch in (("heldout", held), ("seen", seen)):
         outs = {"identity": evaluation.identity(batch["input"], batch["mask"]),
                 f"unsharp order 1 (sigma={sigma:g},amount={amount:g})":
                     evaluation.unsharp_mask(batch["input"], batch["mask"], sigma, amount, 1)}
-        outs["model"], ms["model"] = model_card.run_model(model, batch)
-        outs[GAN], ms[GAN] = model_card.run_model(
+        outs["model"], ms["model"] = method_lib.run_model(model, batch)
+        outs[GAN], ms[GAN] = method_lib.run_model(
             gan, {**batch, "material": np.zeros_like(batch["material"])})
         for name, r in score(vgg_params, batch, outs).items():
             scores.setdefault(name, {})[split] = r

@@ -42,69 +42,19 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments import table1
 from wrinkle_jax import enhancer as enhancer_lib
 from wrinkle_jax import evaluation, material_index, normalmap, patches, pipeline
 from wrinkle_jax.evaluation import cells as cell_lib
-from wrinkle_jax.evaluation import gram, patchsets, suite
+from wrinkle_jax.evaluation import gram, patchscores, patchsets, suite
 from wrinkle_jax.evaluation import methods as method_lib
+from wrinkle_jax.evaluation import seams as seam_lib
 from wrinkle_jax.nn import vgg
 
 PATCH = "patch"
 
 
-def neighbour_angles(normals: np.ndarray, mask: np.ndarray, axis: int):
-    """Angles (degrees) between unit normals of neighbouring texels along `axis`.
-
-    Args:
-      normals: (H, W, 3) unit normals; mask: (H, W) bool garment texels.
-      axis: 0 (texel (r, c) vs (r + 1, c)) or 1 ((r, c) vs (r, c + 1)).
-    Returns:
-      (angles, valid), both shaped like the map shortened by one along `axis`; valid where
-      both texels are garment.
-    """
-    a = np.take(normals, np.arange(normals.shape[axis] - 1), axis=axis)
-    b = np.take(normals, np.arange(1, normals.shape[axis]), axis=axis)
-    ma = np.take(mask, np.arange(mask.shape[axis] - 1), axis=axis)
-    mb = np.take(mask, np.arange(1, mask.shape[axis]), axis=axis)
-    return evaluation.normal_angles(a, b), ma & mb
-
-
-def border_pairs(origins: np.ndarray, size: int, length: int, axis: int) -> np.ndarray:
-    """(length - 1,) bool: neighbour pair (x - 1, x) crosses a tile border along `axis`, i.e. a
-    tile starts at x or ends at x - 1 (origins (P, 2) (row, col))."""
-    starts = np.asarray(origins)[:, axis]
-    edges = np.concatenate([starts, starts + size])  # x where a tile starts or one ends
-    out = np.zeros(length - 1, bool)
-    edges = edges[(edges >= 1) & (edges <= length - 1)]
-    out[edges - 1] = True
-    return out
-
-
-def seam_sums(normals: np.ndarray, mask: np.ndarray, origins: np.ndarray, size: int
-              ) -> np.ndarray:
-    """[sum of border angles, border pairs, sum of other angles, other pairs] over both axes
-    (add over frames, then `seam_ratio`)."""
-    out = np.zeros(4)
-    for axis in (0, 1):
-        ang, valid = neighbour_angles(normals, mask, axis)
-        border = border_pairs(origins, size, normals.shape[axis], axis)
-        border = border[:, None] if axis == 0 else border[None, :]
-        on, off = valid & border, valid & ~border
-        out += [ang[on].sum(), on.sum(), ang[off].sum(), off.sum()]
-    return out
-
-
-def seam_ratio(sums: np.ndarray) -> float:
-    """Mean border angle / mean other angle (nan without border or other pairs)."""
-    s_on, n_on, s_off, n_off = sums
-    if n_on == 0 or n_off == 0 or s_off == 0:
-        return float("nan")
-    return float((s_on / n_on) / (s_off / n_off))
-
-
 def evaluate_cell(fine, coarse, material: str, enh: enhancer_lib.Enhancer, strides, vgg_params,
-                  sampling: table1.Sampling, frames: list[int], cell_seed=(0,),
+                  sampling: patchscores.Sampling, frames: list[int], cell_seed=(0,),
                   batch_size: int = 8) -> dict:
     """Scores, seam sums and timings of every stride (and the patch-level model) on one cell.
 
@@ -151,8 +101,8 @@ def evaluate_cell(fine, coarse, material: str, enh: enhancer_lib.Enhancer, strid
             rgb = normalmap.to_rgb(patches.pad_to_patch(maps[s][t], size)[0])
             outs[s] = patchsets.cut(np.asarray(rgb), sel, size) * ps.mask
             org = pipes[s].origins
-            seams[s] += seam_sums(maps[s][t], coarse_mask, org, size)
-            seams_coarse[s] += seam_sums(base, coarse_mask, org, size)
+            seams[s] += seam_lib.seam_sums(maps[s][t], coarse_mask, org, size)
+            seams_coarse[s] += seam_lib.seam_sums(base, coarse_mask, org, size)
         got = gram.method_losses(vgg_params, ps.input, ps.target, ps.mask, outs,
                                  batch_size=sampling.score_batch)
         loss_in.append(got["input"])
@@ -172,7 +122,7 @@ def summarize(results: dict[str, dict], strides) -> dict:
     for name in (PATCH, *strides):
         sc = evaluation.scores_from_losses(loss_in, np.concatenate([r["loss"][name]
                                                                     for r in results.values()]))
-        row = {"score": table1.summary(sc)}
+        row = {"score": patchscores.summary(sc)}
         if name != PATCH:
             n_frames = sum(len(r["frames"]) for r in results.values())
             stages = {}
@@ -185,9 +135,9 @@ def summarize(results: dict[str, dict], strides) -> dict:
                 ms_tile_network_merge=sum(ms.get(k, 0.0) for k in ("tile", "network", "merge")),
                 patches_per_frame=float(np.mean([r["patches_per_frame"][name]
                                                  for r in results.values()])),
-                seam_ratio=seam_ratio(sum(r["seams"][name] for r in results.values())),
-                seam_ratio_coarse=seam_ratio(sum(r["seams_coarse"][name]
-                                                 for r in results.values())))
+                seam_ratio=seam_lib.seam_ratio(sum(r["seams"][name] for r in results.values())),
+                seam_ratio_coarse=seam_lib.seam_ratio(sum(r["seams_coarse"][name]
+                                                          for r in results.values())))
         out[str(name)] = row
     return out
 
@@ -263,7 +213,7 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
-    sampling = table1.Sampling(frames=args.frames, frame_stride=args.frame_stride,
+    sampling = patchscores.Sampling(frames=args.frames, frame_stride=args.frame_stride,
                                patches_per_frame=args.patches_per_frame, patch_size=size,
                                texel_size=enh.config.texel_size,
                                score_batch=min(args.patches_per_frame, 16))

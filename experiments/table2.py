@@ -67,144 +67,25 @@ import io
 import json
 import sys
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
 
-from experiments import table1
 from wrinkle_jax import evaluation, material_index, patches
 from wrinkle_jax.evaluation import cells as cell_lib
-from wrinkle_jax.evaluation import (
-    chamfer_distance,
-    chamfer_from_sq_dists,
-    decrease_ratio,
-    gram,
-    patchsets,
-    sq_dists,
-    suite,
-)
+from wrinkle_jax.evaluation import gram, patchscores, patchsets, suite
+from wrinkle_jax.evaluation import sets as set_lib
 from wrinkle_jax.fileio import atomic_write_bytes
 from wrinkle_jax.nn import vgg
 
-MODEL = table1.MODEL
-SET_A, SET_B, SET_C = 0, 1, 2  # labels: coarse input, a method's output, fine (other frames)
+MODEL = patchscores.MODEL
 SPACES = ("embedded", "full")
 GROUPS = ("seen garment", "unseen garment")
 # Stored cells hold derived numbers: change this text whenever the features, the distances or
 # the embedding change, so that a rerun recomputes instead of reusing them.
 METRIC = ("v1: upper-triangle Grams on EVAL_LAYERS / median layer norm over a+c; symmetric "
           "mean nearest-neighbour Chamfer; 2D spectral embedding at unit RMS; c at t + k//2")
-
-
-# --------------------------------------------------------------------------------------------
-# Features, distances, Chamfer distance
-# --------------------------------------------------------------------------------------------
-
-
-def upper_triangle(grams: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Flatten every layer's symmetric Gram matrices to their upper triangles.
-
-    Args:
-      grams: layer -> (N, C_l, C_l).
-    Returns:
-      layer -> (N, C_l (C_l + 1) / 2) float32, the row-major upper triangle with the diagonal
-      (same key order).
-    """
-    out = {}
-    for name, g in grams.items():
-        g = np.asarray(g)
-        if g.ndim != 3 or g.shape[1] != g.shape[2]:
-            raise ValueError(f"{name}: expected (N, C, C) Gram matrices, got shape {g.shape}")
-        rows, cols = np.triu_indices(g.shape[1])
-        out[name] = np.ascontiguousarray(g[:, rows, cols], dtype=np.float32)
-    return out
-
-
-def layer_scales(flat: Mapping[str, np.ndarray]) -> dict[str, float]:
-    """Per layer, the median Euclidean norm of its (N, D_l) feature vectors: the divisor that
-    gives the layer a median norm of 1 (1.0 where that median is 0 or not finite)."""
-    out = {}
-    for name, x in flat.items():
-        med = float(np.median(np.linalg.norm(np.asarray(x, np.float64), axis=1)))
-        out[name] = med if med > 0.0 and np.isfinite(med) else 1.0
-    return out
-
-
-def scaled_features(flat: Mapping[str, np.ndarray], scales: Mapping[str, float]) -> np.ndarray:
-    """The layers' (N, D_l) blocks, each divided by its scale, concatenated in key order:
-    (N, sum_l D_l) float64."""
-    return np.concatenate([np.asarray(x, np.float64) / scales[k] for k, x in flat.items()],
-                          axis=1)
-
-
-def scaled_sq_dists(fx: Mapping[str, np.ndarray], fy: Mapping[str, np.ndarray] | None,
-                    scales: Mapping[str, float]) -> np.ndarray:
-    """`sq_dists(scaled_features(fx), scaled_features(fy))`, one layer at a time (no
-    concatenated float64 copies); fy None: fx with itself."""
-    if fy is not None and set(fx) != set(fy):
-        raise ValueError(f"different layers: {sorted(fx)} and {sorted(fy)}")
-    return sum(sq_dists(fx[k], None if fy is None else fy[k]) / scales[k] ** 2 for k in fx)
-
-
-def chamfer_scores(c1: float, c2: float) -> dict:
-    """{"c1", "c2", "dr" (paper's |.|), "dr_signed"} as floats."""
-    return {"c1": float(c1), "c2": float(c2), "dr": decrease_ratio(c1, c2),
-            "dr_signed": decrease_ratio(c1, c2, signed=True)}
-
-
-def points_from_sq_dists(d2) -> np.ndarray:
-    """A Euclidean realization of a squared-distance matrix (classical MDS).
-
-    Args:
-      d2: (n, n) squared Euclidean distances between n points (symmetric, zero diagonal).
-    Returns:
-      (n, k) float64 points whose pairwise squared distances are d2 up to rounding (k: the
-      number of eigenvalues of -J d2 J / 2 above 1e-12 of the largest; J the centering).
-    """
-    d2 = np.asarray(d2, np.float64)
-    n = len(d2)
-    centering = np.eye(n) - 1.0 / n
-    b = -0.5 * centering @ d2 @ centering
-    vals, vecs = np.linalg.eigh(0.5 * (b + b.T))
-    if not vals[-1] > 0.0:
-        return np.zeros((n, 1))
-    keep = vals > 1e-12 * vals[-1]
-    return vecs[:, keep] * np.sqrt(vals[keep])
-
-
-def unit_rms(points) -> np.ndarray:
-    """(n, d) points centered and scaled to unit root-mean-square distance from their centroid
-    (float64; only centered when they all coincide)."""
-    p = np.asarray(points, np.float64)
-    p = p - p.mean(axis=0)
-    rms = float(np.sqrt((p * p).sum(axis=1).mean()))
-    return p / rms if rms > 0.0 else p
-
-
-def compare_sets(d2, labels) -> dict:
-    """C1 = CD(a, c), C2 = CD(b, c) and DR of one method in one cell, embedded and in full space.
-
-    Args:
-      d2: (n, n) squared feature distances of the union of the sets a, b and c (any order).
-      labels: (n,) int, `SET_A`, `SET_B` or `SET_C` per row of d2.
-    Returns:
-      {"embedded": chamfer_scores(...) in the unit-RMS 2D spectral embedding of the union,
-       "full": chamfer_scores(...) from d2 itself, "embedding": (n, 2) float64}.
-    """
-    d2 = np.asarray(d2, np.float64)
-    labels = np.asarray(labels)
-    if d2.shape != (len(labels), len(labels)):
-        raise ValueError(f"{d2.shape} distances for {len(labels)} labels")
-    a, b, c = (labels == s for s in (SET_A, SET_B, SET_C))
-    if not (a.any() and b.any() and c.any()):
-        raise ValueError("each of the sets a, b and c needs at least one point")
-    emb = unit_rms(evaluation.spectral_embedding(points_from_sq_dists(d2), dim=2))
-    return {"embedded": chamfer_scores(chamfer_distance(emb[a], emb[c]),
-                                       chamfer_distance(emb[b], emb[c])),
-            "full": chamfer_scores(chamfer_from_sq_dists(d2[np.ix_(a, c)]),
-                                   chamfer_from_sq_dists(d2[np.ix_(b, c)])),
-            "embedding": emb}
 
 
 # --------------------------------------------------------------------------------------------
@@ -233,27 +114,8 @@ def c_frame_indices(frame_indices: Iterable[int], frames: int, frame_stride: int
     return out
 
 
-def set_features(vgg_params, images, mask, batch_size: int, counter: dict | None = None
-                 ) -> dict[str, np.ndarray]:
-    """Upper triangles of the normalized masked Grams (`evaluation.gram.gram_matrices` on
-    `evaluation.EVAL_LAYERS`) of (N, S, S, 3) RGB-form images with (N, S, S, 1) masks:
-    layer -> (N, C_l (C_l + 1) / 2) float32. Fixed batch shape (the last batch padded);
-    counter["vgg_passes"] accumulates batches."""
-    counter = {} if counter is None else counter
-    parts: dict[str, list] = {}
-    n = len(images)
-    for s in range(0, n, batch_size):
-        k = min(batch_size, n - s)
-        idx = np.resize(np.arange(s, s + k), batch_size)
-        grams = gram.gram_matrices(vgg_params, np.asarray(images)[idx], np.asarray(mask)[idx])
-        counter["vgg_passes"] = counter.get("vgg_passes", 0) + 1
-        for name, v in upper_triangle({kk: np.asarray(g)[:k] for kk, g in grams.items()}).items():
-            parts.setdefault(name, []).append(v)
-    return {name: np.concatenate(v) for name, v in parts.items()}
-
-
 def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg_params,
-                  sampling: table1.Sampling, cell_seed=(0,),
+                  sampling: patchscores.Sampling, cell_seed=(0,),
                   progress: Callable[[int, str], None] | None = None) -> dict:
     """Sets a, c and every method's b of one fine/coarse sequence pair, and their distances.
 
@@ -263,7 +125,7 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
       material: material name (to the model through `PatchSet.material_id`).
       methods: name -> (PatchSet) -> (K, S, S, 3) RGB-form outputs (the b sets).
       vgg_params: `vgg.load_vgg19()` (or a small VGG in tests).
-      sampling: `table1.Sampling` (a's frames and origins are exactly Table 1's).
+      sampling: `evaluation.patchscores.Sampling` (a's frames and origins are exactly Table 1's).
       cell_seed: extra seed entropy for the patch draws (`evaluation.cells.Cell.patch_seed`).
       progress: called with (patches, what) after each set's features.
     Returns:
@@ -306,7 +168,7 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
 
     def features(images, m, what):
         t0 = time.perf_counter()
-        f = set_features(vgg_params, images, m, sampling.score_batch, counter)
+        f = gram.set_features(vgg_params, images, m, sampling.score_batch, counter)
         timings["features_s"] += time.perf_counter() - t0
         if progress is not None:
             progress(len(images), what)
@@ -315,9 +177,9 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
     # 2. a u c: features, layer scales, distances.
     ref = features(np.concatenate([inp, *(p.target for p in sets_c)]),
                    np.concatenate([mask_ab, *(p.mask for p in sets_c)]), "a + c")
-    scales = layer_scales(ref)
+    scales = set_lib.layer_scales(ref)
     t0 = time.perf_counter()
-    d2_ref = scaled_sq_dists(ref, None, scales)
+    d2_ref = set_lib.scaled_sq_dists(ref, None, scales)
     timings["distances_s"] += time.perf_counter() - t0
     # 3. Each method's b: features (identity reuses a's), distances to a, c and itself.
     d2_method = {}
@@ -332,8 +194,8 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
             continue
         f_b = features(out, mask_ab, name)
         t0 = time.perf_counter()
-        d2_method[name] = np.concatenate([scaled_sq_dists(f_b, ref, scales),
-                                          scaled_sq_dists(f_b, None, scales)], axis=1)
+        d2_method[name] = np.concatenate([set_lib.scaled_sq_dists(f_b, ref, scales),
+                                          set_lib.scaled_sq_dists(f_b, None, scales)], axis=1)
         timings["distances_s"] += time.perf_counter() - t0
         del f_b
     timings["vgg_passes"] = counter.get("vgg_passes", 0)
@@ -347,22 +209,6 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
             "n_candidates": int(len(cand)), "timings": timings}
 
 
-def union_sq_dists(d2_ref: np.ndarray, d2_b: np.ndarray, n_a: int
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """The squared distances of a u b u c (rows in that order) and their labels, from
-    `evaluate_cell`'s a-then-c block and one method's b block."""
-    n_c, n_b = len(d2_ref) - n_a, len(d2_b)
-    if d2_b.shape != (n_b, n_a + n_c + n_b):
-        raise ValueError(f"b block {d2_b.shape} does not match {n_a} a and {n_c} c points")
-    a, b, c = slice(0, n_a), slice(n_a, n_a + n_b), slice(n_a + n_b, n_a + n_b + n_c)
-    d2 = np.empty((n_a + n_b + n_c,) * 2)
-    d2[a, a], d2[a, c] = d2_ref[:n_a, :n_a], d2_ref[:n_a, n_a:]
-    d2[c, a], d2[c, c] = d2_ref[n_a:, :n_a], d2_ref[n_a:, n_a:]
-    d2[b, a], d2[b, c], d2[b, b] = d2_b[:, :n_a], d2_b[:, n_a:n_a + n_c], d2_b[:, n_a + n_c:]
-    d2[a, b], d2[c, b] = d2[b, a].T, d2[b, c].T
-    return d2, np.repeat([SET_A, SET_B, SET_C], [n_a, n_b, n_c])
-
-
 def cell_record(res: dict) -> dict:
     """What is kept of an evaluated cell: sampling, scales, timings and per method
     `compare_sets` (embedding as float32), without the distance matrices."""
@@ -370,7 +216,7 @@ def cell_record(res: dict) -> dict:
     methods = {}
     t0 = time.perf_counter()
     for name, blk in res["d2_method"].items():
-        got = compare_sets(*union_sq_dists(res["d2_ref"], blk, n_a))
+        got = set_lib.compare_sets(*set_lib.union_sq_dists(res["d2_ref"], blk, n_a))
         got["embedding"] = got["embedding"].astype(np.float32)
         methods[name] = got
     timings = dict(res["timings"], compare_s=time.perf_counter() - t0)
@@ -411,14 +257,14 @@ def save_cell(path: Path, record: dict, fingerprint: dict, sources: dict[str, st
 
 def load_cell(path: Path, fingerprint: dict) -> dict | None:
     """A stored cell record if it exists and its sets a and c are this fingerprint's, else None
-    (with "sources" and "legacy" as `table1.load_cell`)."""
+    (with "sources" and "legacy" as `evaluation.patchscores.load_cell`)."""
     if not path.exists():
         return None
     try:
         with np.load(path, allow_pickle=False) as z:
             meta = json.loads(str(z["meta"]))
-            if (table1.cell_part(meta["fingerprint"], CELL_KEYS)
-                    != table1.cell_part(fingerprint, CELL_KEYS)):
+            if (patchscores.cell_part(meta["fingerprint"], CELL_KEYS)
+                    != patchscores.cell_part(fingerprint, CELL_KEYS)):
                 return None
             names = z["methods"].tolist()
             legacy = "sources" not in meta
@@ -428,7 +274,7 @@ def load_cell(path: Path, fingerprint: dict) -> dict | None:
                     "origin_c": z["origin_c"], "scales": meta["scales"],
                     "n_candidates": meta["n_candidates"], "timings": meta["timings"],
                     "methods": methods, "legacy": legacy,
-                    "sources": (table1.legacy_sources(meta["fingerprint"], names) if legacy
+                    "sources": (patchscores.legacy_sources(meta["fingerprint"], names) if legacy
                                 else meta["sources"])}
     except (OSError, KeyError, ValueError):
         return None
@@ -565,13 +411,15 @@ def plot_embeddings(path: Path, cells: list[cell_lib.Cell], records: dict[str, d
 
 
 def run(cells: list[cell_lib.Cell], sequences: dict, methods: dict, vgg_params,
-        sampling: table1.Sampling, out: Path, fingerprint_of: Callable[[cell_lib.Cell], dict],
+        sampling: patchscores.Sampling, out: Path,
+        fingerprint_of: Callable[[cell_lib.Cell], dict],
         fresh: bool = False, log: Callable[[str], None] = print,
         sources: dict[str, str] | None = None) -> dict[str, dict]:
     """Evaluate (or reload from `<out>/cells/`) every cell, printing progress and an ETA.
 
-    As `table1.run`, stored cells are reused method by method (`evaluation.cells.run_cells`); a new
-    method costs the features of a and c again (2 VGG passes per location) plus its own b.
+    As `evaluation.patchscores.run`, stored cells are reused method by method
+    (`evaluation.cells.run_cells`); a new method costs the features of a and c again (2 VGG
+    passes per location) plus its own b.
 
     Returns:
       cell key -> `cell_record` restricted to `methods` (timings also hold "cell_s").
@@ -598,7 +446,7 @@ def run(cells: list[cell_lib.Cell], sequences: dict, methods: dict, vgg_params,
 
 def main(argv=None) -> int:
     ap = suite.script_parser(__doc__)
-    table1.add_cell_args(ap, suite.RESULTS / "table2", frame_stride_help=(
+    patchscores.add_cell_args(ap, suite.RESULTS / "table2", frame_stride_help=(
         "set a uses every k-th frame, set c the frames midway between (k >= 2)"))
     args = ap.parse_args(argv)
     out = Path(args.out)
@@ -611,7 +459,7 @@ def main(argv=None) -> int:
                                    args.frame_stride)
     except ValueError as e:
         ap.error(str(e))
-    st = table1.setup_from_args(ap, args, min_frame_stride=2)
+    st = patchscores.setup_from_args(ap, args, min_frame_stride=2)
     enh, sampling, cells, sequences, methods = (st.enh, st.sampling, st.cells, st.sequences,
                                                  st.methods)
     sources, unsharp, unsharp_src, net_timings = (st.sources, st.unsharp, st.unsharp_text,
@@ -656,12 +504,12 @@ def main(argv=None) -> int:
     sampling_text = (
         f"Sampling: first {sampling.frames} frames of each sequence (seed {cell_lib.TEST_SEED}). "
         f"(a) coarse simulation (PD 30 mm) at Table 1's frames "
-        f"{table1._frames_text(sampling.frame_indices)} and patches: "
+        f"{patchscores.frames_text(sampling.frame_indices)} and patches: "
         f"{sampling.patches_per_frame} random {sampling.patch_size}x{sampling.patch_size} "
         f"patches per frame ({sampling.texel_size * 1e3:g} mm texels) among the grid patches "
         f"with >= {sampling.min_coverage:.0%} of texels covered by both meshes. (b) each "
         f"method's output on (a). (c) fine simulation (PD 10 mm) at the non-corresponding "
-        f"frames {table1._frames_text(frames_c)}, as many patches per frame, drawn "
+        f"frames {patchscores.frames_text(frames_c)}, as many patches per frame, drawn "
         f"independently. Features: upper-triangle normalized Gram matrices on "
         f"{', '.join(evaluation.EVAL_LAYERS)}, each layer divided by its median norm over a "
         f"and c. Unsharp: {unsharp_src}.")

@@ -29,8 +29,11 @@ from wrinkle_jax import (
     primitives,
 )
 from wrinkle_jax.evaluation import cells as cell_lib
-from wrinkle_jax.evaluation import gram, patchsets, suite
+from wrinkle_jax.evaluation import gram, patchscores, patchsets, suite
 from wrinkle_jax.evaluation import methods as method_lib
+from wrinkle_jax.evaluation import seams as seam_lib
+from wrinkle_jax.evaluation import sets as set_lib
+from wrinkle_jax.evaluation import temporal as temporal_lib
 from wrinkle_jax.nn import vgg
 from wrinkle_jax.sim import scenes
 
@@ -207,7 +210,7 @@ def test_candidate_origins_are_exactly_the_grid_patches_with_enough_coverage():
 # --------------------------------------------------------------------------------------------
 
 
-SAMPLING = table1.Sampling(frames=3, frame_stride=2, patches_per_frame=2, patch_size=PATCH,
+SAMPLING = patchscores.Sampling(frames=3, frame_stride=2, patches_per_frame=2, patch_size=PATCH,
                            texel_size=TEXEL, min_coverage=0.5, score_batch=2)
 
 
@@ -215,18 +218,18 @@ def test_evaluate_cell_identity_scores_zero_and_the_target_scores_100(tiny_vgg, 
     fine, coarse = _pair()
     methods = {"identity": lambda p: evaluation.identity(p.input, p.mask),
                "oracle": lambda p: p.target,
-               table1.MODEL: method_lib.enhancer_method(model, batch_size=2)}
-    res = table1.evaluate_cell(fine, coarse, "denim_light", methods, tiny_vgg, SAMPLING)
+               patchscores.MODEL: method_lib.enhancer_method(model, batch_size=2)}
+    res = patchscores.evaluate_cell(fine, coarse, "denim_light", methods, tiny_vgg, SAMPLING)
     np.testing.assert_array_equal(res["frame"], [0, 0, 2, 2])
     assert res["origin"].shape == (4, 2) and (res["coverage"] >= 0.5).all()
     assert res["timings"]["vgg_passes"] == 2 * (2 + 2)  # 2 frames x (input, target, 2 outputs)
-    sc = table1.cell_scores(res)
+    sc = patchscores.cell_scores(res)
     assert sc["identity"]["valid"].all()
     np.testing.assert_array_equal(sc["identity"]["improvement"], 0.0)
     np.testing.assert_allclose(sc["oracle"]["improvement_signed"], 100.0, atol=1e-3)
-    assert np.isfinite(sc[table1.MODEL]["improvement_signed"]).all()
-    assert np.abs(sc[table1.MODEL]["improvement_signed"]).max() > 0  # the random net acts
-    s = table1.summary(sc["oracle"])
+    assert np.isfinite(sc[patchscores.MODEL]["improvement_signed"]).all()
+    assert np.abs(sc[patchscores.MODEL]["improvement_signed"]).max() > 0  # the random net acts
+    s = patchscores.summary(sc["oracle"])
     assert s["n"] == 4 and s["signed_mean"] == pytest.approx(100.0, abs=1e-3)
 
 
@@ -296,13 +299,13 @@ def test_legacy_cell_sources_trust_an_unchanged_model_file_only(tmp_path):
     f = tmp_path / "m.npz"
     f.write_bytes(b"weights")
     fp = {"model": str(f), "model_mtime": f.stat().st_mtime}
-    src = table1.legacy_sources(fp, ["identity", table1.MODEL, table1.WRONG])
+    src = patchscores.legacy_sources(fp, ["identity", patchscores.MODEL, patchscores.WRONG])
     digest = suite.file_digest(f)
     assert digest.startswith("sha256:") and len(digest) == 7 + 16
-    assert src == {"identity": "identity", table1.MODEL: f"model {digest}",
-                   table1.WRONG: f"model {digest} wrong material"}
-    stale = table1.legacy_sources({**fp, "model_mtime": 1.0}, [table1.MODEL])
-    assert stale[table1.MODEL] == "unknown model"
+    assert src == {"identity": "identity", patchscores.MODEL: f"model {digest}",
+                   patchscores.WRONG: f"model {digest} wrong material"}
+    stale = patchscores.legacy_sources({**fp, "model_mtime": 1.0}, [patchscores.MODEL])
+    assert stale[patchscores.MODEL] == "unknown model"
     assert suite.portable_path(suite.ROOT / "data" / "x.npz") == "data/x.npz"
     assert suite.portable_path(tmp_path / "y") == str((tmp_path / "y").resolve())
 
@@ -313,12 +316,12 @@ def test_merge_cell_adds_methods_on_the_same_patches_only():
             "timings": {"methods_s": {"a": 1.0}, "score_s": 2.0, "vgg_passes": 3}}
     new = {**base, "loss": {"b": np.array([0.1, 0.2])},
            "timings": {"methods_s": {"b": 0.5}, "score_s": 1.0, "vgg_passes": 2}}
-    got = table1.merge_cell(base, new, ["b", "a"])
+    got = patchscores.merge_cell(base, new, ["b", "a"])
     assert list(got["loss"]) == ["b", "a"] and got["timings"]["vgg_passes"] == 5
     with pytest.raises(ValueError):
-        table1.merge_cell(base, {**new, "loss_input": np.array([1.0, 2.5])}, ["a", "b"])
+        patchscores.merge_cell(base, {**new, "loss_input": np.array([1.0, 2.5])}, ["a", "b"])
     with pytest.raises(ValueError):
-        table1.merge_cell(base, {**new, "origin": np.array([[0, 0], [4, 8]])}, ["a", "b"])
+        patchscores.merge_cell(base, {**new, "origin": np.array([[0, 0], [4, 8]])}, ["a", "b"])
 
 
 def test_wrong_material_swaps_the_table_materials_and_the_method_tells_the_model_so(model):
@@ -391,8 +394,8 @@ def test_table1_main_writes_results_and_resumes_from_stored_cells(tmp_path, monk
                 "machine"):
         assert key in res
     assert set(res["machine"]) >= {"platform", "cpu_count", "jax"}
-    assert res["methods"][0] == "identity" and res["methods"][-2:] == [table1.MODEL,
-                                                                          table1.WRONG]
+    assert res["methods"][0] == "identity" and res["methods"][-2:] == [patchscores.MODEL,
+                                                                          patchscores.WRONG]
     assert set(res["cells"]) == {"dress_dance/silk_charmeuse", "dress_walk/silk_charmeuse"}
     cell = res["cells"]["dress_walk/silk_charmeuse"]
     assert cell["scene"] == "dress_walk" and cell["kind"] == "unseen garment"
@@ -407,7 +410,7 @@ def test_table1_main_writes_results_and_resumes_from_stored_cells(tmp_path, monk
     with np.load(out / "scores.npz") as z:
         assert z["dress_walk__silk_charmeuse/identity/improvement_signed"].shape == (4,)
     # A rerun with the same settings reuses the stored cells; other settings rescore.
-    monkeypatch.setattr(table1, "evaluate_cell", lambda *a, **k: pytest.fail("rescored"))
+    monkeypatch.setattr(patchscores, "evaluate_cell", lambda *a, **k: pytest.fail("rescored"))
     assert table1.main(argv) == 0
     assert json.loads((out / "results.json").read_text())["all"] == res["all"]
     with pytest.raises(pytest.fail.Exception):
@@ -415,7 +418,7 @@ def test_table1_main_writes_results_and_resumes_from_stored_cells(tmp_path, monk
     # An extra model is scored alone on the stored patches; the other methods are reused.
     monkeypatch.undo()
     monkeypatch.setattr(table1.vgg, "load_vgg19", lambda *a, **k: tiny_vgg)
-    calls = _spy_on_evaluate_cell(monkeypatch, table1)
+    calls = _spy_on_evaluate_cell(monkeypatch, patchscores)
     other = tmp_path / "other.npz"
     params = jax.tree.map(lambda x: x * 0.5, model.params)
     enhancer.save_enhancer(other, params, model.config)
@@ -476,20 +479,20 @@ def test_flicker_of_a_rigid_rotation_is_its_angle_and_of_a_static_map_zero():
 def test_sequence_flicker_static_is_zero_and_rotation_moves_coarse_and_fine(model):
     static = _sheet_sequence(10, 7, 1)
     static = meshio.make_sequence(np.repeat(static.frames, 3, 0), static.garment)
-    res = temporal.sequence_flicker(static, static, model, "wool_melton", [0, 1, 2],
+    res = temporal_lib.sequence_flicker(static, static, model, "wool_melton", [0, 1, 2],
                                     batch_size=4)
-    for k in temporal.SERIES:
+    for k in temporal_lib.SERIES:
         np.testing.assert_allclose(res[k], 0.0, atol=1e-3)
     assert res["patches_per_frame"] > 0 and res["timings"]["network"] > 0
     coarse, fine = _rotating_sheet(3, 2.0), _rotating_sheet(3, 2.0, nx=40, ny=30)
-    res = temporal.sequence_flicker(coarse, fine, model, "wool_melton", [0, 1, 2], batch_size=4)
+    res = temporal_lib.sequence_flicker(coarse, fine, model, "wool_melton", [0, 1, 2], batch_size=4)
     np.testing.assert_allclose(res["coarse"], 2.0, atol=1e-3)
     np.testing.assert_allclose(res["fine"], 2.0, atol=1e-3)
     assert res["output"].shape == (2,) and np.isfinite(res["output"]).all()
     s = temporal.summarize(res)
     assert s["output_over_fine"] == pytest.approx(res["output"].mean() / 2.0, rel=1e-3)
     with pytest.raises(ValueError, match="consecutive"):
-        temporal.sequence_flicker(coarse, fine, model, "wool_melton", [0, 2])
+        temporal_lib.sequence_flicker(coarse, fine, model, "wool_melton", [0, 2])
 
 
 def test_temporal_main_writes_results_and_plot(tmp_path, model):
@@ -585,7 +588,7 @@ def test_timing_ratios_body_and_plot(tmp_path):
 
 
 def test_chamfer_scores_hold_both_distances_and_both_ratios():
-    assert table2.chamfer_scores(2.0, 3.0) == {"c1": 2.0, "c2": 3.0, "dr": 50.0,
+    assert set_lib.chamfer_scores(2.0, 3.0) == {"c1": 2.0, "c2": 3.0, "dr": 50.0,
                                                "dr_signed": -50.0}
 
 
@@ -597,36 +600,36 @@ def test_gram_features_are_upper_triangles_with_layers_scaled_to_unit_median_nor
         return m + m.transpose(0, 2, 1)
 
     grams = {"small": sym(3, 2, 1.0), "big": sym(3, 4, 1000.0)}
-    flat = table2.upper_triangle(grams)
+    flat = set_lib.upper_triangle(grams)
     assert list(flat) == ["small", "big"]
     assert flat["small"].shape == (3, 3) and flat["big"].shape == (3, 10)
     assert flat["big"].dtype == np.float32
     g = grams["small"][1]
     np.testing.assert_allclose(flat["small"][1], [g[0, 0], g[0, 1], g[1, 1]], rtol=1e-6)
-    scales = table2.layer_scales(flat)
+    scales = set_lib.layer_scales(flat)
     assert scales["big"] == pytest.approx(np.median(np.linalg.norm(flat["big"], axis=1)))
-    feats = table2.scaled_features(flat, scales)
+    feats = set_lib.scaled_features(flat, scales)
     assert feats.shape == (3, 13)
     for block in (feats[:, :3], feats[:, 3:]):
         assert np.median(np.linalg.norm(block, axis=1)) == pytest.approx(1.0)
     # A layer's overall magnitude is scaled away.
     louder = dict(flat, big=flat["big"] * 1e3)
-    np.testing.assert_allclose(table2.scaled_features(louder, table2.layer_scales(louder)), feats,
+    np.testing.assert_allclose(set_lib.scaled_features(louder, set_lib.layer_scales(louder)), feats,
                                rtol=1e-5)
     # Layer-by-layer distances equal the distances of the concatenated features.
-    np.testing.assert_allclose(table2.scaled_sq_dists(flat, None, scales),
+    np.testing.assert_allclose(set_lib.scaled_sq_dists(flat, None, scales),
                                evaluation.sq_dists(feats), rtol=1e-9, atol=1e-12)
-    other = table2.upper_triangle({"small": sym(2, 2, 1.0), "big": sym(2, 4, 1000.0)})
-    np.testing.assert_allclose(table2.scaled_sq_dists(other, flat, scales),
-                               evaluation.sq_dists(table2.scaled_features(other, scales), feats),
+    other = set_lib.upper_triangle({"small": sym(2, 2, 1.0), "big": sym(2, 4, 1000.0)})
+    np.testing.assert_allclose(set_lib.scaled_sq_dists(other, flat, scales),
+                               evaluation.sq_dists(set_lib.scaled_features(other, scales), feats),
                                rtol=1e-9)
-    assert table2.layer_scales({"zero": np.zeros((2, 3), np.float32)}) == {"zero": 1.0}
+    assert set_lib.layer_scales({"zero": np.zeros((2, 3), np.float32)}) == {"zero": 1.0}
     with pytest.raises(ValueError, match="Gram"):
-        table2.upper_triangle({"x": np.zeros((2, 3, 4))})
+        set_lib.upper_triangle({"x": np.zeros((2, 3, 4))})
 
 
 def test_set_c_frames_are_between_table1_frames_never_on_them():
-    a = table1.Sampling().frame_indices
+    a = patchscores.Sampling().frame_indices
     c = table2.c_frame_indices(a, 200, 10)
     assert c == list(range(5, 200, 10)) and not set(a) & set(c)
     assert table2.c_frame_indices([0, 3, 6], 7, 3) == [1, 4, 5]  # past the end: the one before
@@ -639,7 +642,7 @@ def test_set_c_frames_are_between_table1_frames_never_on_them():
 def test_embedding_from_the_distance_matrix_equals_the_embedding_of_the_points():
     x = np.random.default_rng(2).normal(size=(30, 50))
     d2 = evaluation.sq_dists(x)
-    pts = table2.points_from_sq_dists(d2)
+    pts = set_lib.points_from_sq_dists(d2)
     np.testing.assert_allclose(evaluation.sq_dists(pts), d2, atol=1e-9)
     # Eigenvectors are defined up to sign.
     np.testing.assert_allclose(np.abs(evaluation.spectral_embedding(pts)),
@@ -668,7 +671,7 @@ def test_cell_comparison_finds_b_nearer_to_c_than_a_and_a_swap_reverses_it():
                                                  evaluation.sq_dists(b)], 1),
                          "same": np.concatenate([evaluation.sq_dists(a, ac),
                                                  evaluation.sq_dists(a)], 1)}}
-    d2, labels = table2.union_sq_dists(res["d2_ref"], res["d2_method"]["near"], len(a))
+    d2, labels = set_lib.union_sq_dists(res["d2_ref"], res["d2_method"]["near"], len(a))
     np.testing.assert_allclose(d2, evaluation.sq_dists(np.concatenate([a, b, c])), atol=1e-12)
     rec = table2.cell_record(res)
     near, same = rec["methods"]["near"], rec["methods"]["same"]
@@ -676,20 +679,20 @@ def test_cell_comparison_finds_b_nearer_to_c_than_a_and_a_swap_reverses_it():
         s = near[space]
         assert s["c2"] < s["c1"] and s["dr_signed"] > 0 and s["dr"] == s["dr_signed"]
         assert same[space]["dr_signed"] == pytest.approx(0.0, abs=1e-6)
-    assert near["full"]["c1"] == pytest.approx(table2.chamfer_distance(a, c), rel=1e-9)
-    assert near["full"]["c2"] == pytest.approx(table2.chamfer_distance(b, c), rel=1e-9)
+    assert near["full"]["c1"] == pytest.approx(evaluation.chamfer_distance(a, c), rel=1e-9)
+    assert near["full"]["c2"] == pytest.approx(evaluation.chamfer_distance(b, c), rel=1e-9)
     emb = near["embedding"]
     assert emb.shape == (60, 2) and emb.dtype == np.float32
     assert np.sqrt(((emb - emb.mean(0)) ** 2).sum(1).mean()) == pytest.approx(1.0, rel=1e-5)
     # Swapping the roles of a and b must flip the verdict.
-    swapped = table2.compare_sets(d2, np.choose(labels, [table2.SET_B, table2.SET_A,
-                                                         table2.SET_C]))
+    swapped = set_lib.compare_sets(d2, np.choose(labels, [set_lib.SET_B, set_lib.SET_A,
+                                                         set_lib.SET_C]))
     for space in table2.SPACES:
         assert swapped[space]["c2"] > swapped[space]["c1"]
         assert swapped[space]["dr_signed"] < 0 < swapped[space]["dr"]
     # The order of the rows does not matter.
     perm = np.random.default_rng(3).permutation(len(labels))
-    shuffled = table2.compare_sets(d2[np.ix_(perm, perm)], labels[perm])
+    shuffled = set_lib.compare_sets(d2[np.ix_(perm, perm)], labels[perm])
     for space in table2.SPACES:
         for k in ("c1", "c2"):
             assert shuffled[space][k] == pytest.approx(near[space][k], rel=1e-5)
@@ -730,9 +733,9 @@ def test_table2_main_uses_table1_patches_writes_results_and_resumes(tmp_path, mo
     fine, coarse = (cell_lib.load_first_frames(
         cell_lib.sequence_file(seqs, "dress_dance", c.material, r, cell_lib.TEST_SEED), 4)
         for r in ("fine", "coarse"))
-    sampling = table1.Sampling(frames=4, frame_stride=2, patches_per_frame=3, patch_size=PATCH,
+    sampling = patchscores.Sampling(frames=4, frame_stride=2, patches_per_frame=3, patch_size=PATCH,
                                texel_size=TEXEL, score_batch=3)
-    t1 = table1.evaluate_cell(fine, coarse, c.material, {}, tiny_vgg, sampling,
+    t1 = patchscores.evaluate_cell(fine, coarse, c.material, {}, tiny_vgg, sampling,
                               c.patch_seed)
     with np.load(out / "cells" / "dress_dance__silk_charmeuse.npz") as z:
         np.testing.assert_array_equal(z["frame"], t1["frame"])
@@ -782,10 +785,10 @@ def test_merge_records_checks_the_sets_and_orders_the_methods():
 
 def test_border_pairs_mark_the_neighbour_pairs_across_tile_starts_and_ends():
     origins = np.array([[0, 0], [16, 0], [28, 0]])  # rows 0, 16 and the clamped last row
-    got = stride.border_pairs(origins, 32, 60, axis=0)
+    got = seam_lib.border_pairs(origins, 32, 60, axis=0)
     # tiles start at 16, 28 and end after 31, 47, 59 (the last, at the map's edge, has no pair)
     assert np.flatnonzero(got).tolist() == [15, 27, 31, 47]
-    assert np.flatnonzero(stride.border_pairs(origins, 32, 60, axis=1)).tolist() == [31]
+    assert np.flatnonzero(seam_lib.border_pairs(origins, 32, 60, axis=1)).tolist() == [31]
 
 
 def test_seam_ratio_is_one_for_uniform_bending_and_sees_a_kink_at_a_tile_border():
@@ -795,22 +798,22 @@ def test_seam_ratio_is_one_for_uniform_bending_and_sees_a_kink_at_a_tile_border(
     nrm = np.stack([np.sin(ang), np.zeros_like(ang), np.cos(ang)], -1)
     mask = np.ones((h, w), bool)
     origins = np.array([[r, c] for r in (0, 16, 32) for c in (0, 16, 32)])
-    assert stride.seam_ratio(stride.seam_sums(nrm, mask, origins, 32)) == pytest.approx(1.0)
+    assert seam_lib.seam_ratio(seam_lib.seam_sums(nrm, mask, origins, 32)) == pytest.approx(1.0)
     kinked = nrm.copy()
     kinked[:, 16:] = nrm[:, 16:] @ np.array([[np.cos(0.1), 0, -np.sin(0.1)], [0, 1, 0],
                                               [np.sin(0.1), 0, np.cos(0.1)]]).T
-    assert stride.seam_ratio(stride.seam_sums(kinked, mask, origins, 32)) > 1.5
+    assert seam_lib.seam_ratio(seam_lib.seam_sums(kinked, mask, origins, 32)) > 1.5
     off_border = nrm.copy()
     off_border[:, 20:] = kinked[:, 16:60]  # the same kink between tiles' borders
-    assert stride.seam_ratio(stride.seam_sums(off_border, mask, origins, 32)) < 1.0
-    assert np.isnan(stride.seam_ratio(np.zeros(4)))
+    assert seam_lib.seam_ratio(seam_lib.seam_sums(off_border, mask, origins, 32)) < 1.0
+    assert np.isnan(seam_lib.seam_ratio(np.zeros(4)))
 
 
 def test_stride_identity_network_scores_zero_and_leaves_the_coarse_seams(tiny_vgg, model):
     params = {**model.params, "out": jax.tree.map(jax.numpy.zeros_like, model.params["out"])}
     ident = model._replace(params=params)
     fine, coarse = _pair(3)
-    sampling = table1.Sampling(frames=3, frame_stride=1, patches_per_frame=2, patch_size=PATCH,
+    sampling = patchscores.Sampling(frames=3, frame_stride=1, patches_per_frame=2, patch_size=PATCH,
                                texel_size=TEXEL, min_coverage=0.3, score_batch=2)
     res = stride.evaluate_cell(fine, coarse, "denim_light", ident, [8, 16, 24], tiny_vgg,
                                sampling, [0, 2], batch_size=2)
@@ -818,8 +821,8 @@ def test_stride_identity_network_scores_zero_and_leaves_the_coarse_seams(tiny_vg
         sc = evaluation.scores_from_losses(res["loss_input"], res["loss"][name])
         np.testing.assert_allclose(sc["improvement_signed"][sc["valid"]], 0.0, atol=1e-3)
     for s in (8, 16, 24):
-        assert stride.seam_ratio(res["seams"][s]) == pytest.approx(
-            stride.seam_ratio(res["seams_coarse"][s]), rel=1e-3)
+        assert seam_lib.seam_ratio(res["seams"][s]) == pytest.approx(
+            seam_lib.seam_ratio(res["seams_coarse"][s]), rel=1e-3)
     counts = [res["patches_per_frame"][s] for s in (8, 16, 24)]
     assert counts[0] > counts[1] > counts[2]
     pooled = stride.summarize({"a": res}, [8, 16, 24])

@@ -8,12 +8,19 @@ Modules (by concept):
     bands       band energies of detail maps, the 2-texel checkerboard artefact
     sets        sets of patches without correspondence (paper Table 2): Chamfer, DR, embedding
     flicker     frame-to-frame angular change of normal maps
+    seams       how much sharper normals turn across the tile borders of a merged map
     patchsets   coarse and fine maps on one pixel grid, aligned patch sets
+    gram        several methods scored on the same patches with shared Gram matrices
+    methods     the model, other model files and the baselines as methods on patch sets
+    patchscores Table 1's scoring of a cell's patches, its cell files, the tables' setup
+    temporal    flicker of an enhanced sequence (streamed through the pipeline)
+    cells       the evaluation cells (garment x material x motion) and their simulations
+    suite       the evaluation scripts' folders, results files and argument parsers
 
 The names of `scores`, `stats`, `baselines`, `bands`, `sets` and `flicker` are re-exported
 here (`evaluation.score_patches`, `evaluation.unsharp_mask`, `evaluation.chamfer_distance`,
-...). `patchsets` (which needs the baking stack) is imported as a submodule:
-`from wrinkle_jax.evaluation import patchsets`.
+...). The other modules are imported as submodules (most need the baking, network or
+simulation stack): `from wrinkle_jax.evaluation import patchsets`.
 
 Conventions: patches are in the RGB form of normal maps ((n + 1) / 2, in [0, 1]), NHWC
 float32, with an (N, S, S, 1) float32 {0, 1} mask; normal maps are (H, W, 3) unit vectors.

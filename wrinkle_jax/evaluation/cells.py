@@ -22,14 +22,16 @@ from wrinkle_jax.evaluation.suite import SEQUENCES, TABLE1_SEQUENCES, eta_text
 from wrinkle_jax.sim import scenes
 
 __all__ = ["GARMENTS", "GARMENT_BASE_SCENE", "GARMENT_SHORT", "MOTIONS", "SEEN_GARMENT",
-           "SEEN_MOTION", "TABLE_MATERIALS", "TEST_SEED", "Cell", "add_sequence_args",
-           "cell_sequences", "find_or_simulate", "load_first_frames", "merge_methods",
-           "merge_timings", "run_cells", "scene_for", "sequence_file", "stored_frames",
-           "stored_matches", "table_cells"]
+           "SEEN_MOTION", "TABLE_MATERIALS", "TEST_SEED", "UNSEEN_GARMENT", "Cell",
+           "add_sequence_args", "cell_sequences", "find_or_simulate", "load_first_frames",
+           "merge_methods", "merge_timings", "run_cells", "scene_for", "sequence_file",
+           "stored_frames", "stored_matches", "table_cells"]
 
 # The scene each garment's cells are derived from (its pins, attachment and pre-roll).
 GARMENT_BASE_SCENE = {"flared_skirt": "skirt_dance", "dress": "dress_dance", "cape": "cape_walk"}
 GARMENT_SHORT = {"flared_skirt": "skirt", "dress": "dress", "cape": "cape"}
+# The held-out data sets' scenes whose garment training never saw (the model card's groups).
+UNSEEN_GARMENT = {"dress_dance", "cape_walk"}
 
 
 def scene_for(garment: str, motion: str) -> scenes.SceneConfig:

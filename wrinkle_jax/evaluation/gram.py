@@ -14,9 +14,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax.evaluation.scores import EVAL_LAYERS
+from wrinkle_jax.evaluation.sets import upper_triangle
 from wrinkle_jax.nn import losses, vgg
 
-__all__ = ["gram_matrices", "method_losses"]
+__all__ = ["gram_matrices", "method_losses", "set_features"]
 
 
 @functools.lru_cache(maxsize=8)
@@ -90,3 +91,21 @@ def method_losses(vgg_params, inp, target, mask, outputs: dict[str, np.ndarray],
     return {k: (np.concatenate(v) if v else np.zeros(0, np.float32)).astype(np.float32)
             for k, v in parts.items()}
 
+
+def set_features(vgg_params, images, mask, batch_size: int, counter: dict | None = None
+                 ) -> dict[str, np.ndarray]:
+    """Upper triangles of the normalized masked Grams (`gram_matrices` on
+    `EVAL_LAYERS`) of (N, S, S, 3) RGB-form images with (N, S, S, 1) masks:
+    layer -> (N, C_l (C_l + 1) / 2) float32. Fixed batch shape (the last batch padded);
+    counter["vgg_passes"] accumulates batches."""
+    counter = {} if counter is None else counter
+    parts: dict[str, list] = {}
+    n = len(images)
+    for s in range(0, n, batch_size):
+        k = min(batch_size, n - s)
+        idx = np.resize(np.arange(s, s + k), batch_size)
+        grams = gram_matrices(vgg_params, np.asarray(images)[idx], np.asarray(mask)[idx])
+        counter["vgg_passes"] = counter.get("vgg_passes", 0) + 1
+        for name, v in upper_triangle({kk: np.asarray(g)[:k] for kk, g in grams.items()}).items():
+            parts.setdefault(name, []).append(v)
+    return {name: np.concatenate(v) for name, v in parts.items()}

@@ -5,7 +5,7 @@
     python -m experiments.classifier_report --tiny      # seconds; smoke test of the script
 
 Stages (each resumable: the feature cache is reused):
-  1. Feature cache (`wrinkle_jax.classify_train`): random valid 128x128 crops of coarse
+  1. Feature cache (`wrinkle_jax.classifier.training`): random valid 128x128 crops of coarse
      normal maps, spread over time, through one VGG19 pass for every candidate feature.
      Training scenes (sheet_balls_wind, skirt_dance, pleated_skirt_dance2) give two variants:
      their coarse simulations ("coarse", if `experiments.make_coarse_training_sequences` made
@@ -37,9 +37,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax import MATERIALS, classify_train
+from wrinkle_jax import MATERIALS, classifier
+from wrinkle_jax.classifier import training as classify_train
 from wrinkle_jax.fileio import atomic_write_text
-from wrinkle_jax.nn import classifier, vgg
+from wrinkle_jax.nn import vgg
 
 ROOT = Path(__file__).resolve().parents[1]
 VARIANT_SETS = (("coarse",), ("fine_ds",), ("coarse", "fine_ds"))

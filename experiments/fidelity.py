@@ -9,7 +9,7 @@
 score on the VAL split of the pair data set (`experiments.make_pair_dataset`: last frames of
 the training scenes), so the baseline is tuned without held-out data.
 
-`score` draws Table 1's patches (`eval_common`: first 200 frames, seed 1, every
+`score` draws Table 1's patches (`evaluation.cells`: first 200 frames, seed 1, every
 `--frame-stride`-th frame from `--frame-offset`, 8 patches per frame among grid patches
 >= 50 % covered by both meshes; the same origins as Table 1 for the frames it shares) from the
 coarse and fine simulations of each cell and scores, against the fine patch of the same frame:
@@ -41,7 +41,6 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments import eval_common as ec
 from wrinkle_jax import (
     MATERIALS,
     data,
@@ -52,9 +51,12 @@ from wrinkle_jax import (
     normalmap,
     patches,
 )
+from wrinkle_jax.evaluation import cells as cell_lib
+from wrinkle_jax.evaluation import gram, patchsets, suite
+from wrinkle_jax.evaluation import methods as method_lib
 from wrinkle_jax.nn import vgg
 
-OUT = ec.RESULTS / "fidelity"
+OUT = suite.RESULTS / "fidelity"
 SIGMA = detail.DEFAULT_SIGMA
 SWEEP = [(s, a) for s in (2.0, 4.0, 8.0, 16.0) for a in (0.5, 1.0, 2.0, 3.0)]
 ORACLES = ("oracle_detail", "oracle_downsampled", "oracle_next_frame")
@@ -73,7 +75,7 @@ def sweep(args, vgg_params) -> dict:
         inp, (tgt, *(evaluation.unsharp_mask(inp, mask, s, a, order=1) for s, a in SWEEP)),
         mask, SIGMA))
     outs = dict(zip(names, d_outs, strict=True))
-    losses = ec.method_losses(vgg_params, d_in, d_tgt, mask, outs)
+    losses = gram.method_losses(vgg_params, d_in, d_tgt, mask, outs)
     res = {}
     for k in outs:
         sc = evaluation.scores_from_losses(losses["input"], losses[k])
@@ -81,8 +83,8 @@ def sweep(args, vgg_params) -> dict:
         print(f"unsharp {k}: median detail score {res[k]:+.1f}", flush=True)
     best = max(res, key=res.get)
     got = {"split": "val", "patches": int(len(inp)), "detail_sigma": SIGMA,
-           "median_detail_score": res, "best": best, "data": ec.portable_path(args.data)}
-    ec.write_json(OUT / "unsharp_sweep.json", got)
+           "median_detail_score": res, "best": best, "data": suite.portable_path(args.data)}
+    suite.write_json(OUT / "unsharp_sweep.json", got)
     return got
 
 
@@ -110,7 +112,7 @@ def sweep_per_material(args, vgg_params) -> dict:
             inp, (tgt, *(evaluation.unsharp_mask(inp, mask, s, a, order=1)
                          for s, a in sweep)), mask, SIGMA))
         outs = dict(zip(names, d_outs, strict=True))
-        losses = ec.method_losses(vgg_params, d_in, d_tgt, mask, outs)
+        losses = gram.method_losses(vgg_params, d_in, d_tgt, mask, outs)
         res[mat] = {}
         for k in names:
             sc = evaluation.scores_from_losses(losses["input"], losses[k])
@@ -123,8 +125,8 @@ def sweep_per_material(args, vgg_params) -> dict:
               flush=True)
     got = {"split": "val", "patches_per_material": int(args.sweep_patches),
            "detail_sigma": SIGMA, "unsharp_sigmas": args.sweep_sigmas, "scores": res, "best": best,
-           "data": ec.portable_path(args.data)}
-    ec.write_json(OUT / "unsharp_sweep_material.json", got)
+           "data": suite.portable_path(args.data)}
+    suite.write_json(OUT / "unsharp_sweep_material.json", got)
     return got
 
 
@@ -152,7 +154,7 @@ def val_models(args, vgg_params) -> dict:
     models = {}
     for spec in args.model:
         name, path = spec.split("=", 1)
-        models[name] = ec.enhancer_method(enhancer.load_enhancer(path))
+        models[name] = method_lib.enhancer_method(enhancer.load_enhancer(path))
     rng = np.random.default_rng(0)
     scores = {k: [] for k in ["unsharp_material", *models]}
     mats = []
@@ -163,7 +165,7 @@ def val_models(args, vgg_params) -> dict:
         pick = rows[np.unique(np.linspace(0, len(rows) - 1, min(args.sweep_patches, len(rows)))
                               .round().astype(int))]
         b = ds.get(pick)
-        ps = ec.PatchSet(input=b["input"], target=b["target"], mask=b["mask"],
+        ps = patchsets.PatchSet(input=b["input"], target=b["target"], mask=b["mask"],
                               origins=rng.integers(0, 4096, (len(pick), 2)).astype(np.int32),
                               material_id=mid)
         outs = {"unsharp_material": evaluation.unsharp_mask(ps.input, ps.mask, *settings[mid],
@@ -172,7 +174,7 @@ def val_models(args, vgg_params) -> dict:
         outs = {k: np.asarray(v, np.float32) * ps.mask for k, v in outs.items()}
         d_in, d_tgt, *d_outs = (np.asarray(x) for x in detail.on_reference_branch_rgb(
             ps.input, (ps.target, *outs.values()), ps.mask, SIGMA))
-        losses = ec.method_losses(vgg_params, d_in, d_tgt, ps.mask,
+        losses = gram.method_losses(vgg_params, d_in, d_tgt, ps.mask,
                                   dict(zip(outs, d_outs, strict=True)))
         for k in outs:
             sc = evaluation.scores_from_losses(losses["input"], losses[k])
@@ -180,7 +182,7 @@ def val_models(args, vgg_params) -> dict:
         mats += [mat] * len(pick)
     mats = np.asarray(mats)
     got = {"split": "val", "patches_per_material": int(args.sweep_patches),
-           "detail_sigma": SIGMA, "models": {k: ec.portable_path(p.split("=", 1)[1])
+           "detail_sigma": SIGMA, "models": {k: suite.portable_path(p.split("=", 1)[1])
                                              for k, p in zip(models, args.model, strict=True)},
            "methods": {}}
     cat = {k: np.concatenate(v) for k, v in scores.items()}
@@ -206,7 +208,7 @@ def unsharp_best() -> tuple[float, float]:
     return float(kv["sigma"]), float(kv["amount"])
 
 
-def _cell_file(cell: ec.Cell) -> Path:
+def _cell_file(cell: cell_lib.Cell) -> Path:
     return OUT / "cells" / f"{cell.scene.name}__{cell.material}.npz"
 
 
@@ -217,7 +219,7 @@ def _load_cell(path: Path) -> dict:
         return json.loads(str(z["json"]))
 
 
-def score_cell(cell: ec.Cell, methods: dict, sources: dict, vgg_params, args) -> dict:
+def score_cell(cell: cell_lib.Cell, methods: dict, sources: dict, vgg_params, args) -> dict:
     """Scores of `methods` (name -> callable(PatchSet, extras) -> outputs) on one cell, merged
     into the cached ones (a method is recomputed only when its source changed)."""
     path = _cell_file(cell)
@@ -230,31 +232,31 @@ def score_cell(cell: ec.Cell, methods: dict, sources: dict, vgg_params, args) ->
             if k not in cached.get("methods", {}) or cached["sources"].get(k) != sources[k]}
     if not todo and cached:
         return cached
-    seqs = ec.cell_sequences(cell, args.frames, log=lambda m: print(m, flush=True))
-    fine = ec.load_first_frames(seqs["fine"], args.frames)  # t + 1 <= the last frame
-    coarse = ec.load_first_frames(seqs["coarse"], args.frames)
+    seqs = cell_lib.cell_sequences(cell, args.frames, log=lambda m: print(m, flush=True))
+    fine = cell_lib.load_first_frames(seqs["fine"], args.frames)  # t + 1 <= the last frame
+    coarse = cell_lib.load_first_frames(seqs["coarse"], args.frames)
     size = 128
-    pair = ec.aligned_pair(fine.garment, coarse.garment, normalmap.DEFAULT_TEXEL_SIZE)
+    pair = patchsets.aligned_pair(fine.garment, coarse.garment, normalmap.DEFAULT_TEXEL_SIZE)
     mask_full = np.asarray(patches.pad_to_patch(pair.mask, size)[0])
-    cand, _ = ec.candidate_origins(mask_full, size, size // 2, 0.5)
+    cand, _ = patchsets.candidate_origins(mask_full, size, size // 2, 0.5)
     mid = material_index(cell.material)
     got = {k: {"detail": [], "object": [], "lt16mm": [], "16_64mm": [], "checker": []}
            for k in [*todo, "input", "target"]}
     for t in frames:
-        sel = ec.choose_origins(cand, args.patches, (0, *cell.patch_seed, t))
-        ps = ec.aligned_patches(pair, fine.frames[t], coarse.frames[t], sel, size, mid)
-        extras = {"next": ec.aligned_patches(pair, fine.frames[t + 1], coarse.frames[t], sel,
-                                             size, mid).target,
+        sel = patchsets.choose_origins(cand, args.patches, (0, *cell.patch_seed, t))
+        ps = patchsets.aligned_patches(pair, fine.frames[t], coarse.frames[t], sel, size, mid)
+        extras = {"next": patchsets.aligned_patches(pair, fine.frames[t + 1], coarse.frames[t], sel,
+                                                    size, mid).target,
                   "fine_map": fine.frames[t], "pair": pair}
         outs = {k: np.asarray(f(ps, extras), np.float32) * ps.mask for k, f in todo.items()}
         imgs = {"target": ps.target, **outs}
         d = dict(zip(["input", *imgs], (np.asarray(x) for x in detail.on_reference_branch_rgb(
             ps.input, tuple(imgs.values()), ps.mask, SIGMA)), strict=True))
-        det = ec.method_losses(vgg_params, d["input"], d["target"], ps.mask,
-                               {k: d[k] for k in outs})
+        det = gram.method_losses(vgg_params, d["input"], d["target"], ps.mask,
+                                 {k: d[k] for k in outs})
         obj_names = [k for k in outs if k in OBJECT_SPACE or k not in ORACLES]
-        obj = ec.method_losses(vgg_params, ps.input, ps.target, ps.mask,
-                               {k: outs[k] for k in obj_names})
+        obj = gram.method_losses(vgg_params, ps.input, ps.target, ps.mask,
+                                 {k: outs[k] for k in obj_names})
         for k in [*outs, "input", "target"]:
             bands = evaluation.band_rms(d[k], ps.mask)
             img = {"input": ps.input, "target": ps.target, **outs}[k]
@@ -297,7 +299,7 @@ def build_methods(args) -> tuple[dict, dict]:
     sources = {"identity": "identity", "unsharp": f"order=1,sigma={s:g},amount={a:g}"}
     # The shipped recipe's unsharp setting (the model card's object-space sweep), as a second
     # baseline: the val sweep's stronger gain over-sharpens the held-out denim.
-    s1, a1, _ = ec.unsharp_setting(order=1)
+    s1, a1, _ = method_lib.unsharp_setting(order=1)
     methods["unsharp_card"] = lambda p, e: evaluation.unsharp_mask(p.input, p.mask, s1, a1,
                                                                    order=1)
     sources["unsharp_card"] = f"order=1,sigma={s1:g},amount={a1:g}"
@@ -315,8 +317,8 @@ def build_methods(args) -> tuple[dict, dict]:
         models[name] = path
     for name, path in models.items():
         enh = enhancer.load_enhancer(path)
-        methods[name] = (lambda fn: (lambda p, e: fn(p)))(ec.enhancer_method(enh))
-        sources[name] = ec.file_digest(path)
+        methods[name] = (lambda fn: (lambda p, e: fn(p)))(method_lib.enhancer_method(enh))
+        sources[name] = suite.file_digest(path)
     if args.ceilings:
         def oracle_detail(p, e):
             d_in, large, branch = detail.decompose(p.input * 2.0 - 1.0, p.mask, SIGMA)
@@ -324,11 +326,11 @@ def build_methods(args) -> tuple[dict, dict]:
             return detail.from_detail_rgb(d_f, large, branch, p.mask)
 
         def oracle_down(p, e):
-            fmap = ec.bake_map(e["pair"].fine, e["fine_map"])
+            fmap = patchsets.bake_map(e["pair"].fine, e["fine_map"])
             m = np.asarray(e["pair"].mask)
             down = normalmap.downsample_like_coarse(fmap, m, 0.03 / normalmap.DEFAULT_TEXEL_SIZE)
             img = normalmap.to_rgb(patches.pad_to_patch(np.asarray(down), 128)[0])
-            return ec.cut(np.asarray(img), p.origins, 128)
+            return patchsets.cut(np.asarray(img), p.origins, 128)
 
         methods.update({"oracle_detail": oracle_detail, "oracle_downsampled": oracle_down,
                         "oracle_next_frame": lambda p, e: e["next"]})
@@ -388,9 +390,9 @@ def summarize(cells: list[dict]) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = ec.script_parser(__doc__)
+    ap = suite.script_parser(__doc__)
     ap.add_argument("command", choices=("sweep", "sweep-material", "val", "score", "report"))
-    ap.add_argument("--data", default=str(ec.ROOT / "data" / "pairs"))
+    ap.add_argument("--data", default=str(suite.ROOT / "data" / "pairs"))
     ap.add_argument("--sweep-patches", type=int, default=96)
     ap.add_argument("--sweep-sigmas", default="16",
                     help="sweep-material: comma-separated unsharp radii (texels)")
@@ -410,7 +412,7 @@ def main(argv=None) -> int:
     if args.command == "report":
         cells = [_load_cell(p) for p in sorted((OUT / "cells").glob("*.npz"))]
         summary = summarize([c for c in cells if c])
-        ec.write_json(OUT / "results.json", summary)
+        suite.write_json(OUT / "results.json", summary)
         print(json.dumps({k: {m: {s: v[s]["signed_median"] for s in ("detail", "object")
                                   if s in v} for m, v in r["methods"].items()}
                           for k, r in summary.items()}, indent=1))
@@ -425,11 +427,11 @@ def main(argv=None) -> int:
     if args.command == "val":
         got = val_models(args, vgg_params)
         if args.val_out:
-            ec.write_json(Path(args.val_out), got)
+            suite.write_json(Path(args.val_out), got)
         return 0
     methods, sources = build_methods(args)
     keep = set(args.scenes.split(",")) if args.scenes else None
-    cells = [c for c in ec.table_cells()
+    cells = [c for c in cell_lib.table_cells()
              if (args.cells == "all" or c.kind == "unseen garment")
              and (keep is None or c.scene.name in keep)]
     t0 = time.perf_counter()

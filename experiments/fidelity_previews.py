@@ -27,19 +27,20 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from experiments import eval_common as ec
 from wrinkle_jax import compare, enhancer, render
+from wrinkle_jax.evaluation import cells as cell_lib
+from wrinkle_jax.evaluation import suite
 
-OUT = ec.RESULTS / "fidelity" / "previews"
+OUT = suite.RESULTS / "fidelity" / "previews"
 SCENES = {"dress_dance": ("dress", "dance"), "cape_walk": ("cape", "walk")}
 
 
-def cells(scenes: list[str], materials: list[str]) -> list[ec.Cell]:
+def cells(scenes: list[str], materials: list[str]) -> list[cell_lib.Cell]:
     """The preview cells, scene by scene, then material."""
     bad = [s for s in scenes if s not in SCENES]
     if bad:
         raise ValueError(f"unknown scene {bad[0]!r}; expected one of {', '.join(SCENES)}")
-    return [ec.Cell(*SCENES[s], m) for s in scenes for m in materials]
+    return [cell_lib.Cell(*SCENES[s], m) for s in scenes for m in materials]
 
 
 def _load_index(path: Path) -> dict:
@@ -52,20 +53,20 @@ def _load_index(path: Path) -> dict:
 
 
 def main(argv=None) -> dict:
-    ap = ec.script_parser(__doc__)
+    ap = suite.script_parser(__doc__)
     ap.add_argument("--model", default=None, help="enhancer .npz (default: the shipped model)")
     ap.add_argument("--frame", type=int, default=120, help="frame index of every cell")
     ap.add_argument("--frames", type=int, default=200,
                     help="frames of the simulations (Table 1's: a simulation made here is the "
                          "suite's; a longer stored one is reused)")
     ap.add_argument("--scenes", default=",".join(SCENES))
-    ap.add_argument("--materials", default=",".join(ec.TABLE_MATERIALS))
+    ap.add_argument("--materials", default=",".join(cell_lib.TABLE_MATERIALS))
     ap.add_argument("--panel", type=int, default=512, help="pixels per panel side")
     ap.add_argument("--crop", type=int, default=256, help="normal-map crop side, texels")
     ap.add_argument("--out", default=str(OUT))
-    ap.add_argument("--sequences", default=str(ec.SEQUENCES),
+    ap.add_argument("--sequences", default=str(suite.SEQUENCES),
                     help="folder of existing simulations to reuse")
-    ap.add_argument("--sim-out", default=str(ec.TABLE1_SEQUENCES),
+    ap.add_argument("--sim-out", default=str(suite.TABLE1_SEQUENCES),
                     help="folder for the simulations made here (shared by the suite)")
     args = ap.parse_args(argv)
     frames = args.frames
@@ -76,17 +77,18 @@ def main(argv=None) -> dict:
     except ValueError as e:
         ap.error(str(e))
     model_path = Path(enhancer.DEFAULT_PATH if args.model is None else args.model)
-    enh = ec.load_model_or_usage_error(ap, model_path)
+    enh = suite.load_model_or_usage_error(ap, model_path)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     index_path = out / "index.json"
     entries = _load_index(index_path)
     for i, cell in enumerate(todo):
         t0 = time.perf_counter()
-        seqs = ec.cell_sequences(cell, frames, reuse_roots=(Path(args.sequences),),
-                                 out_root=Path(args.sim_out), log=lambda m: print(m, flush=True))
-        fine = ec.load_first_frames(seqs["fine"], frames)
-        coarse = ec.load_first_frames(seqs["coarse"], frames)
+        seqs = cell_lib.cell_sequences(cell, frames, reuse_roots=(Path(args.sequences),),
+                                       out_root=Path(args.sim_out),
+                                       log=lambda m: print(m, flush=True))
+        fine = cell_lib.load_first_frames(seqs["fine"], frames)
+        coarse = cell_lib.load_first_frames(seqs["coarse"], frames)
         t1 = time.perf_counter()
         mesh_labels = (f"coarse simulation (frame {args.frame})", *compare.MESH_LABELS[1:])
         map_labels = (f"coarse map ({args.crop}x{args.crop} texels of "
@@ -103,13 +105,13 @@ def main(argv=None) -> dict:
         entries[cell.key] = {
             "cell": cell.key, "scene": cell.scene.name, "material": cell.material,
             "kind": cell.kind, "frame": args.frame,
-            "sequences": {k: ec.portable_path(seqs[k]) for k in ("coarse", "fine")},
-            "meshes": {"file": ec.portable_path(files["meshes"]),
+            "sequences": {k: suite.portable_path(seqs[k]) for k in ("coarse", "fine")},
+            "meshes": {"file": suite.portable_path(files["meshes"]),
                        "size": list(prev.meshes.shape[:2]), "panels": 3,
                        "panel_size": [args.panel, args.panel],
                        "labels": list(mesh_labels),
                        "vertices": prev.vertex_counts},
-            "normals": {"file": ec.portable_path(files["normals"]),
+            "normals": {"file": suite.portable_path(files["normals"]),
                         "size": list(prev.normals.shape[:2]), "panels": 3,
                         "panel_size": [args.panel, args.panel],
                         "labels": list(map_labels),
@@ -121,10 +123,10 @@ def main(argv=None) -> dict:
         }
         print(f"[{i + 1}/{len(todo)}] {cell.key} frame {args.frame}: {files['meshes']}, "
               f"{files['normals']} ({seconds:.0f} s)", flush=True)
-    index = {"frame": args.frame, "model": ec.portable_path(model_path),
-             "model_digest": ec.file_digest(model_path), "panel": args.panel,
+    index = {"frame": args.frame, "model": suite.portable_path(model_path),
+             "model_digest": suite.file_digest(model_path), "panel": args.panel,
              "crop_texels": args.crop, "cells": list(entries.values())}
-    ec.write_json(index_path, index)
+    suite.write_json(index_path, index)
     return index
 
 

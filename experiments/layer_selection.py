@@ -31,8 +31,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.eval_common import portable_path
-from wrinkle_jax import data, metrics
+from wrinkle_jax import data, evaluation
+from wrinkle_jax.evaluation.suite import portable_path
 from wrinkle_jax.nn import losses, vgg
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -118,7 +118,7 @@ def main(argv=None) -> None:
     for name in CANDIDATES:
         x = np.concatenate([ga[name], gb[name]]).astype(np.float64)
         x = x / (np.linalg.norm(x, axis=1, keepdims=True).mean() + 1e-30)
-        emb = metrics.spectral_embedding(x)
+        emb = evaluation.spectral_embedding(x)
         embs[name] = emb
         # Paired: how far the coarse and fine versions of the SAME crop are apart, relative
         # to how far the fine versions of two different crops are (content variation).

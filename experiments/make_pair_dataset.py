@@ -6,9 +6,9 @@
     python -m experiments.make_pair_dataset [--sequences data/sequences] [--out data/pairs]
 
 For every training scene and material, the coarse (PD 30 mm) and the fine (PD 10 mm) simulation
-of the same motion are baked on one grid (`wrinkle_jax.aligned`) and cut at the same random
-origins (`data.build_pair_sequence`): input = the real coarse map, target = the fine map. The
-last `--val-fraction` of each sequence's frames form the "val" split, which the trainer
+of the same motion are baked on one grid (`wrinkle_jax.evaluation.patchsets`) and cut at the
+same random origins (`data.build_pair_sequence`): input = the real coarse map, target = the fine
+map. The last `--val-fraction` of each sequence's frames form the "val" split, which the trainer
 evaluates on and recipe choices read; the held-out garments and motions are not in this data
 set at all. No dihedral augmentation: flipping the pixel grid of an object-space normal map
 makes a field no surface has, and the detail loss compares the statistics of real maps.

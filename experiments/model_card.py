@@ -16,7 +16,7 @@ coarse particle distance, target = the fine map; plus `--n-seen` patches of the 
   * the model.
 
 Score: the paper's improvement score on relu1_2..relu5_1 plus the signed form (the numbers of
-`evaluation.score_patches`, computed by `eval_common.method_losses` with shared Grams). Writes
+`evaluation.score_patches`, computed by `evaluation.gram.method_losses` with shared Grams). Writes
 `experiments/results/model_card/results.json` and `table.md`.
 """
 
@@ -30,33 +30,14 @@ import cv2
 import jax
 import numpy as np
 
-from experiments import eval_common
 from wrinkle_jax import MATERIALS, data, enhancer, evaluation
+from wrinkle_jax.evaluation import cells as cell_lib
+from wrinkle_jax.evaluation import gram, patchsets, suite
+from wrinkle_jax.evaluation import methods as method_lib
 from wrinkle_jax.nn import vgg
 
 ROOT = Path(__file__).resolve().parents[1]
-UNSEEN_GARMENT = {"dress_dance", "cape_walk"}
 SWEEP = [(s, a) for s in (2.0, 4.0, 8.0, 12.0, 16.0, 24.0) for a in (0.5, 1.0, 1.5, 2.0, 3.0)]
-
-
-def take(ds: data.PatchDataset, n: int) -> dict:
-    idx = np.unique(np.linspace(0, len(ds) - 1, min(n, len(ds))).round().astype(int))
-    b = ds.get(idx)
-    b["scene"] = np.array([ds.entries[j]["scene"] for j in ds.sequence_of[idx]])
-    return b
-
-
-def run_model(enh: enhancer.Enhancer, batch: dict, size: int = 16) -> tuple[np.ndarray, float]:
-    """The model's unit-normal outputs on a batch of patches and its ms per patch (compile
-    excluded)."""
-    apply = enhancer.make_apply(enh)
-    n0 = min(size, len(batch["input"]))
-    enhancer.enhance_patches(apply, enh.params, batch["input"][:n0], batch["material"][:n0],
-                             batch["mask"][:n0], size)  # compile outside the timing
-    timings: dict = {}
-    out = enhancer.enhance_patches(apply, enh.params, batch["input"], batch["material"],
-                                   batch["mask"], size, timings)
-    return out, 1e3 * timings["network_s"] / max(len(out), 1)
 
 
 def unsharp_sweep(vgg_params, data_root, n_tune: int, order: int) -> tuple[dict, tuple]:
@@ -64,15 +45,15 @@ def unsharp_sweep(vgg_params, data_root, n_tune: int, order: int) -> tuple[dict,
     `SWEEP` on `n_tune` TRAINING patches (offset from the scored ones), and the best pair.
 
     The input's and target's Gram matrices are computed once for the whole sweep
-    (`eval_common.method_losses`), so each setting costs one VGG pass per patch.
+    (`evaluation.gram.method_losses`), so each setting costs one VGG pass per patch.
     """
     ds = data.PatchDataset(data_root, "train")
     idx = np.unique(np.linspace(0, len(ds) - 1, n_tune).round().astype(int) + 7) % len(ds)
     tune = ds.get(idx)
     outs = {f"order={order},sigma={s:g},amount={a:g}":
             evaluation.unsharp_mask(tune["input"], tune["mask"], s, a, order) for s, a in SWEEP}
-    losses = eval_common.method_losses(vgg_params, tune["input"], tune["target"], tune["mask"],
-                                       outs)
+    losses = gram.method_losses(vgg_params, tune["input"], tune["target"], tune["mask"],
+                                outs)
     sweep = {}
     for key in outs:
         sc = evaluation.scores_from_losses(losses["input"], losses[key])
@@ -104,8 +85,8 @@ def main(argv=None) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
     vgg_params = vgg.load_vgg19()
     enh = enhancer.load_enhancer(args.model)
-    held = take(data.PatchDataset(args.data, "heldout"), args.n)
-    seen = take(data.PatchDataset(args.data, "train"), args.n_seen)
+    held = patchsets.take(data.PatchDataset(args.data, "heldout"), args.n)
+    seen = patchsets.take(data.PatchDataset(args.data, "train"), args.n_seen)
 
     sweep, best = {}, {}
     for order in (0, 1):
@@ -124,19 +105,19 @@ def main(argv=None) -> None:
         "lanczos x2 down/up": lambda b: evaluation.resample(b["input"], b["mask"], 2.0,
                                                             up=cv2.INTER_LANCZOS4),
     }
-    results = {"model": eval_common.portable_path(args.model), "model_meta": enh.meta,
+    results = {"model": suite.portable_path(args.model), "model_meta": enh.meta,
                "unsharp_sweep": sweep, "n_heldout": len(held["input"]),
                "n_seen": len(seen["input"]), "methods": {}}
     for split, batch in (("heldout", held), ("seen", seen)):
         groups = np.array([
-            f"{'unseen garment' if sc in UNSEEN_GARMENT else 'seen garment'}|{sc}|"
+            f"{'unseen garment' if sc in cell_lib.UNSEEN_GARMENT else 'seen garment'}|{sc}|"
             f"{MATERIALS[m]}" for sc, m in zip(batch["scene"], batch["material"], strict=True)])
         outs = {name: fn(batch) for name, fn in methods.items()}
-        outs["model"], ms = run_model(enh, batch)
+        outs["model"], ms = method_lib.run_model(enh, batch)
         # The input's and target's Gram matrices are shared by all methods (same numbers as
         # evaluation.score_patches; tests/test_eval_experiments.py checks it).
-        losses = eval_common.method_losses(vgg_params, batch["input"], batch["target"],
-                                           batch["mask"], outs)
+        losses = gram.method_losses(vgg_params, batch["input"], batch["target"],
+                                    batch["mask"], outs)
         for name in outs:
             sc = evaluation.scores_from_losses(losses["input"], losses[name])
             kind = np.array([g.split("|")[0] for g in groups])

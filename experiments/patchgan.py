@@ -17,7 +17,7 @@ this run's time only; `--fresh` starts over). The generator is exported as an en
 Scoring (`experiments.model_card`'s sets): the first `--n` (480) held-out patches (unseen
 garments, seen garment in an unseen motion) and `--n-seen` (160) training patches, improvement
 score on `evaluation.EVAL_LAYERS` with shared input/target Gram matrices
-(`eval_common.method_losses`): identity, unsharp masking (order 1 at the model card's best
+(`evaluation.gram.method_losses`): identity, unsharp masking (order 1 at the model card's best
 setting), the shipped model (or `--model`), and the PatchGAN.
 
 Writes `<out>/results.json` (config, steps, wall time, scores by kind/scene/material, ms per
@@ -38,9 +38,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import eval_common as ec
-from experiments import model_card
 from wrinkle_jax import MATERIALS, data, enhancer, evaluation
+from wrinkle_jax.evaluation import cells as cell_lib
+from wrinkle_jax.evaluation import gram, patchsets, suite
+from wrinkle_jax.evaluation import methods as method_lib
 from wrinkle_jax.fileio import atomic_write_bytes, atomic_write_text
 from wrinkle_jax.nn import patchgan, vgg
 
@@ -162,15 +163,15 @@ def plot_curves(metrics_path: Path, out_png: Path) -> None:
     axes[0].legend(fontsize=8)
     axes[2].legend(fontsize=8)
     fig.tight_layout()
-    ec.save_figure(fig, out_png, dpi=100)
+    suite.save_figure(fig, out_png, dpi=100)
 
 
 def score(vgg_params, batch: dict, outs: dict[str, np.ndarray]) -> dict:
     """Per method: summaries overall, by kind (seen/unseen garment), scene and material."""
-    kind = np.array(["unseen garment" if s in model_card.UNSEEN_GARMENT else "seen garment"
+    kind = np.array(["unseen garment" if s in cell_lib.UNSEEN_GARMENT else "seen garment"
                      for s in batch["scene"]])
     mat = np.array([MATERIALS[m] for m in batch["material"]])
-    losses = ec.method_losses(vgg_params, batch["input"], batch["target"], batch["mask"], outs)
+    losses = gram.method_losses(vgg_params, batch["input"], batch["target"], batch["mask"], outs)
     res = {}
     for name in outs:
         sc = evaluation.scores_from_losses(losses["input"], losses[name])
@@ -212,7 +213,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=str(ROOT / "data" / "patches"))
     ap.add_argument("--run", default=str(ROOT / "outputs" / "patchgan"))
-    ap.add_argument("--out", default=str(ec.RESULTS / "patchgan"))
+    ap.add_argument("--out", default=str(suite.RESULTS / "patchgan"))
     ap.add_argument("--model", default=str(enhancer.DEFAULT_PATH), help="model to compare with")
     ap.add_argument("--minutes", type=float, default=45.0, help="training wall-clock budget")
     ap.add_argument("--steps", type=int, default=None, help="stop at this many steps")
@@ -243,36 +244,38 @@ def main(argv=None) -> int:
     gan_path = enhancer.save_enhancer(out / "patchgan.npz", got["state"].g_params, ecfg, meta={
         "baseline": "DeepWrinkles-style conditional PatchGAN (wrinkle_jax.nn.patchgan)",
         "gan_config": config.to_json(), "steps": got["steps"],
-        "train_minutes": round(got["train_s"] / 60, 2), "data": ec.portable_path(args.data),
+        "train_minutes": round(got["train_s"] / 60, 2), "data": suite.portable_path(args.data),
         "train_scenes": sorted({e["scene"] for e in ds.entries})})
     gan = enhancer.load_enhancer(gan_path)
     model = enhancer.load_enhancer(args.model)
     plot_curves(run / "metrics.jsonl", out / "loss_curve.png")
-    sigma, amount, src = ec.unsharp_setting(order=1)
+    sigma, amount, src = method_lib.unsharp_setting(order=1)
     vgg_params = vgg.load_vgg19()
-    held = model_card.take(data.PatchDataset(args.data, "heldout"), args.n)
-    seen = model_card.take(ds, args.n_seen)
+    held = patchsets.take(data.PatchDataset(args.data, "heldout"), args.n)
+    seen = patchsets.take(ds, args.n_seen)
     scores, ms = {}, {}
     for split, batch in (("heldout", held), ("seen", seen)):
         outs = {"identity": evaluation.identity(batch["input"], batch["mask"]),
                 f"unsharp order 1 (sigma={sigma:g},amount={amount:g})":
                     evaluation.unsharp_mask(batch["input"], batch["mask"], sigma, amount, 1)}
-        outs["model"], ms["model"] = model_card.run_model(model, batch)
-        outs[GAN], ms[GAN] = model_card.run_model(
+        outs["model"], ms["model"] = method_lib.run_model(model, batch)
+        outs[GAN], ms[GAN] = method_lib.run_model(
             gan, {**batch, "material": np.zeros_like(batch["material"])})
         for name, r in score(vgg_params, batch, outs).items():
             scores.setdefault(name, {})[split] = r
         print(split, {k: round(v[split]["all"]["signed_mean"], 1) for k, v in scores.items()},
               flush=True)
-    res = {"config": config.to_json(), "data": ec.portable_path(args.data), "steps": got["steps"],
+    res = {"config": config.to_json(), "data": suite.portable_path(args.data),
+           "steps": got["steps"],
            "train_scenes": sorted({e["scene"] for e in ds.entries}),
            "train_s": got["train_s"], "minutes_budget": args.minutes,
-           "model": ec.portable_path(args.model), "model_meta": {k: v for k, v in model.meta.items()
-                                                    if not isinstance(v, dict | list)},
+           "model": suite.portable_path(args.model),
+           "model_meta": {k: v for k, v in model.meta.items()
+                          if not isinstance(v, dict | list)},
            "unsharp": {"sigma": sigma, "amount": amount, "source": src},
            "n_heldout": len(held["input"]), "n_seen": len(seen["input"]),
-           "scores": scores, "ms_per_patch": ms, "weights": ec.portable_path(gan_path),
-           "machine": ec.machine_info(),
+           "scores": scores, "ms_per_patch": ms, "weights": suite.portable_path(gan_path),
+           "machine": suite.machine_info(),
            "command": "python -m experiments.patchgan " + " ".join(
                sys.argv[1:] if argv is None else argv)}
     res["summary"] = {name: {"unseen garment": r["heldout"]["by_kind"].get(
@@ -280,7 +283,7 @@ def main(argv=None) -> int:
         r["heldout"]["by_kind"].get("seen garment", {}).get("signed_mean"),
         "training patches": r["seen"]["all"].get("signed_mean")}
         for name, r in scores.items()}
-    ec.write_json(out / "results.json", res)
+    suite.write_json(out / "results.json", res)
     (out / "table.md").write_text(table_markdown(res))
     print(table_markdown(res))
     return 0

@@ -25,7 +25,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from experiments import eval_common as ec
+from wrinkle_jax.evaluation import suite
 
 MODEL, WRONG = "model", "model, wrong material"
 KINDS = ("seen garment, seen motion", "seen garment, unseen motion", "unseen garment")
@@ -503,7 +503,7 @@ def _plot(path: Path, draw: Callable, xlabel: str, ylabel: str, title: str) -> N
     ax.grid(alpha=0.3)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    ec.save_figure(fig, path, dpi=100)
+    suite.save_figure(fig, path, dpi=100)
 
 
 def _label_points(ax, xs, ys, labels) -> None:
@@ -628,7 +628,7 @@ def machines_section(rep: Report) -> None:
 def _git_commit() -> str | None:
     try:
         return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                              text=True, check=True, cwd=ec.ROOT).stdout.strip() or None
+                              text=True, check=True, cwd=suite.ROOT).stdout.strip() or None
     except (OSError, subprocess.CalledProcessError):
         return None
 
@@ -666,7 +666,7 @@ def build(results: Path) -> Report:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--results", default=str(ec.RESULTS))
+    ap.add_argument("--results", default=str(suite.RESULTS))
     ap.add_argument("--out", default=None, help="default: <results>/REPORT.md")
     ap.add_argument("--strict", action="store_true", help="fail if any result is missing")
     args = ap.parse_args(argv)

@@ -10,8 +10,8 @@ frame (defaults: frames 0, 50, 100, 150 of 0, 10, ..., 190), with the same seede
 "patch" row below is Table 1's model on exactly these patches.
 
 Per cell and stride, `pipeline.make_pipeline` runs on the coarse mesh baked on the SHARED
-fine/coarse grid (`eval_common.aligned_pair`; `layout=`), so the merged map N* can be cut at
-the same cloth as the fine map:
+fine/coarse grid (`evaluation.patchsets.aligned_pair`; `layout=`), so the merged map N* can be
+cut at the same cloth as the fine map:
 
   score   the improvement score (|.| and signed) of N* cut at Table 1's patch origins (and to
           the texels both meshes cover), fine map as target, coarse map as input: what the
@@ -42,67 +42,19 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments import eval_common as ec
-from experiments import table1
 from wrinkle_jax import enhancer as enhancer_lib
-from wrinkle_jax import evaluation, material_index, metrics, normalmap, patches, pipeline
+from wrinkle_jax import evaluation, material_index, normalmap, patches, pipeline
+from wrinkle_jax.evaluation import cells as cell_lib
+from wrinkle_jax.evaluation import gram, patchscores, patchsets, suite
+from wrinkle_jax.evaluation import methods as method_lib
+from wrinkle_jax.evaluation import seams as seam_lib
 from wrinkle_jax.nn import vgg
 
 PATCH = "patch"
 
 
-def neighbour_angles(normals: np.ndarray, mask: np.ndarray, axis: int):
-    """Angles (degrees) between unit normals of neighbouring texels along `axis`.
-
-    Args:
-      normals: (H, W, 3) unit normals; mask: (H, W) bool garment texels.
-      axis: 0 (texel (r, c) vs (r + 1, c)) or 1 ((r, c) vs (r, c + 1)).
-    Returns:
-      (angles, valid), both shaped like the map shortened by one along `axis`; valid where
-      both texels are garment.
-    """
-    a = np.take(normals, np.arange(normals.shape[axis] - 1), axis=axis)
-    b = np.take(normals, np.arange(1, normals.shape[axis]), axis=axis)
-    ma = np.take(mask, np.arange(mask.shape[axis] - 1), axis=axis)
-    mb = np.take(mask, np.arange(1, mask.shape[axis]), axis=axis)
-    return metrics.normal_angles(a, b), ma & mb
-
-
-def border_pairs(origins: np.ndarray, size: int, length: int, axis: int) -> np.ndarray:
-    """(length - 1,) bool: neighbour pair (x - 1, x) crosses a tile border along `axis`, i.e. a
-    tile starts at x or ends at x - 1 (origins (P, 2) (row, col))."""
-    starts = np.asarray(origins)[:, axis]
-    edges = np.concatenate([starts, starts + size])  # x where a tile starts or one ends
-    out = np.zeros(length - 1, bool)
-    edges = edges[(edges >= 1) & (edges <= length - 1)]
-    out[edges - 1] = True
-    return out
-
-
-def seam_sums(normals: np.ndarray, mask: np.ndarray, origins: np.ndarray, size: int
-              ) -> np.ndarray:
-    """[sum of border angles, border pairs, sum of other angles, other pairs] over both axes
-    (add over frames, then `seam_ratio`)."""
-    out = np.zeros(4)
-    for axis in (0, 1):
-        ang, valid = neighbour_angles(normals, mask, axis)
-        border = border_pairs(origins, size, normals.shape[axis], axis)
-        border = border[:, None] if axis == 0 else border[None, :]
-        on, off = valid & border, valid & ~border
-        out += [ang[on].sum(), on.sum(), ang[off].sum(), off.sum()]
-    return out
-
-
-def seam_ratio(sums: np.ndarray) -> float:
-    """Mean border angle / mean other angle (nan without border or other pairs)."""
-    s_on, n_on, s_off, n_off = sums
-    if n_on == 0 or n_off == 0 or s_off == 0:
-        return float("nan")
-    return float((s_on / n_on) / (s_off / n_off))
-
-
 def evaluate_cell(fine, coarse, material: str, enh: enhancer_lib.Enhancer, strides, vgg_params,
-                  sampling: table1.Sampling, frames: list[int], cell_seed=(0,),
+                  sampling: patchscores.Sampling, frames: list[int], cell_seed=(0,),
                   batch_size: int = 8) -> dict:
     """Scores, seam sums and timings of every stride (and the patch-level model) on one cell.
 
@@ -117,10 +69,10 @@ def evaluate_cell(fine, coarse, material: str, enh: enhancer_lib.Enhancer, strid
        "patches_per_frame": {stride: int}, "frames": frames}.
     """
     size = sampling.patch_size
-    pair = ec.aligned_pair(fine.garment, coarse.garment, sampling.texel_size)
+    pair = patchsets.aligned_pair(fine.garment, coarse.garment, sampling.texel_size)
     both = np.asarray(patches.pad_to_patch(pair.mask, size)[0])
     grid = size // 2 if sampling.grid_stride is None else sampling.grid_stride
-    cand, _ = ec.candidate_origins(both, size, grid, sampling.min_coverage)
+    cand, _ = patchsets.candidate_origins(both, size, grid, sampling.min_coverage)
     if not len(cand):
         raise ValueError("no candidate patch")
     mid = material_index(material)
@@ -134,24 +86,25 @@ def evaluate_cell(fine, coarse, material: str, enh: enhancer_lib.Enhancer, strid
         maps[s] = {f.index: f.normal_map for f in pipeline.iter_enhance(
             pipe, coarse.frames, pipe.enhancer.config.material_id(material), frames, t, counts)}
         timings[s], per_frame[s] = t, pipe.num_patches
-    patch_model = ec.enhancer_method(enh, batch_size=batch_size)
+    patch_model = method_lib.enhancer_method(enh, batch_size=batch_size)
     coarse_mask = np.asarray(pipes[strides[0]].mask)[..., 0] > 0
     seams = {s: np.zeros(4) for s in strides}
     seams_coarse = {s: np.zeros(4) for s in strides}
     loss_in, loss = [], {k: [] for k in (PATCH, *strides)}
     for t in frames:
-        sel = ec.choose_origins(cand, sampling.patches_per_frame, (sampling.seed, *cell_seed, t))
-        ps = ec.aligned_patches(pair, fine.frames[t], coarse.frames[t], sel, size, mid)
+        sel = patchsets.choose_origins(cand, sampling.patches_per_frame,
+                                       (sampling.seed, *cell_seed, t))
+        ps = patchsets.aligned_patches(pair, fine.frames[t], coarse.frames[t], sel, size, mid)
         outs = {PATCH: patch_model(ps)}
-        base = np.asarray(ec.bake_map(pair.coarse, coarse.frames[t]))
+        base = np.asarray(patchsets.bake_map(pair.coarse, coarse.frames[t]))
         for s in strides:
             rgb = normalmap.to_rgb(patches.pad_to_patch(maps[s][t], size)[0])
-            outs[s] = ec.cut(np.asarray(rgb), sel, size) * ps.mask
+            outs[s] = patchsets.cut(np.asarray(rgb), sel, size) * ps.mask
             org = pipes[s].origins
-            seams[s] += seam_sums(maps[s][t], coarse_mask, org, size)
-            seams_coarse[s] += seam_sums(base, coarse_mask, org, size)
-        got = ec.method_losses(vgg_params, ps.input, ps.target, ps.mask, outs,
-                               batch_size=sampling.score_batch)
+            seams[s] += seam_lib.seam_sums(maps[s][t], coarse_mask, org, size)
+            seams_coarse[s] += seam_lib.seam_sums(base, coarse_mask, org, size)
+        got = gram.method_losses(vgg_params, ps.input, ps.target, ps.mask, outs,
+                                 batch_size=sampling.score_batch)
         loss_in.append(got["input"])
         for k in loss:
             loss[k].append(got[k])
@@ -167,9 +120,9 @@ def summarize(results: dict[str, dict], strides) -> dict:
     out = {}
     loss_in = np.concatenate([r["loss_input"] for r in results.values()])
     for name in (PATCH, *strides):
-        sc = ec.scores_from_losses(loss_in, np.concatenate([r["loss"][name]
-                                                            for r in results.values()]))
-        row = {"score": table1.summary(sc)}
+        sc = evaluation.scores_from_losses(loss_in, np.concatenate([r["loss"][name]
+                                                                    for r in results.values()]))
+        row = {"score": patchscores.summary(sc)}
         if name != PATCH:
             n_frames = sum(len(r["frames"]) for r in results.values())
             stages = {}
@@ -182,9 +135,9 @@ def summarize(results: dict[str, dict], strides) -> dict:
                 ms_tile_network_merge=sum(ms.get(k, 0.0) for k in ("tile", "network", "merge")),
                 patches_per_frame=float(np.mean([r["patches_per_frame"][name]
                                                  for r in results.values()])),
-                seam_ratio=seam_ratio(sum(r["seams"][name] for r in results.values())),
-                seam_ratio_coarse=seam_ratio(sum(r["seams_coarse"][name]
-                                                 for r in results.values())))
+                seam_ratio=seam_lib.seam_ratio(sum(r["seams"][name] for r in results.values())),
+                seam_ratio_coarse=seam_lib.seam_ratio(sum(r["seams_coarse"][name]
+                                                          for r in results.values())))
         out[str(name)] = row
     return out
 
@@ -232,11 +185,11 @@ def plot(res: dict, path: Path) -> None:
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     fig.tight_layout()
-    ec.save_figure(fig, path, dpi=110)
+    suite.save_figure(fig, path, dpi=110)
 
 
 def main(argv=None) -> int:
-    ap = ec.script_parser(__doc__)
+    ap = suite.script_parser(__doc__)
     ap.add_argument("--model", default=str(enhancer_lib.DEFAULT_PATH))
     ap.add_argument("--strides", default="32,64,96")
     ap.add_argument("--frame-every", type=int, default=5,
@@ -244,10 +197,10 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=200, help="Table 1's --frames")
     ap.add_argument("--frame-stride", type=int, default=10, help="Table 1's --frame-stride")
     ap.add_argument("--patches-per-frame", type=int, default=8)
-    ec.add_sequence_args(ap)
-    ap.add_argument("--out", default=str(ec.RESULTS / "stride"))
+    cell_lib.add_sequence_args(ap)
+    ap.add_argument("--out", default=str(suite.RESULTS / "stride"))
     args = ap.parse_args(argv)
-    enh = ec.load_model_or_usage_error(ap, args.model)
+    enh = suite.load_model_or_usage_error(ap, args.model)
     size = enh.config.patch_size
     try:
         strides = [int(s) for s in args.strides.split(",")]
@@ -260,30 +213,30 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
-    sampling = table1.Sampling(frames=args.frames, frame_stride=args.frame_stride,
+    sampling = patchscores.Sampling(frames=args.frames, frame_stride=args.frame_stride,
                                patches_per_frame=args.patches_per_frame, patch_size=size,
                                texel_size=enh.config.texel_size,
                                score_batch=min(args.patches_per_frame, 16))
     frames = sampling.frame_indices[::args.frame_every]
-    cells = ec.table_cells(args.garments.split(","), args.materials.split(","),
-                           args.motions.split(","))
+    cells = cell_lib.table_cells(args.garments.split(","), args.materials.split(","),
+                                 args.motions.split(","))
     vgg_params = vgg.load_vgg19()
     results = {}
     for i, cell in enumerate(cells):
-        seqs = ec.cell_sequences(cell, args.frames, ec.TEST_SEED, (Path(args.sequences),),
-                                 Path(args.sim_out))
-        fine = ec.load_first_frames(seqs["fine"], args.frames)
-        coarse = ec.load_first_frames(seqs["coarse"], args.frames)
+        seqs = cell_lib.cell_sequences(cell, args.frames, cell_lib.TEST_SEED,
+                                       (Path(args.sequences),), Path(args.sim_out))
+        fine = cell_lib.load_first_frames(seqs["fine"], args.frames)
+        coarse = cell_lib.load_first_frames(seqs["coarse"], args.frames)
         t0 = time.perf_counter()
         results[cell.key] = evaluate_cell(fine, coarse, cell.material, enh, strides,
                                           vgg_params, sampling, frames, cell.patch_seed)
         elapsed = time.perf_counter() - t_all
         print(f"[{i + 1}/{len(cells)}] {cell.key}: {time.perf_counter() - t0:.0f} s, "
-              f"{ec.eta_text(i + 1, len(cells), elapsed)}", flush=True)
+              f"{suite.eta_text(i + 1, len(cells), elapsed)}", flush=True)
     pooled = summarize(results, strides)
     per_cell = {k: summarize({k: r}, strides) for k, r in results.items()}
     res = {
-        "model": ec.portable_path(args.model), "strides": strides, "frames": frames,
+        "model": suite.portable_path(args.model), "strides": strides, "frames": frames,
         "sampling": dataclasses.asdict(sampling),
         "sampling_text": (
             f"Table 1's cells ({len(cells)}), frames {', '.join(map(str, frames))} of each, "
@@ -291,11 +244,11 @@ def main(argv=None) -> int:
             f"({sum(len(r['loss_input']) for r in results.values())} patches); score: "
             f"{', '.join(evaluation.EVAL_LAYERS)}; timings on this machine, compile "
             "excluded."),
-        "pooled": pooled, "cells": per_cell, "machine": ec.machine_info(),
+        "pooled": pooled, "cells": per_cell, "machine": suite.machine_info(),
         "run_s": time.perf_counter() - t_all,
         "command": "python -m experiments.stride " + " ".join(
             sys.argv[1:] if argv is None else argv)}
-    ec.write_json(out / "results.json", res)
+    suite.write_json(out / "results.json", res)
     (out / "table.md").write_text(table_markdown(res))
     plot(res, out / "pareto.png")
     print(table_markdown(res))

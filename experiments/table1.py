@@ -8,7 +8,7 @@ Cells (12): garment {flared_skirt (seen in training), dress, cape (unseen)} x ma
 {silk_charmeuse, denim_light} x motion {dance (seen), walk (unseen)}, seed 1 (training used
 seed 0, so even the seen cell is an unseen performance). Scenes: skirt_dance, skirt_walk,
 dress_dance, cape_walk from `wrinkle_jax.sim.scenes`; dress_walk and cape_dance are the dress
-and cape scenes with the motion replaced (`eval_common.scene_for`). Each cell uses the first
+and cape scenes with the motion replaced (`evaluation.cells.scene_for`). Each cell uses the first
 `--frames` frames of a fine (PD 10 mm) and a coarse (PD 30 mm) simulation: files of
 `data/sequences` (the 300-frame test sequences) are reused when their scene config, material
 and seed match; missing ones (skirt_dance seed 1, dress_walk, cape_dance) are simulated into
@@ -16,9 +16,9 @@ and seed match; missing ones (skirt_dance seed 1, dress_walk, cape_dance) are si
 machine).
 
 Patches (paper: patch level): both meshes are baked on ONE pixel grid at the model's texel
-size (`eval_common.shared_layout`: the fine mesh's meters-per-UV, the union of the UV bounds),
-so a patch origin is the same cloth in both maps. Candidate patches are the model-size patches
-of a grid (stride half a patch) in which the texels covered by BOTH meshes make up at least
+size (`evaluation.patchsets.shared_layout`: the fine mesh's meters-per-UV, the union of the UV
+bounds), so a patch origin is the same cloth in both maps. Candidate patches are the model-size
+patches of a grid (stride half a patch) in which the texels covered by BOTH meshes make up at least
 `--min-coverage` (0.5); in every `--frame-stride`-th frame, `--patches-per-frame` of them are
 drawn at random (seeded by cell and frame). Input N = the coarse map, target N_hat = the fine
 map of the same frame, both cut to that mask.
@@ -29,12 +29,12 @@ training patches (`experiments/results/model_card/results.json`, else sigma 8 am
 bicubic and Lanczos x2
 down/up-sampling; the model (run on the patch itself, material given); and the wrong-material
 ablation (paper Fig. 10): the model told the other table material (silk_charmeuse <->
-denim_light; `eval_common.wrong_material`; off with --no-wrong-material).
+denim_light; `evaluation.methods.wrong_material`; off with --no-wrong-material).
 
 Score: `wrinkle_jax.evaluation`'s improvement score on EVAL_LAYERS (relu1_2 ... relu5_1), the
 paper's |.| form and the signed form (negative = further from the target's style than the
 input). The Gram matrices of the input and the target are computed once per patch and shared
-by the methods (`eval_common.method_losses`, equal to `evaluation.score_patches`).
+by the methods (`evaluation.gram.method_losses`, equal to `evaluation.score_patches`).
 
 Cost (2 CPU cores): a VGG19 pass to relu5_1 costs ~0.15-0.2 s per 128x128 patch on an idle
 machine and ~0.4-0.5 s with another job on the cores; a patch needs 2 + 6 passes (input,
@@ -56,244 +56,17 @@ import io
 import json
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from experiments import eval_common as ec
-from wrinkle_jax import MATERIALS, evaluation, material_index, patches
-from wrinkle_jax import enhancer as enhancer_lib
+from wrinkle_jax import evaluation
+from wrinkle_jax.evaluation import cells as cell_lib
+from wrinkle_jax.evaluation import patchscores, suite
 from wrinkle_jax.fileio import atomic_write_bytes
 from wrinkle_jax.nn import vgg
 
-MODEL = "model"
-WRONG = "model, wrong material"
 SUMMARY_KINDS = ("seen garment, seen motion", "seen garment, unseen motion", "unseen garment")
-
-
-@dataclasses.dataclass(frozen=True)
-class Sampling:
-    """Which patches are scored (static).
-
-    Attributes:
-      frames: frames used per sequence (the first `frames`).
-      frame_stride: score every k-th of them (frame 0, k, 2k, ...).
-      patches_per_frame: patches drawn per scored frame (all candidates if fewer).
-      patch_size, texel_size: from the model (texels; meters per texel).
-      grid_stride: candidate grid step, texels (None: half a patch).
-      min_coverage: minimum fraction of texels covered by both meshes in a candidate patch.
-      seed: seeds the patch draw (with the cell and the frame index).
-      score_batch: patches per VGG call.
-    """
-
-    frames: int = 200
-    frame_stride: int = 10
-    patches_per_frame: int = 8
-    patch_size: int = 128
-    texel_size: float = 0.002
-    grid_stride: int | None = None
-    min_coverage: float = 0.5
-    seed: int = 0
-    score_batch: int = 8
-
-    @property
-    def frame_indices(self) -> list[int]:
-        return list(range(0, self.frames, self.frame_stride))
-
-
-def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg_params,
-                  sampling: Sampling, cell_seed=(0,),
-                  progress: Callable[[int], None] | None = None) -> dict:
-    """Score every method on the same aligned patches of one fine/coarse sequence pair.
-
-    Args:
-      fine, coarse: `GarmentSequence`s of the same pattern, scene, material and seed (frames
-        (T, V, 3) meters; T >= max(sampling.frame_indices) + 1).
-      material: material name (passed to the model method through `PatchSet.material_id`).
-      methods: name -> (PatchSet) -> (K, S, S, 3) RGB-form outputs.
-      vgg_params: `vgg.load_vgg19()` (or a small VGG in tests).
-      sampling: `Sampling`.
-      cell_seed: extra seed entropy for the patch draw (e.g. the cell).
-      progress: called with 1 after each scored frame.
-    Returns:
-      {"frame": (N,) int32 frame of every patch, "origin": (N, 2) int32, "coverage": (N,),
-       "loss_input": (N,), "loss": {name: (N,)}, "n_candidates": int,
-       "timings": {"bake_s", "methods_s": {name: s}, "score_s", "vgg_passes"}}.
-    """
-    size = sampling.patch_size
-    stride = size // 2 if sampling.grid_stride is None else sampling.grid_stride
-    pair = ec.aligned_pair(fine.garment, coarse.garment, sampling.texel_size)
-    mask = np.asarray(patches.pad_to_patch(pair.mask, size)[0])
-    cand, cov = ec.candidate_origins(mask, size, stride, sampling.min_coverage)
-    if not len(cand):
-        raise ValueError(f"no {size}x{size} patch reaches {sampling.min_coverage:.0%} coverage "
-                         "by both meshes")
-    cov_of = {tuple(o): c for o, c in zip(cand.tolist(), cov.tolist(), strict=True)}
-    mid = material_index(material)
-    frames, origins, covs = [], [], []
-    loss_in, loss = [], {k: [] for k in methods}
-    timings = {"bake_s": 0.0, "methods_s": {k: 0.0 for k in methods}, "score_s": 0.0}
-    counter: dict = {}
-    for t in sampling.frame_indices:
-        sel = ec.choose_origins(cand, sampling.patches_per_frame, (sampling.seed, *cell_seed, t))
-        t0 = time.perf_counter()
-        ps = ec.aligned_patches(pair, fine.frames[t], coarse.frames[t], sel, size, mid)
-        timings["bake_s"] += time.perf_counter() - t0
-        outs = {}
-        for name, fn in methods.items():
-            t0 = time.perf_counter()
-            outs[name] = fn(ps)
-            timings["methods_s"][name] += time.perf_counter() - t0
-        t0 = time.perf_counter()
-        got = ec.method_losses(vgg_params, ps.input, ps.target, ps.mask, outs,
-                               batch_size=sampling.score_batch, counter=counter)
-        timings["score_s"] += time.perf_counter() - t0
-        loss_in.append(got["input"])
-        for k in methods:
-            loss[k].append(got[k])
-        frames += [t] * len(sel)
-        origins.append(sel)
-        covs += [cov_of[tuple(o)] for o in sel.tolist()]
-        if progress is not None:
-            progress(1)
-    timings["vgg_passes"] = counter.get("vgg_passes", 0)
-    return {"frame": np.asarray(frames, np.int32), "origin": np.concatenate(origins),
-            "coverage": np.asarray(covs, np.float32), "loss_input": np.concatenate(loss_in),
-            "loss": {k: np.concatenate(v) for k, v in loss.items()},
-            "n_candidates": int(len(cand)), "timings": timings}
-
-
-def summary(scores: dict) -> dict:
-    """`evaluation.summarize(scores)["all"]` plus the medians of both scores."""
-    out = evaluation.summarize(scores)["all"]
-    v = scores["valid"]
-    if v.any():
-        out["improvement_median"] = float(np.median(scores["improvement"][v]))
-        out["signed_median"] = float(np.median(scores["improvement_signed"][v]))
-    return out
-
-
-def cell_scores(cell_result: dict) -> dict[str, dict]:
-    """Per-method score dicts (`eval_common.scores_from_losses`) of one evaluated cell."""
-    return {k: ec.scores_from_losses(cell_result["loss_input"], v)
-            for k, v in cell_result["loss"].items()}
-
-
-def pooled_scores(results: list[dict]) -> dict[str, dict]:
-    """Scores of several cells pooled patch by patch (each cell's eps kept)."""
-    per = [cell_scores(r) for r in results]
-    return {k: {f: np.concatenate([p[k][f] for p in per]) for f in per[0][k]} for k in per[0]}
-
-
-# --------------------------------------------------------------------------------------------
-# Cell files (resume)
-# --------------------------------------------------------------------------------------------
-
-
-def _cell_path(out: Path, cell: ec.Cell) -> Path:
-    return out / "cells" / f"{cell.scene.name}__{cell.material}.npz"
-
-
-# What defines a cell's patches (sampling, sequences); each method's losses are tagged with a
-# source string instead, so a rerun with another method set scores only the new methods.
-CELL_KEYS = ("sampling", "sequences")
-
-
-def save_cell(path: Path, result: dict, fingerprint: dict, sources: dict[str, str]) -> None:
-    """Store one evaluated cell atomically: arrays, the JSON fingerprint of its patches and
-    the source of every method's losses (`sources`: name -> string)."""
-    arrays = {"frame": result["frame"], "origin": result["origin"],
-              "coverage": result["coverage"], "loss_input": result["loss_input"],
-              "methods": np.array(list(result["loss"])),
-              "losses": np.stack([result["loss"][k] for k in result["loss"]]),
-              "meta": np.str_(json.dumps({"fingerprint": fingerprint,
-                                          "sources": {k: sources[k] for k in result["loss"]},
-                                          "n_candidates": result["n_candidates"],
-                                          "timings": result["timings"]}))}
-    buf = io.BytesIO()
-    np.savez(buf, **arrays)
-    atomic_write_bytes(path, buf.getvalue())
-
-
-def cell_part(fingerprint: dict, keys: tuple[str, ...] = CELL_KEYS) -> dict:
-    """The part of a fingerprint that defines the patches, with portable sequence paths."""
-    fp = json.loads(json.dumps({k: fingerprint.get(k) for k in keys}))
-    if isinstance(fp.get("sequences"), dict):
-        fp["sequences"] = {k: ec.portable_path(v) for k, v in fp["sequences"].items()}
-    return fp
-
-
-def legacy_sources(fingerprint: dict, methods: list[str]) -> dict[str, str]:
-    """Sources of a cell file written before sources were stored (model methods named by the
-    model file's path and mtime): the model's digest if that file is unchanged since."""
-    model = fingerprint.get("model")
-    src = None
-    if model and Path(model).exists() and Path(model).stat().st_mtime == fingerprint.get(
-            "model_mtime"):
-        src = f"model {ec.file_digest(model)}"
-    out = {}
-    for m in methods:
-        if m == MODEL:
-            out[m] = src or "unknown model"
-        elif m == WRONG:
-            out[m] = f"{src} wrong material" if src else "unknown model"
-        else:
-            out[m] = m
-    return out
-
-
-def load_cell(path: Path, fingerprint: dict) -> dict | None:
-    """A stored cell if it exists and its patches are this fingerprint's, else None.
-
-    The result also holds "sources" (name -> source of its losses) and "legacy" (True for a
-    file written before sources were stored)."""
-    if not path.exists():
-        return None
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            meta = json.loads(str(z["meta"]))
-            if cell_part(meta["fingerprint"]) != cell_part(fingerprint):
-                return None
-            names = z["methods"].tolist()
-            legacy = "sources" not in meta
-            sources = (legacy_sources(meta["fingerprint"], names) if legacy
-                       else meta["sources"])
-            return {"frame": z["frame"], "origin": z["origin"], "coverage": z["coverage"],
-                    "loss_input": z["loss_input"],
-                    "loss": dict(zip(names, z["losses"], strict=True)),
-                    "n_candidates": meta["n_candidates"], "timings": meta["timings"],
-                    "sources": sources, "legacy": legacy}
-    except (OSError, KeyError, ValueError):
-        return None
-
-
-def merge_cell(cached: dict, new: dict, order: list[str]) -> dict:
-    """A stored cell plus newly scored methods on the same patches (`new` from
-    `evaluate_cell` with only those methods); methods in `order`, then any others stored.
-
-    Raises:
-      ValueError: the patches or the input's losses differ (the sequences changed).
-    """
-    if (not np.array_equal(cached["frame"], new["frame"])
-            or not np.array_equal(cached["origin"], new["origin"])
-            or not np.allclose(cached["loss_input"], new["loss_input"], rtol=1e-4)):
-        raise ValueError("stored cell and rescored methods are not on the same patches")
-    loss = ec.merge_methods(cached["loss"], new["loss"], order)
-    timings = ec.merge_timings(cached["timings"], new["timings"], ("score_s", "vgg_passes"))
-    return {**cached, "loss": loss, "timings": timings}
-
-
-# --------------------------------------------------------------------------------------------
-# Table
-# --------------------------------------------------------------------------------------------
-
-
-def _frames_text(idx: list[int]) -> str:
-    """'0, 10, 20, ..., 190' (or the whole list when short)."""
-    if len(idx) <= 4:
-        return ", ".join(map(str, idx))
-    return f"{idx[0]}, {idx[1]}, {idx[2]}, ..., {idx[-1]}"
 
 
 def _fmt(d: dict, signed: bool = False) -> str:
@@ -317,16 +90,16 @@ def table_markdown(results: dict) -> str:
                  else "paper's |.| form, mean ± std over patches")
         lines += [f"## Model, {title}", "",
                   "| material | motion | " + " | ".join(
-                      f"{g} ({'seen' if g == ec.SEEN_GARMENT else 'unseen'})"
+                      f"{g} ({'seen' if g == cell_lib.SEEN_GARMENT else 'unseen'})"
                       for g in garments) + " |",
                   "|---|---|" + "---|" * len(garments)]
         for ma in results["config"]["materials"]:
             for mo in results["config"]["motions"]:
-                row = [ma, f"{mo} ({'seen' if mo == ec.SEEN_MOTION else 'unseen'})"]
+                row = [ma, f"{mo} ({'seen' if mo == cell_lib.SEEN_MOTION else 'unseen'})"]
                 for g in garments:
-                    key = ec.Cell(g, mo, ma).key
-                    row.append(_fmt(cells[key]["methods"][MODEL], signed) if key in cells
-                               else "-")
+                    key = cell_lib.Cell(g, mo, ma).key
+                    row.append(_fmt(cells[key]["methods"][patchscores.MODEL], signed)
+                               if key in cells else "-")
                 lines.append("| " + " | ".join(row) + " |")
         lines.append("")
     lines += ["## All methods by cell kind: |.| mean ± std (signed mean ± std), n patches", "",
@@ -347,149 +120,16 @@ def table_markdown(results: dict) -> str:
 # --------------------------------------------------------------------------------------------
 
 
-def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params, sampling: Sampling,
-        out: Path, fingerprint_of: Callable[[ec.Cell], dict], fresh: bool = False,
-        log: Callable[[str], None] = print, sources: dict[str, str] | None = None
-        ) -> dict[str, dict]:
-    """Evaluate (or reload from `<out>/cells/`) every cell, printing progress and an ETA.
-
-    Stored cells are reused method by method (`eval_common.run_cells`): a method whose stored
-    source equals `sources[name]` (default: the name) is not rescored; a new one costs 2 VGG
-    passes per patch (the input and target Grams) plus its own.
-
-    Returns:
-      cell key -> `evaluate_cell` result restricted to `methods` (timings also hold "cell_s").
-    """
-    def evaluate(cell, names, progress):
-        fine = ec.load_first_frames(sequences[cell.key]["fine"], sampling.frames)
-        coarse = ec.load_first_frames(sequences[cell.key]["coarse"], sampling.frames)
-        res = evaluate_cell(fine, coarse, cell.material, {k: methods[k] for k in names},
-                            vgg_params, sampling, cell.patch_seed, progress)
-        sig = {k: round(float(np.mean(s["improvement_signed"][s["valid"]])), 1)
-               for k, s in cell_scores(res).items() if s["valid"].any()}
-        log(f"{cell.key}: signed means {sig}")
-        return res
-
-    return ec.run_cells(cells, methods, sources, path_of=lambda c: _cell_path(out, c),
-                        fingerprint_of=fingerprint_of, load=load_cell, save=save_cell,
-                        evaluate=evaluate, merge=merge_cell, field="loss",
-                        units=lambda names: len(sampling.frame_indices), unit="frames",
-                        fresh=fresh, log=log)
-
-
-# --------------------------------------------------------------------------------------------
-# Setup shared with Table 2 and the stride ablation
-# --------------------------------------------------------------------------------------------
-
-
-def add_cell_args(ap, out_default: Path, frame_stride_help: str = "score every k-th frame"
-                  ) -> None:
-    """The flags that choose the model, the cells, their sequences and the patch sampling."""
-    ap.add_argument("--model", default=str(enhancer_lib.DEFAULT_PATH),
-                    help="enhancer .npz (default: the shipped model)")
-    ap.add_argument("--frames", type=int, default=200, help="frames per sequence")
-    ap.add_argument("--frame-stride", type=int, default=10, help=frame_stride_help)
-    ap.add_argument("--patches-per-frame", type=int, default=8)
-    ap.add_argument("--min-coverage", type=float, default=0.5,
-                    help="minimum fraction of patch texels covered by both meshes")
-    ap.add_argument("--seed", type=int, default=0, help="seed of the patch draw")
-    ec.add_sequence_args(ap)
-    ap.add_argument("--out", default=str(out_default))
-    ap.add_argument("--fresh", action="store_true", help="ignore stored cells and recompute")
-    ap.add_argument("--extra", action="append", default=[], metavar="NAME=PATH",
-                    help="also evaluate this enhancer file as method NAME (repeatable; e.g. "
-                         "patchgan=experiments/results/patchgan/patchgan.npz)")
-
-
-@dataclasses.dataclass
-class Setup:
-    """What a table script evaluates: model, sampling, cells, their sequence files, methods.
-
-    Attributes:
-      enh: the model; sampling: `Sampling`; cells: `eval_common.Cell`s.
-      sequences: cell key -> `eval_common.cell_sequences` (fine/coarse paths and info).
-      sim_s: seconds spent finding or simulating the sequences.
-      methods: name -> (PatchSet) -> outputs; sources: name -> source of its outputs.
-      unsharp: blur order -> (sigma, amount, source); net_timings: the model's timings.
-    """
-
-    enh: enhancer_lib.Enhancer
-    sampling: Sampling
-    cells: list
-    sequences: dict
-    sim_s: float
-    methods: dict
-    sources: dict
-    unsharp: dict
-    net_timings: dict
-
-    @property
-    def unsharp_text(self) -> str:
-        return "; ".join(f"order {o}: {u[2]}" for o, u in self.unsharp.items())
-
-    def fingerprint_of(self, cell: ec.Cell, **extra) -> dict:
-        """What defines the cell's patches: sampling, sequence files (portable), `extra`."""
-        return {"sampling": dataclasses.asdict(self.sampling), **extra,
-                "sequences": {r: ec.portable_path(self.sequences[cell.key][r])
-                              for r in ("fine", "coarse")}}
-
-
-def setup_from_args(ap, args, min_frame_stride: int = 1, wrong_material: bool = False,
-                    with_methods: bool = True) -> Setup:
-    """Validate the `add_cell_args` flags, load the model, find or simulate the sequences and
-    build the methods: the baselines, the model (and its wrong-material twin), --extra."""
-    if args.frames < 1 or args.patches_per_frame < 1:
-        ap.error("--frames and --patches-per-frame must be >= 1")
-    if args.frame_stride < min_frame_stride:
-        ap.error(f"--frame-stride must be >= {min_frame_stride}")
-    for name in args.materials.split(","):
-        if name not in MATERIALS:
-            ap.error(f"unknown material {name!r}")
-    enh = ec.load_model_or_usage_error(ap, args.model)
-    sampling = Sampling(frames=args.frames, frame_stride=args.frame_stride,
-                        patches_per_frame=args.patches_per_frame,
-                        patch_size=enh.config.patch_size, texel_size=enh.config.texel_size,
-                        min_coverage=args.min_coverage, seed=args.seed,
-                        score_batch=min(args.patches_per_frame, 16))
-    cells = ec.table_cells(args.garments.split(","), args.materials.split(","),
-                           args.motions.split(","))
-    t0 = time.perf_counter()  # simulate what is missing (resumable)
-    sequences = {c.key: ec.cell_sequences(c, args.frames, ec.TEST_SEED, (Path(args.sequences),),
-                                          Path(args.sim_out)) for c in cells}
-    sim_s = time.perf_counter() - t0
-    methods, sources, unsharp, net_timings = {}, {}, {}, {}
-    if with_methods:
-        unsharp = {o: ec.unsharp_setting(order=o) for o in (0, 1)}
-        methods = ec.baseline_methods({o: u[:2] for o, u in unsharp.items()})
-        methods[MODEL] = ec.enhancer_method(enh, batch_size=sampling.score_batch,
-                                            timings=net_timings)
-        model_src = f"model {ec.file_digest(args.model)}"
-        sources = {k: k for k in methods} | {MODEL: model_src}
-        if wrong_material:
-            # Paper Fig. 10: the right patches, the other table material's CIN parameters.
-            methods[WRONG] = ec.enhancer_method(enh, batch_size=sampling.score_batch,
-                                                material_of=ec.wrong_material)
-            sources[WRONG] = f"{model_src} wrong material"
-        try:
-            extra, extra_src = ec.model_methods(args.extra, sampling.score_batch)
-        except (ValueError, enhancer_lib.EnhancerError) as err:
-            ap.error(f"--extra: {err}")
-        methods.update(extra)
-        sources.update(extra_src)
-    return Setup(enh, sampling, cells, sequences, sim_s, methods, sources, unsharp,
-                 net_timings)
-
-
 def main(argv=None) -> int:
-    ap = ec.script_parser(__doc__)
-    add_cell_args(ap, ec.RESULTS / "table1")
+    ap = suite.script_parser(__doc__)
+    patchscores.add_cell_args(ap, suite.RESULTS / "table1")
     ap.add_argument("--no-wrong-material", action="store_true",
                     help="skip the wrong-material ablation (the model told the other material)")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
-    st = setup_from_args(ap, args, wrong_material=not args.no_wrong_material)
+    st = patchscores.setup_from_args(ap, args, wrong_material=not args.no_wrong_material)
     enh, sampling, cells, sequences, methods = (st.enh, st.sampling, st.cells, st.sequences,
                                                  st.methods)
     sources, unsharp, unsharp_src, net_timings = (st.sources, st.unsharp, st.unsharp_text,
@@ -502,41 +142,45 @@ def main(argv=None) -> int:
           f"{len(methods)} methods", flush=True)
     fingerprint_of = st.fingerprint_of
 
-    results_by_cell = run(cells, sequences, methods, vgg_params, sampling, out, fingerprint_of,
-                          args.fresh, log=lambda m: print(m, flush=True), sources=sources)
+    results_by_cell = patchscores.run(cells, sequences, methods, vgg_params, sampling, out,
+                                      fingerprint_of, args.fresh,
+                                      log=lambda m: print(m, flush=True), sources=sources)
     # 3. Summaries.
     cells_out, kinds = {}, {k: [] for k in SUMMARY_KINDS}
     for cell in cells:
         r = results_by_cell[cell.key]
-        sc = cell_scores(r)
+        sc = patchscores.cell_scores(r)
         kinds[cell.kind].append(r)
         cells_out[cell.key] = {
             "scene": cell.scene.name, "garment": cell.garment, "motion": cell.motion,
             "material": cell.material, "kind": cell.kind, "n_patches": int(len(r["frame"])),
             "n_candidates_per_frame": r["n_candidates"],
             "frames_scored": sorted(set(r["frame"].tolist())),
-            "fine": ec.portable_path(sequences[cell.key]["fine"]),
-            "coarse": ec.portable_path(sequences[cell.key]["coarse"]),
+            "fine": suite.portable_path(sequences[cell.key]["fine"]),
+            "coarse": suite.portable_path(sequences[cell.key]["coarse"]),
             "sequence_source": {res: sequences[cell.key][f"{res}_info"]["source"]
                                 for res in ("fine", "coarse")},
-            "methods": {k: summary(v) for k, v in sc.items()}, "timings": r["timings"]}
-    by_kind = {k: {m: summary(s) for m, s in pooled_scores(v).items()}
+            "methods": {k: patchscores.summary(v) for k, v in sc.items()}, "timings": r["timings"]}
+    by_kind = {k: {m: patchscores.summary(s) for m, s in patchscores.pooled_scores(v).items()}
                for k, v in kinds.items() if v}
-    everything = {m: summary(s) for m, s in pooled_scores(list(results_by_cell.values())).items()}
+    everything = {m: patchscores.summary(s) for m, s
+                  in patchscores.pooled_scores(list(results_by_cell.values())).items()}
     cell_t = [c["timings"] for c in cells_out.values()]
     n_all = sum(c["n_patches"] for c in cells_out.values())
     score_s = sum(t["score_s"] for t in cell_t)
     passes = sum(t["vgg_passes"] for t in cell_t) * sampling.score_batch
     sampling_text = (
-        f"Sampling: first {sampling.frames} frames of each sequence (seed {ec.TEST_SEED}); frames "
-        f"{_frames_text(sampling.frame_indices)} ({len(sampling.frame_indices)} frames); "
+        f"Sampling: first {sampling.frames} frames of each sequence "
+        f"(seed {cell_lib.TEST_SEED}); frames "
+        f"{patchscores.frames_text(sampling.frame_indices)} "
+        f"({len(sampling.frame_indices)} frames); "
         f"{sampling.patches_per_frame} random {sampling.patch_size}x{sampling.patch_size} "
         f"patches per frame ({sampling.texel_size * 1e3:g} mm texels) among the grid patches "
         f"with >= {sampling.min_coverage:.0%} of texels covered by both the coarse and the fine "
         f"mesh. Input: coarse simulation (PD 30 mm); target: fine simulation (PD 10 mm) of the "
         f"same frame. Unsharp: {unsharp_src}.")
     results = {
-        "model": ec.portable_path(args.model), "model_config": enh.config.to_json(),
+        "model": suite.portable_path(args.model), "model_config": enh.config.to_json(),
         "model_meta": {k: v for k, v in enh.meta.items() if not isinstance(v, dict | list)},
         "methods": list(methods), "method_sources": sources,
         "unsharp": {f"order {o}": {"sigma": u[0], "amount": u[1], "source": u[2]}
@@ -544,7 +188,7 @@ def main(argv=None) -> int:
         "score": "evaluation.score_patches equivalent on " + ", ".join(evaluation.EVAL_LAYERS),
         "sampling": dataclasses.asdict(sampling), "sampling_text": sampling_text,
         "config": {"garments": args.garments.split(","), "materials": args.materials.split(","),
-                   "motions": args.motions.split(","), "seed": ec.TEST_SEED,
+                   "motions": args.motions.split(","), "seed": cell_lib.TEST_SEED,
                    "scenes": {c.key: json.loads(c.scene.to_json()) for c in cells}},
         "cells": cells_out, "by_kind": by_kind, "all": everything,
         "timings": {
@@ -552,21 +196,22 @@ def main(argv=None) -> int:
             "cells_s": sum(t.get("cell_s", 0.0) for t in cell_t),
             "score_s": score_s, "vgg_patch_passes": passes,
             "vgg_s_per_patch_pass": score_s / passes if passes else None,
-            "network_ms_per_patch": (1e3 * sum(t["methods_s"].get(MODEL, 0.0) for t in cell_t)
+            "network_ms_per_patch": (1e3 * sum(t["methods_s"].get(patchscores.MODEL, 0.0)
+                                               for t in cell_t)
                                      / n_all if n_all else None),
             "network_compile_s": net_timings.get("compile_s"),
             "sequences_s": sim_s, "this_run_s": time.perf_counter() - t_all},
-        "machine": ec.machine_info(),
+        "machine": suite.machine_info(),
         "command": "python -m experiments.table1 " + " ".join(
             sys.argv[1:] if argv is None else argv),
     }
-    ec.write_json(out / "results.json", results)
+    suite.write_json(out / "results.json", results)
     (out / "table.md").write_text(table_markdown(results))
     flat = {}
     for key, r in results_by_cell.items():
         tag = key.replace("/", "__")
         flat[f"{tag}/frame"], flat[f"{tag}/origin"] = r["frame"], r["origin"]
-        for m, s in cell_scores(r).items():
+        for m, s in patchscores.cell_scores(r).items():
             for f in ("loss_output", "improvement_signed", "valid"):
                 flat[f"{tag}/{m}/{f}"] = s[f]
         flat[f"{tag}/loss_input"] = r["loss_input"]

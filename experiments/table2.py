@@ -24,7 +24,7 @@ simulated when Table 1 has run. Per cell, three sets of patches (paper Sec. 6):
 All patches are cut to the texels covered by both meshes (the mask of Table 1's scores).
 
 Features: the masked, normalized Gram matrices G_l / R_l on `evaluation.EVAL_LAYERS` (relu1_2,
-relu2_1, relu3_1, relu4_1, relu5_1; `eval_common.gram_matrices`, as Table 1's score), each
+relu2_1, relu3_1, relu4_1, relu5_1; `evaluation.gram.gram_matrices`, as Table 1's score), each
 flattened to its upper triangle (C_l (C_l + 1) / 2 values), divided by that layer's median
 vector norm over a and c of the cell (every layer then has a median norm of 1 and contributes
 comparably, although relu5_1 has 63 times relu1_2's values; the scale does not depend on the
@@ -36,7 +36,7 @@ C1 = CD(a, c), C2 = CD(b, c); DR = 100 |C1 - C2| / C1 (the paper's form) and the
 DR_signed = 100 (C1 - C2) / C1 (> 0: the method's patches sit closer to the fine ones than the
 input's do; < 0: further away). Two spaces:
   * embedded (the paper's): per method, the 2D spectral embedding
-    (`wrinkle_jax.metrics.spectral_embedding`: Gaussian affinity with the median
+    (`wrinkle_jax.evaluation.spectral_embedding`: Gaussian affinity with the median
     bandwidth, symmetric normalized Laplacian) of a u b u c, scaled to unit RMS distance from
     its centroid (the raw eigenmap shrinks with the number of points; DR does not depend on
     it). C1 therefore differs slightly between methods. The embedding depends on the points
@@ -67,136 +67,25 @@ import io
 import json
 import sys
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
 
-from experiments import eval_common as ec
-from experiments import table1
-from wrinkle_jax import evaluation, material_index, metrics, patches
+from wrinkle_jax import evaluation, material_index, patches
+from wrinkle_jax.evaluation import cells as cell_lib
+from wrinkle_jax.evaluation import gram, patchscores, patchsets, suite
+from wrinkle_jax.evaluation import sets as set_lib
 from wrinkle_jax.fileio import atomic_write_bytes
-from wrinkle_jax.metrics import chamfer_distance, chamfer_from_sq_dists, decrease_ratio, sq_dists
 from wrinkle_jax.nn import vgg
 
-MODEL = table1.MODEL
-SET_A, SET_B, SET_C = 0, 1, 2  # labels: coarse input, a method's output, fine (other frames)
+MODEL = patchscores.MODEL
 SPACES = ("embedded", "full")
 GROUPS = ("seen garment", "unseen garment")
 # Stored cells hold derived numbers: change this text whenever the features, the distances or
 # the embedding change, so that a rerun recomputes instead of reusing them.
 METRIC = ("v1: upper-triangle Grams on EVAL_LAYERS / median layer norm over a+c; symmetric "
           "mean nearest-neighbour Chamfer; 2D spectral embedding at unit RMS; c at t + k//2")
-
-
-# --------------------------------------------------------------------------------------------
-# Features, distances, Chamfer distance
-# --------------------------------------------------------------------------------------------
-
-
-def upper_triangle(grams: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Flatten every layer's symmetric Gram matrices to their upper triangles.
-
-    Args:
-      grams: layer -> (N, C_l, C_l).
-    Returns:
-      layer -> (N, C_l (C_l + 1) / 2) float32, the row-major upper triangle with the diagonal
-      (same key order).
-    """
-    out = {}
-    for name, g in grams.items():
-        g = np.asarray(g)
-        if g.ndim != 3 or g.shape[1] != g.shape[2]:
-            raise ValueError(f"{name}: expected (N, C, C) Gram matrices, got shape {g.shape}")
-        rows, cols = np.triu_indices(g.shape[1])
-        out[name] = np.ascontiguousarray(g[:, rows, cols], dtype=np.float32)
-    return out
-
-
-def layer_scales(flat: Mapping[str, np.ndarray]) -> dict[str, float]:
-    """Per layer, the median Euclidean norm of its (N, D_l) feature vectors: the divisor that
-    gives the layer a median norm of 1 (1.0 where that median is 0 or not finite)."""
-    out = {}
-    for name, x in flat.items():
-        med = float(np.median(np.linalg.norm(np.asarray(x, np.float64), axis=1)))
-        out[name] = med if med > 0.0 and np.isfinite(med) else 1.0
-    return out
-
-
-def scaled_features(flat: Mapping[str, np.ndarray], scales: Mapping[str, float]) -> np.ndarray:
-    """The layers' (N, D_l) blocks, each divided by its scale, concatenated in key order:
-    (N, sum_l D_l) float64."""
-    return np.concatenate([np.asarray(x, np.float64) / scales[k] for k, x in flat.items()],
-                          axis=1)
-
-
-def scaled_sq_dists(fx: Mapping[str, np.ndarray], fy: Mapping[str, np.ndarray] | None,
-                    scales: Mapping[str, float]) -> np.ndarray:
-    """`sq_dists(scaled_features(fx), scaled_features(fy))`, one layer at a time (no
-    concatenated float64 copies); fy None: fx with itself."""
-    if fy is not None and set(fx) != set(fy):
-        raise ValueError(f"different layers: {sorted(fx)} and {sorted(fy)}")
-    return sum(sq_dists(fx[k], None if fy is None else fy[k]) / scales[k] ** 2 for k in fx)
-
-
-def chamfer_scores(c1: float, c2: float) -> dict:
-    """{"c1", "c2", "dr" (paper's |.|), "dr_signed"} as floats."""
-    return {"c1": float(c1), "c2": float(c2), "dr": decrease_ratio(c1, c2),
-            "dr_signed": decrease_ratio(c1, c2, signed=True)}
-
-
-def points_from_sq_dists(d2) -> np.ndarray:
-    """A Euclidean realization of a squared-distance matrix (classical MDS).
-
-    Args:
-      d2: (n, n) squared Euclidean distances between n points (symmetric, zero diagonal).
-    Returns:
-      (n, k) float64 points whose pairwise squared distances are d2 up to rounding (k: the
-      number of eigenvalues of -J d2 J / 2 above 1e-12 of the largest; J the centering).
-    """
-    d2 = np.asarray(d2, np.float64)
-    n = len(d2)
-    centering = np.eye(n) - 1.0 / n
-    b = -0.5 * centering @ d2 @ centering
-    vals, vecs = np.linalg.eigh(0.5 * (b + b.T))
-    if not vals[-1] > 0.0:
-        return np.zeros((n, 1))
-    keep = vals > 1e-12 * vals[-1]
-    return vecs[:, keep] * np.sqrt(vals[keep])
-
-
-def unit_rms(points) -> np.ndarray:
-    """(n, d) points centered and scaled to unit root-mean-square distance from their centroid
-    (float64; only centered when they all coincide)."""
-    p = np.asarray(points, np.float64)
-    p = p - p.mean(axis=0)
-    rms = float(np.sqrt((p * p).sum(axis=1).mean()))
-    return p / rms if rms > 0.0 else p
-
-
-def compare_sets(d2, labels) -> dict:
-    """C1 = CD(a, c), C2 = CD(b, c) and DR of one method in one cell, embedded and in full space.
-
-    Args:
-      d2: (n, n) squared feature distances of the union of the sets a, b and c (any order).
-      labels: (n,) int, `SET_A`, `SET_B` or `SET_C` per row of d2.
-    Returns:
-      {"embedded": chamfer_scores(...) in the unit-RMS 2D spectral embedding of the union,
-       "full": chamfer_scores(...) from d2 itself, "embedding": (n, 2) float64}.
-    """
-    d2 = np.asarray(d2, np.float64)
-    labels = np.asarray(labels)
-    if d2.shape != (len(labels), len(labels)):
-        raise ValueError(f"{d2.shape} distances for {len(labels)} labels")
-    a, b, c = (labels == s for s in (SET_A, SET_B, SET_C))
-    if not (a.any() and b.any() and c.any()):
-        raise ValueError("each of the sets a, b and c needs at least one point")
-    emb = unit_rms(metrics.spectral_embedding(points_from_sq_dists(d2), dim=2))
-    return {"embedded": chamfer_scores(chamfer_distance(emb[a], emb[c]),
-                                       chamfer_distance(emb[b], emb[c])),
-            "full": chamfer_scores(chamfer_from_sq_dists(d2[np.ix_(a, c)]),
-                                   chamfer_from_sq_dists(d2[np.ix_(b, c)])),
-            "embedding": emb}
 
 
 # --------------------------------------------------------------------------------------------
@@ -225,27 +114,8 @@ def c_frame_indices(frame_indices: Iterable[int], frames: int, frame_stride: int
     return out
 
 
-def set_features(vgg_params, images, mask, batch_size: int, counter: dict | None = None
-                 ) -> dict[str, np.ndarray]:
-    """Upper triangles of the normalized masked Grams (`eval_common.gram_matrices` on
-    `evaluation.EVAL_LAYERS`) of (N, S, S, 3) RGB-form images with (N, S, S, 1) masks:
-    layer -> (N, C_l (C_l + 1) / 2) float32. Fixed batch shape (the last batch padded);
-    counter["vgg_passes"] accumulates batches."""
-    counter = {} if counter is None else counter
-    parts: dict[str, list] = {}
-    n = len(images)
-    for s in range(0, n, batch_size):
-        k = min(batch_size, n - s)
-        idx = np.resize(np.arange(s, s + k), batch_size)
-        grams = ec.gram_matrices(vgg_params, np.asarray(images)[idx], np.asarray(mask)[idx])
-        counter["vgg_passes"] = counter.get("vgg_passes", 0) + 1
-        for name, v in upper_triangle({kk: np.asarray(g)[:k] for kk, g in grams.items()}).items():
-            parts.setdefault(name, []).append(v)
-    return {name: np.concatenate(v) for name, v in parts.items()}
-
-
 def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg_params,
-                  sampling: table1.Sampling, cell_seed=(0,),
+                  sampling: patchscores.Sampling, cell_seed=(0,),
                   progress: Callable[[int, str], None] | None = None) -> dict:
     """Sets a, c and every method's b of one fine/coarse sequence pair, and their distances.
 
@@ -255,8 +125,8 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
       material: material name (to the model through `PatchSet.material_id`).
       methods: name -> (PatchSet) -> (K, S, S, 3) RGB-form outputs (the b sets).
       vgg_params: `vgg.load_vgg19()` (or a small VGG in tests).
-      sampling: `table1.Sampling` (a's frames and origins are exactly Table 1's).
-      cell_seed: extra seed entropy for the patch draws (`eval_common.Cell.patch_seed`).
+      sampling: `evaluation.patchscores.Sampling` (a's frames and origins are exactly Table 1's).
+      cell_seed: extra seed entropy for the patch draws (`evaluation.cells.Cell.patch_seed`).
       progress: called with (patches, what) after each set's features.
     Returns:
       {"frame", "origin": (N_a,) int32 frames and (N_a, 2) origins of a (and every b),
@@ -268,9 +138,9 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
     """
     size = sampling.patch_size
     stride = size // 2 if sampling.grid_stride is None else sampling.grid_stride
-    pair = ec.aligned_pair(fine.garment, coarse.garment, sampling.texel_size)
+    pair = patchsets.aligned_pair(fine.garment, coarse.garment, sampling.texel_size)
     mask = np.asarray(patches.pad_to_patch(pair.mask, size)[0])
-    cand, _ = ec.candidate_origins(mask, size, stride, sampling.min_coverage)
+    cand, _ = patchsets.candidate_origins(mask, size, stride, sampling.min_coverage)
     if not len(cand):
         raise ValueError(f"no {size}x{size} patch reaches {sampling.min_coverage:.0%} coverage "
                          "by both meshes")
@@ -283,13 +153,14 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
     t0 = time.perf_counter()
     sets_ab, sets_c = [], []
     for t, tc in zip(sampling.frame_indices, frames_c, strict=True):
-        sel = ec.choose_origins(cand, sampling.patches_per_frame, (sampling.seed, *cell_seed, t))
-        sets_ab.append(ec.aligned_patches(pair, fine.frames[t], coarse.frames[t], sel, size,
+        sel = patchsets.choose_origins(cand, sampling.patches_per_frame,
+                                       (sampling.seed, *cell_seed, t))
+        sets_ab.append(patchsets.aligned_patches(pair, fine.frames[t], coarse.frames[t], sel, size,
                                           mid))
-        sel_c = ec.choose_origins(cand, sampling.patches_per_frame,
-                                  (sampling.seed, *cell_seed, t, tc))
-        sets_c.append(ec.aligned_patches(pair, fine.frames[tc], coarse.frames[tc], sel_c, size,
-                                         mid))
+        sel_c = patchsets.choose_origins(cand, sampling.patches_per_frame,
+                                         (sampling.seed, *cell_seed, t, tc))
+        sets_c.append(patchsets.aligned_patches(pair, fine.frames[tc], coarse.frames[tc], sel_c,
+                                                size, mid))
     timings["bake_s"] = time.perf_counter() - t0
     inp = np.concatenate([p.input for p in sets_ab])
     mask_ab = np.concatenate([p.mask for p in sets_ab])
@@ -297,7 +168,7 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
 
     def features(images, m, what):
         t0 = time.perf_counter()
-        f = set_features(vgg_params, images, m, sampling.score_batch, counter)
+        f = gram.set_features(vgg_params, images, m, sampling.score_batch, counter)
         timings["features_s"] += time.perf_counter() - t0
         if progress is not None:
             progress(len(images), what)
@@ -306,9 +177,9 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
     # 2. a u c: features, layer scales, distances.
     ref = features(np.concatenate([inp, *(p.target for p in sets_c)]),
                    np.concatenate([mask_ab, *(p.mask for p in sets_c)]), "a + c")
-    scales = layer_scales(ref)
+    scales = set_lib.layer_scales(ref)
     t0 = time.perf_counter()
-    d2_ref = scaled_sq_dists(ref, None, scales)
+    d2_ref = set_lib.scaled_sq_dists(ref, None, scales)
     timings["distances_s"] += time.perf_counter() - t0
     # 3. Each method's b: features (identity reuses a's), distances to a, c and itself.
     d2_method = {}
@@ -323,8 +194,8 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
             continue
         f_b = features(out, mask_ab, name)
         t0 = time.perf_counter()
-        d2_method[name] = np.concatenate([scaled_sq_dists(f_b, ref, scales),
-                                          scaled_sq_dists(f_b, None, scales)], axis=1)
+        d2_method[name] = np.concatenate([set_lib.scaled_sq_dists(f_b, ref, scales),
+                                          set_lib.scaled_sq_dists(f_b, None, scales)], axis=1)
         timings["distances_s"] += time.perf_counter() - t0
         del f_b
     timings["vgg_passes"] = counter.get("vgg_passes", 0)
@@ -338,22 +209,6 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
             "n_candidates": int(len(cand)), "timings": timings}
 
 
-def union_sq_dists(d2_ref: np.ndarray, d2_b: np.ndarray, n_a: int
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """The squared distances of a u b u c (rows in that order) and their labels, from
-    `evaluate_cell`'s a-then-c block and one method's b block."""
-    n_c, n_b = len(d2_ref) - n_a, len(d2_b)
-    if d2_b.shape != (n_b, n_a + n_c + n_b):
-        raise ValueError(f"b block {d2_b.shape} does not match {n_a} a and {n_c} c points")
-    a, b, c = slice(0, n_a), slice(n_a, n_a + n_b), slice(n_a + n_b, n_a + n_b + n_c)
-    d2 = np.empty((n_a + n_b + n_c,) * 2)
-    d2[a, a], d2[a, c] = d2_ref[:n_a, :n_a], d2_ref[:n_a, n_a:]
-    d2[c, a], d2[c, c] = d2_ref[n_a:, :n_a], d2_ref[n_a:, n_a:]
-    d2[b, a], d2[b, c], d2[b, b] = d2_b[:, :n_a], d2_b[:, n_a:n_a + n_c], d2_b[:, n_a + n_c:]
-    d2[a, b], d2[c, b] = d2[b, a].T, d2[b, c].T
-    return d2, np.repeat([SET_A, SET_B, SET_C], [n_a, n_b, n_c])
-
-
 def cell_record(res: dict) -> dict:
     """What is kept of an evaluated cell: sampling, scales, timings and per method
     `compare_sets` (embedding as float32), without the distance matrices."""
@@ -361,7 +216,7 @@ def cell_record(res: dict) -> dict:
     methods = {}
     t0 = time.perf_counter()
     for name, blk in res["d2_method"].items():
-        got = compare_sets(*union_sq_dists(res["d2_ref"], blk, n_a))
+        got = set_lib.compare_sets(*set_lib.union_sq_dists(res["d2_ref"], blk, n_a))
         got["embedding"] = got["embedding"].astype(np.float32)
         methods[name] = got
     timings = dict(res["timings"], compare_s=time.perf_counter() - t0)
@@ -375,7 +230,7 @@ def cell_record(res: dict) -> dict:
 # --------------------------------------------------------------------------------------------
 
 
-def _cell_path(out: Path, cell: ec.Cell) -> Path:
+def _cell_path(out: Path, cell: cell_lib.Cell) -> Path:
     return out / "cells" / f"{cell.scene.name}__{cell.material}.npz"
 
 
@@ -402,14 +257,14 @@ def save_cell(path: Path, record: dict, fingerprint: dict, sources: dict[str, st
 
 def load_cell(path: Path, fingerprint: dict) -> dict | None:
     """A stored cell record if it exists and its sets a and c are this fingerprint's, else None
-    (with "sources" and "legacy" as `table1.load_cell`)."""
+    (with "sources" and "legacy" as `evaluation.patchscores.load_cell`)."""
     if not path.exists():
         return None
     try:
         with np.load(path, allow_pickle=False) as z:
             meta = json.loads(str(z["meta"]))
-            if (table1.cell_part(meta["fingerprint"], CELL_KEYS)
-                    != table1.cell_part(fingerprint, CELL_KEYS)):
+            if (patchscores.cell_part(meta["fingerprint"], CELL_KEYS)
+                    != patchscores.cell_part(fingerprint, CELL_KEYS)):
                 return None
             names = z["methods"].tolist()
             legacy = "sources" not in meta
@@ -419,7 +274,7 @@ def load_cell(path: Path, fingerprint: dict) -> dict | None:
                     "origin_c": z["origin_c"], "scales": meta["scales"],
                     "n_candidates": meta["n_candidates"], "timings": meta["timings"],
                     "methods": methods, "legacy": legacy,
-                    "sources": (table1.legacy_sources(meta["fingerprint"], names) if legacy
+                    "sources": (patchscores.legacy_sources(meta["fingerprint"], names) if legacy
                                 else meta["sources"])}
     except (OSError, KeyError, ValueError):
         return None
@@ -437,9 +292,9 @@ def merge_records(old: dict, new: dict, order: list[str]) -> dict:
         np.isclose(old["scales"][k], new["scales"][k], rtol=1e-4) for k in old["scales"])
     if not (same and scales_ok):
         raise ValueError("stored cell and new methods are not on the same sets a and c")
-    methods = ec.merge_methods(old["methods"], new["methods"], order)
-    timings = ec.merge_timings(old["timings"], new["timings"],
-                               ("features_s", "distances_s", "compare_s", "vgg_passes"))
+    methods = cell_lib.merge_methods(old["methods"], new["methods"], order)
+    timings = cell_lib.merge_timings(old["timings"], new["timings"],
+                                     ("features_s", "distances_s", "compare_s", "vgg_passes"))
     return {**old, "methods": methods, "timings": timings}
 
 
@@ -448,8 +303,8 @@ def merge_records(old: dict, new: dict, order: list[str]) -> dict:
 # --------------------------------------------------------------------------------------------
 
 
-def group_of(cell: ec.Cell) -> str:
-    return GROUPS[0] if cell.garment == ec.SEEN_GARMENT else GROUPS[1]
+def group_of(cell: cell_lib.Cell) -> str:
+    return GROUPS[0] if cell.garment == cell_lib.SEEN_GARMENT else GROUPS[1]
 
 
 def mean_scores(records: list[dict]) -> dict:
@@ -491,14 +346,14 @@ def table_markdown(results: dict) -> str:
                  else "full Gram feature space")
         lines += [f"## Model, {where}: C1 / C2 / DR (signed DR)", "",
                   "| material | motion | " + " | ".join(
-                      f"{g} ({'seen' if g == ec.SEEN_GARMENT else 'unseen'})"
+                      f"{g} ({'seen' if g == cell_lib.SEEN_GARMENT else 'unseen'})"
                       for g in cfg["garments"]) + " |",
                   "|---|---|" + "---|" * len(cfg["garments"])]
         for ma in cfg["materials"]:
             for mo in cfg["motions"]:
-                row = [ma, f"{mo} ({'seen' if mo == ec.SEEN_MOTION else 'unseen'})"]
+                row = [ma, f"{mo} ({'seen' if mo == cell_lib.SEEN_MOTION else 'unseen'})"]
                 for g in cfg["garments"]:
-                    key = ec.Cell(g, mo, ma).key
+                    key = cell_lib.Cell(g, mo, ma).key
                     row.append(_fmt(cells[key]["methods"][MODEL][space], paper=True)
                                if key in cells else "-")
                 lines.append("| " + " | ".join(row) + " |")
@@ -519,7 +374,7 @@ def table_markdown(results: dict) -> str:
     return "\n".join(lines)
 
 
-def plot_embeddings(path: Path, cells: list[ec.Cell], records: dict[str, dict],
+def plot_embeddings(path: Path, cells: list[cell_lib.Cell], records: dict[str, dict],
                     ncols: int, method: str = MODEL) -> None:
     """One scatter per cell of `method`'s 2D embedding: a grey, b colored, c black."""
     import matplotlib
@@ -547,7 +402,7 @@ def plot_embeddings(path: Path, cells: list[ec.Cell], records: dict[str, dict],
         ax.axis("off")
     axes.ravel()[0].legend(fontsize=6, loc="best")
     fig.tight_layout()
-    ec.save_figure(fig, path, dpi=90)
+    suite.save_figure(fig, path, dpi=90)
 
 
 # --------------------------------------------------------------------------------------------
@@ -555,14 +410,16 @@ def plot_embeddings(path: Path, cells: list[ec.Cell], records: dict[str, dict],
 # --------------------------------------------------------------------------------------------
 
 
-def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params,
-        sampling: table1.Sampling, out: Path, fingerprint_of: Callable[[ec.Cell], dict],
+def run(cells: list[cell_lib.Cell], sequences: dict, methods: dict, vgg_params,
+        sampling: patchscores.Sampling, out: Path,
+        fingerprint_of: Callable[[cell_lib.Cell], dict],
         fresh: bool = False, log: Callable[[str], None] = print,
         sources: dict[str, str] | None = None) -> dict[str, dict]:
     """Evaluate (or reload from `<out>/cells/`) every cell, printing progress and an ETA.
 
-    As `table1.run`, stored cells are reused method by method (`eval_common.run_cells`); a new
-    method costs the features of a and c again (2 VGG passes per location) plus its own b.
+    As `evaluation.patchscores.run`, stored cells are reused method by method
+    (`evaluation.cells.run_cells`); a new method costs the features of a and c again (2 VGG
+    passes per location) plus its own b.
 
     Returns:
       cell key -> `cell_record` restricted to `methods` (timings also hold "cell_s").
@@ -570,8 +427,8 @@ def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params,
     per_loc = len(sampling.frame_indices) * sampling.patches_per_frame
 
     def evaluate(cell, names, progress):
-        fine = ec.load_first_frames(sequences[cell.key]["fine"], sampling.frames)
-        coarse = ec.load_first_frames(sequences[cell.key]["coarse"], sampling.frames)
+        fine = cell_lib.load_first_frames(sequences[cell.key]["fine"], sampling.frames)
+        coarse = cell_lib.load_first_frames(sequences[cell.key]["coarse"], sampling.frames)
         rec = cell_record(evaluate_cell(fine, coarse, cell.material,
                                         {k: methods[k] for k in names}, vgg_params, sampling,
                                         cell.patch_seed, progress))
@@ -580,16 +437,16 @@ def run(cells: list[ec.Cell], sequences: dict, methods: dict, vgg_params,
         log(f"{cell.key}: signed DR (embedded, full) {sig}")
         return rec
 
-    return ec.run_cells(cells, methods, sources, path_of=lambda c: _cell_path(out, c),
-                        fingerprint_of=fingerprint_of, load=load_cell, save=save_cell,
-                        evaluate=evaluate, merge=merge_records, field="methods",
-                        units=lambda names: per_loc * (2 + len(names)),
-                        unit="patch features", fresh=fresh, log=log)
+    return cell_lib.run_cells(cells, methods, sources, path_of=lambda c: _cell_path(out, c),
+                              fingerprint_of=fingerprint_of, load=load_cell, save=save_cell,
+                              evaluate=evaluate, merge=merge_records, field="methods",
+                              units=lambda names: per_loc * (2 + len(names)),
+                              unit="patch features", fresh=fresh, log=log)
 
 
 def main(argv=None) -> int:
-    ap = ec.script_parser(__doc__)
-    table1.add_cell_args(ap, ec.RESULTS / "table2", frame_stride_help=(
+    ap = suite.script_parser(__doc__)
+    patchscores.add_cell_args(ap, suite.RESULTS / "table2", frame_stride_help=(
         "set a uses every k-th frame, set c the frames midway between (k >= 2)"))
     args = ap.parse_args(argv)
     out = Path(args.out)
@@ -602,7 +459,7 @@ def main(argv=None) -> int:
                                    args.frame_stride)
     except ValueError as e:
         ap.error(str(e))
-    st = table1.setup_from_args(ap, args, min_frame_stride=2)
+    st = patchscores.setup_from_args(ap, args, min_frame_stride=2)
     enh, sampling, cells, sequences, methods = (st.enh, st.sampling, st.cells, st.sequences,
                                                  st.methods)
     sources, unsharp, unsharp_src, net_timings = (st.sources, st.unsharp, st.unsharp_text,
@@ -632,8 +489,8 @@ def main(argv=None) -> int:
             "n_candidates_per_frame": r["n_candidates"],
             "frames_a": sorted(set(r["frame"].tolist())),
             "frames_c": sorted(set(r["frame_c"].tolist())),
-            "fine": ec.portable_path(sequences[cell.key]["fine"]),
-            "coarse": ec.portable_path(sequences[cell.key]["coarse"]),
+            "fine": suite.portable_path(sequences[cell.key]["fine"]),
+            "coarse": suite.portable_path(sequences[cell.key]["coarse"]),
             "sequence_source": {res: sequences[cell.key][f"{res}_info"]["source"]
                                 for res in ("fine", "coarse")},
             "layer_scales": r["scales"],
@@ -645,19 +502,19 @@ def main(argv=None) -> int:
     features_s = sum(t["features_s"] for t in cell_t)
     passes = sum(t["vgg_passes"] for t in cell_t) * sampling.score_batch
     sampling_text = (
-        f"Sampling: first {sampling.frames} frames of each sequence (seed {ec.TEST_SEED}). "
+        f"Sampling: first {sampling.frames} frames of each sequence (seed {cell_lib.TEST_SEED}). "
         f"(a) coarse simulation (PD 30 mm) at Table 1's frames "
-        f"{table1._frames_text(sampling.frame_indices)} and patches: "
+        f"{patchscores.frames_text(sampling.frame_indices)} and patches: "
         f"{sampling.patches_per_frame} random {sampling.patch_size}x{sampling.patch_size} "
         f"patches per frame ({sampling.texel_size * 1e3:g} mm texels) among the grid patches "
         f"with >= {sampling.min_coverage:.0%} of texels covered by both meshes. (b) each "
         f"method's output on (a). (c) fine simulation (PD 10 mm) at the non-corresponding "
-        f"frames {table1._frames_text(frames_c)}, as many patches per frame, drawn "
+        f"frames {patchscores.frames_text(frames_c)}, as many patches per frame, drawn "
         f"independently. Features: upper-triangle normalized Gram matrices on "
         f"{', '.join(evaluation.EVAL_LAYERS)}, each layer divided by its median norm over a "
         f"and c. Unsharp: {unsharp_src}.")
     results = {
-        "model": ec.portable_path(args.model), "model_config": enh.config.to_json(),
+        "model": suite.portable_path(args.model), "model_config": enh.config.to_json(),
         "model_meta": {k: v for k, v in enh.meta.items() if not isinstance(v, dict | list)},
         "methods": list(methods), "method_sources": sources,
         "unsharp": {f"order {o}": {"sigma": u[0], "amount": u[1], "source": u[2]}
@@ -666,7 +523,7 @@ def main(argv=None) -> int:
                  "b": "a method's output on a (every method in turn)",
                  "c": "fine-map patches at frames t + stride // 2 (t - stride // 2 past the "
                       "end), origins drawn independently"},
-        "features": "upper triangles of eval_common.gram_matrices on "
+        "features": "upper triangles of evaluation.gram.gram_matrices on "
                     + ", ".join(evaluation.EVAL_LAYERS)
                     + ", each layer divided by its median vector norm over a u c, concatenated",
         "chamfer": "CD(P, Q) = (mean_p min_q |p - q| + mean_q min_p |p - q|) / 2; C1 = CD(a, c), "
@@ -677,7 +534,7 @@ def main(argv=None) -> int:
         "sampling": dataclasses.asdict(sampling), "frames_c": frames_c,
         "sampling_text": sampling_text,
         "config": {"garments": args.garments.split(","), "materials": args.materials.split(","),
-                   "motions": args.motions.split(","), "seed": ec.TEST_SEED,
+                   "motions": args.motions.split(","), "seed": cell_lib.TEST_SEED,
                    "scenes": {c.key: json.loads(c.scene.to_json()) for c in cells}},
         "cells": cells_out, "by_group": by_group, "all": mean_scores(list(records.values())),
         "timings": {
@@ -692,11 +549,11 @@ def main(argv=None) -> int:
                                      / n_all if n_all else None),
             "network_compile_s": net_timings.get("compile_s"),
             "sequences_s": sim_s, "this_run_s": time.perf_counter() - t_all},
-        "machine": ec.machine_info(),
+        "machine": suite.machine_info(),
         "command": "python -m experiments.table2 " + " ".join(
             sys.argv[1:] if argv is None else argv),
     }
-    ec.write_json(out / "results.json", results)
+    suite.write_json(out / "results.json", results)
     table = table_markdown(results)
     (out / "table.md").write_text(table)
     plot_embeddings(out / "embeddings.png", cells, records, ncols=len(results["config"]

@@ -31,72 +31,20 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from experiments import eval_common as ec
 from wrinkle_jax import enhancer as enhancer_lib
-from wrinkle_jax import metrics, normalmap, pipeline
-from wrinkle_jax.meshio import GarmentSequence
-
-SERIES = ("coarse", "output", "fine")
-
-
-def sequence_flicker(coarse: GarmentSequence, fine: GarmentSequence | None,
-                     enh: enhancer_lib.Enhancer, material: str, frames: list[int],
-                     batch_size: int = 8, chunk_size: int = 4,
-                     progress: Callable[[int], None] | None = None) -> dict:
-    """Flicker series of the enhanced, coarse and fine maps over consecutive frames.
-
-    Args:
-      coarse: the coarse sequence (frames (T, V, 3) meters) the pipeline enhances.
-      fine: the fine simulation of the same frames (None: no "fine" series).
-      enh: the enhancer; material: one of its material names.
-      frames: consecutive frame indices (t, t+1, ...), at least 2.
-      batch_size, chunk_size: `pipeline.PipelineConfig` (results do not depend on them).
-      progress: called with 1 after each frame.
-    Returns:
-      {"coarse", "output"[, "fine"]: (len(frames) - 1,) float64 degrees per frame pair,
-       "patches_per_frame": int, "timings": pipeline stage seconds (compile separate),
-       "texels": {"output": garment texels of the coarse map, "fine": of the fine map}}.
-    """
-    frames = [int(t) for t in frames]
-    if len(frames) < 2 or np.any(np.diff(frames) != 1):
-        raise ValueError(f"frames must be at least 2 consecutive indices, got {frames[:5]}...")
-    config = pipeline.PipelineConfig(batch_size=batch_size, chunk_size=chunk_size, lift=False)
-    pipe = pipeline.make_pipeline(coarse.garment, enh, config)
-    mid = enh.config.material_id(material)
-    fine_plan = (normalmap.make_plan(fine.garment, texel_size=enh.config.texel_size)
-                 if fine is not None else None)
-    timings = dict(pipe.timings)
-    series = {k: [] for k in SERIES if k != "fine" or fine is not None}
-    prev = None
-    t_fine = 0.0
-    for fr in pipeline.iter_enhance(pipe, coarse.frames, mid, frames, timings):
-        cur = {"output": fr.normal_map, "coarse": ec.bake_map(pipe.plan, fr.coarse)}
-        if fine_plan is not None:
-            t0 = time.perf_counter()
-            cur["fine"] = ec.bake_map(fine_plan, fine.frames[fr.index])
-            t_fine += time.perf_counter() - t0
-        if prev is not None:
-            for k in series:
-                mask = fine_plan.mask if k == "fine" else pipe.mask
-                series[k].append(metrics.mean_angular_change(prev[k], cur[k], mask))
-        prev = cur
-        if progress is not None:
-            progress(1)
-    timings["fine_bake"] = t_fine
-    return {**{k: np.asarray(v) for k, v in series.items()},
-            "patches_per_frame": pipe.num_patches, "timings": timings,
-            "texels": {"output": int(np.asarray(pipe.mask).sum()),
-                       "fine": int(np.asarray(fine_plan.mask).sum()) if fine_plan else None}}
+from wrinkle_jax import evaluation
+from wrinkle_jax.evaluation import cells as cell_lib
+from wrinkle_jax.evaluation import suite
+from wrinkle_jax.evaluation.temporal import SERIES, sequence_flicker
 
 
 def summarize(res: dict) -> dict:
     """Per-series statistics and the output/fine, output/coarse ratios of the means."""
-    out = {k: ec.series_stats(res[k]) for k in SERIES if k in res}
+    out = {k: evaluation.series_stats(res[k]) for k in SERIES if k in res}
     mean = {k: v["mean"] for k, v in out.items()}
     out["output_over_coarse"] = mean["output"] / mean["coarse"] if mean["coarse"] > 0 else None
     out["added_over_coarse_deg"] = mean["output"] - mean["coarse"]
@@ -137,20 +85,20 @@ def plot(path: Path, per_sequence: dict[str, dict], frames: list[int]) -> None:
         ax.set_xlabel("frame t (pair t-1, t)", fontsize=7)
     axes[0, 0].legend(fontsize=6)
     fig.tight_layout()
-    ec.save_figure(fig, path, dpi=90)
+    suite.save_figure(fig, path, dpi=90)
 
 
 def main(argv=None) -> int:
-    ap = ec.script_parser(__doc__)
+    ap = suite.script_parser(__doc__)
     ap.add_argument("--model", default=str(enhancer_lib.DEFAULT_PATH),
                     help="enhancer .npz (default: the shipped model)")
     ap.add_argument("--frames", type=int, default=60, help="consecutive frames per sequence")
     ap.add_argument("--start", type=int, default=0, help="first frame")
     ap.add_argument("--batch-size", type=int, default=8, help="patches per network call")
-    ec.add_sequence_args(ap)
+    cell_lib.add_sequence_args(ap)
     ap.add_argument("--table-frames", type=int, default=200,
                     help="length of the simulations to make when missing (as table1)")
-    ap.add_argument("--out", default=str(ec.RESULTS / "temporal"))
+    ap.add_argument("--out", default=str(suite.RESULTS / "temporal"))
     args = ap.parse_args(argv)
     if args.frames < 2 or args.start < 0:
         ap.error("--frames must be >= 2 and --start >= 0")
@@ -158,25 +106,26 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
-    enh = ec.load_model_or_usage_error(ap, args.model)
-    cells = ec.table_cells(args.garments.split(","), args.materials.split(","),
-                           args.motions.split(","))
-    sequences = {c.key: ec.cell_sequences(c, need, ec.TEST_SEED, (Path(args.sequences),),
-                                          Path(args.sim_out)) for c in cells}
+    enh = suite.load_model_or_usage_error(ap, args.model)
+    cells = cell_lib.table_cells(args.garments.split(","), args.materials.split(","),
+                                 args.motions.split(","))
+    sequences = {c.key: cell_lib.cell_sequences(c, need, cell_lib.TEST_SEED,
+                                                (Path(args.sequences),), Path(args.sim_out))
+                 for c in cells}
     frames = list(range(args.start, args.start + args.frames))
     total, done = len(cells) * len(frames), [0]
     t_start = time.perf_counter()
     per_sequence = {}
     for i, cell in enumerate(cells):
-        coarse = ec.load_first_frames(sequences[cell.key]["coarse"], frames[-1] + 1)
-        fine = ec.load_first_frames(sequences[cell.key]["fine"], frames[-1] + 1)
+        coarse = cell_lib.load_first_frames(sequences[cell.key]["coarse"], frames[-1] + 1)
+        fine = cell_lib.load_first_frames(sequences[cell.key]["fine"], frames[-1] + 1)
 
         def progress(k, i=i, cell=cell):
             done[0] += k
             if done[0] % 10 == 0 or done[0] == total:
                 el = time.perf_counter() - t_start
                 print(f"[{i + 1}/{len(cells)}] {cell.key}: {done[0]}/{total} frames, "
-                      f"{el / 60:.1f} min, {ec.eta_text(done[0], total, el)}", flush=True)
+                      f"{el / 60:.1f} min, {suite.eta_text(done[0], total, el)}", flush=True)
 
         res = sequence_flicker(coarse, fine, enh, cell.material, frames, args.batch_size,
                                progress=progress)
@@ -184,8 +133,8 @@ def main(argv=None) -> int:
         per_sequence[cell.key] = {
             "scene": cell.scene.name, "garment": cell.garment, "motion": cell.motion,
             "material": cell.material, "kind": cell.kind,
-            "coarse_file": ec.portable_path(sequences[cell.key]["coarse"]),
-            "fine_file": ec.portable_path(sequences[cell.key]["fine"]),
+            "coarse_file": suite.portable_path(sequences[cell.key]["coarse"]),
+            "fine_file": suite.portable_path(sequences[cell.key]["fine"]),
             "patches_per_frame": res["patches_per_frame"], "texels": res["texels"],
             "summary": summ, "series": {k: res[k] for k in SERIES if k in res},
             "timings": res["timings"]}
@@ -195,7 +144,7 @@ def main(argv=None) -> int:
     ratios = [v["summary"]["output_over_fine"] for v in per_sequence.values()
               if v["summary"].get("output_over_fine") is not None]
     results = {
-        "model": ec.portable_path(args.model), "material_given": True,
+        "model": suite.portable_path(args.model), "material_given": True,
         "measure": "mean over garment texels of the angle (deg) between the unit normals of "
                    "consecutive frames; output = pipeline N* (no lift), coarse = its baked "
                    "input, fine = fine simulation baked at the model's texel size",
@@ -206,11 +155,11 @@ def main(argv=None) -> int:
         "overall": {"output_over_fine_median": float(np.median(ratios)) if ratios else None,
                     "output_over_fine": ratios},
         "timings": {"total_s": time.perf_counter() - t_all},
-        "machine": ec.machine_info(),
+        "machine": suite.machine_info(),
         "command": "python -m experiments.temporal " + " ".join(
             sys.argv[1:] if argv is None else argv),
     }
-    ec.write_json(out / "results.json", results)
+    suite.write_json(out / "results.json", results)
     plot(out / "flicker.png", per_sequence, frames)
     print(f"wrote {out / 'results.json'} and {out / 'flicker.png'} in "
           f"{(time.perf_counter() - t_all) / 60:.1f} min")

@@ -36,16 +36,17 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments import eval_common as ec
 from wrinkle_jax import MATERIALS, bodies, pipeline
 from wrinkle_jax import enhancer as enhancer_lib
+from wrinkle_jax.evaluation import cells as cell_lib
+from wrinkle_jax.evaluation import suite
 from wrinkle_jax.sim import scenes
 
 STAGES = ("bake", "tile", "network", "merge", "lift")
 
 
 def time_simulation(config: scenes.SceneConfig, material: str, resolution: str, frames: int,
-                    seed: int = ec.TEST_SEED) -> tuple[scenes.SimulatedSequence, dict]:
+                    seed: int = cell_lib.TEST_SEED) -> tuple[scenes.SimulatedSequence, dict]:
     """Simulate `frames` frames with a compiled solver and time it.
 
     Returns:
@@ -162,11 +163,11 @@ def plot(path: Path, results: dict) -> None:
                  f"{verdict} than the fine sim", fontsize=8)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     fig.tight_layout()
-    ec.save_figure(fig, path, dpi=100)
+    suite.save_figure(fig, path, dpi=100)
 
 
 def main(argv=None) -> int:
-    ap = ec.script_parser(__doc__)
+    ap = suite.script_parser(__doc__)
     ap.add_argument("--frames", type=int, default=30, help="frames timed (after the pre-roll)")
     ap.add_argument("--scene", default="dress_dance", help="a scene of wrinkle_jax.sim.scenes")
     ap.add_argument("--material", default="silk_charmeuse", choices=MATERIALS)
@@ -175,7 +176,7 @@ def main(argv=None) -> int:
     ap.add_argument("--batch-size", type=int, default=8, help="patches per network call")
     ap.add_argument("--no-body", action="store_true",
                     help="lift without the body (no interpenetration resolution)")
-    ap.add_argument("--out", default=str(ec.RESULTS / "timing"))
+    ap.add_argument("--out", default=str(suite.RESULTS / "timing"))
     args = ap.parse_args(argv)
     if args.frames < 1:
         ap.error("--frames must be >= 1")
@@ -187,7 +188,7 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
-    load_before = ec.machine_info()["load_avg_1min"]
+    load_before = suite.machine_info()["load_avg_1min"]
     print(f"coarse simulation, {args.frames} frames ...", flush=True)
     coarse, coarse_info = time_simulation(config, args.material, "coarse", args.frames)
     print(f"  {coarse_info['ms_per_frame']:.1f} ms/frame", flush=True)
@@ -201,18 +202,18 @@ def main(argv=None) -> int:
     print(f"  {fine_info['ms_per_frame']:.1f} ms/frame", flush=True)
     results = {
         "scene": args.scene, "material": args.material, "frames": args.frames,
-        "seed": ec.TEST_SEED, "model": ec.portable_path(args.model),
+        "seed": cell_lib.TEST_SEED, "model": suite.portable_path(args.model),
         "model_width": enh.config.unet.width,
         "coarse_sim": coarse_info, "pipeline": pipe_info, "fine_sim": fine_info,
         "ratio": ratios(coarse_info["ms_per_frame"], fine_info["ms_per_frame"],
                         pipe_info["ms_per_frame"]),
         "note": "steady-state ms/frame; compile and setup reported separately, not included",
         "timings": {"total_s": time.perf_counter() - t_all},
-        "machine": {**ec.machine_info(), "load_avg_1min_before": load_before},
+        "machine": {**suite.machine_info(), "load_avg_1min_before": load_before},
         "command": "python -m experiments.timing " + " ".join(
             sys.argv[1:] if argv is None else argv),
     }
-    ec.write_json(out / "results.json", results)
+    suite.write_json(out / "results.json", results)
     plot(out / "timing.png", results)
     r = results["ratio"]
     print(f"ours {r['ours_ms_per_frame']:.0f} ms/frame "

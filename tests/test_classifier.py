@@ -10,9 +10,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from wrinkle_jax import MATERIALS, classify_cli, classify_train, normalmap, primitives
+from wrinkle_jax import MATERIALS, classifier, normalmap, primitives
+from wrinkle_jax.classifier import cli as classify_cli
+from wrinkle_jax.classifier import training as classify_train
 from wrinkle_jax.meshio import make_sequence, save_sequence
-from wrinkle_jax.nn import classifier, vgg
+from wrinkle_jax.nn import vgg
 
 SIZE = 32
 CONFIG = classifier.ClassifierConfig(feature="relu2_1:stats", hidden=(16, 16, 16), dropout=0.1,

@@ -251,7 +251,7 @@ def test_enhance_failure_midway_leaves_no_partial_output(inputs, tmp_path, monke
 
 def test_enhance_auto_material_without_classifier_fails_clearly(inputs, tmp_path, monkeypatch,
                                                                 capsys):
-    from wrinkle_jax.nn import classifier
+    from wrinkle_jax import classifier
 
     monkeypatch.setattr(classifier, "DEFAULT_PATH", tmp_path / "no_classifier.npz")
     assert _enhance(inputs, tmp_path / "out", "--material", "auto") == 2
@@ -261,7 +261,7 @@ def test_enhance_auto_material_without_classifier_fails_clearly(inputs, tmp_path
 
 
 def test_demo_runs_the_pipeline_with_a_shipped_model(inputs, tmp_path, monkeypatch, capsys):
-    from wrinkle_jax.nn import classifier
+    from wrinkle_jax import classifier
 
     monkeypatch.setattr(cli, "_shipped_model_path", lambda: inputs["model"])
     # No classifier is needed: the material defaults to the one stored in the sequence.

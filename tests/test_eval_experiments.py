@@ -1,6 +1,6 @@
-"""Tests for the evaluation scripts (`experiments.eval_common`, `.table1`, `.table2`, `.temporal`,
-`.timing`) on tiny analytic sheets, a tiny VGG and a tiny random enhancer (no simulation, no real
-VGG).
+"""Tests for the evaluation scripts (`.table1`, `.table2`, `.temporal`, `.stride`, `.report`,
+`.timing`, `.fidelity`) on tiny analytic sheets, a tiny VGG and a tiny random enhancer (no
+simulation, no real VGG). The library they use is tested in tests/test_evaluation_*.py.
 
 Every garment here is a flat-UV grid sheet (UVs = rest (x, y) in meters), displaced by known
 height fields, so normals and UV positions are known in closed form.
@@ -16,333 +16,37 @@ from types import SimpleNamespace
 import jax
 import numpy as np
 import pytest
-
-from experiments import eval_common as ec
-from experiments import report, stride, table1, table2, temporal, timing
-from wrinkle_jax import (
-    MATERIALS,
-    enhancer,
-    evaluation,
-    material_index,
-    meshio,
-    metrics,
-    normalmap,
-    patches,
-    primitives,
+from evaluation_fixtures import (  # tests/ is on sys.path
+    PATCH,
+    TEXEL,
+    sheet_pair,
+    sheet_sequence,
+    tiny_model,
+    tiny_vgg_params,
 )
-from wrinkle_jax.nn import unet, vgg
 
-SIZE = (0.3, 0.2)  # sheet, meters
-TEXEL = 0.004
-PATCH = 32
-FOLD = 0.3  # wavelength of the fold, meters
+from experiments import report, stride, table1, table2, temporal, timing
+from wrinkle_jax import MATERIALS, enhancer, evaluation, meshio
+from wrinkle_jax.evaluation import cells as cell_lib
+from wrinkle_jax.evaluation import patchscores, suite
+from wrinkle_jax.evaluation import seams as seam_lib
+from wrinkle_jax.evaluation import sets as set_lib
+from wrinkle_jax.sim import scenes
 
 
 @pytest.fixture(scope="module")
 def tiny_vgg():
-    return vgg.init_vgg19(jax.random.key(0, impl="rbg"), widths=(4, 8, 8, 8, 8), num_convs=16,
-                          spec=vgg.VGGSpec("custom", "REFLECT"))
+    return tiny_vgg_params()
 
 
 @pytest.fixture(scope="module")
 def model():
-    config = enhancer.EnhancerConfig(unet.UNetConfig(width=4, residual=True), patch_size=PATCH,
-                                     texel_size=TEXEL)
-    return enhancer.init_enhancer(jax.random.key(0, impl="rbg"), config)
-
-
-def _height(x, y, t, ripple):
-    """Travelling fold (2 cm amplitude, 30 cm wavelength) plus optional fine ripples (m)."""
-    return (0.02 * np.sin(2 * np.pi * x / FOLD + 0.5 * t)
-            + ripple * np.sin(2 * np.pi * y / 0.02))
-
-
-def _sheet_sequence(nx, ny, frames, ripple=0.0, metadata=None):
-    g = primitives.grid_sheet(nx, ny, size=SIZE)
-    v = np.asarray(g.vertices)
-    out = np.stack([np.c_[v[:, :2], _height(v[:, 0], v[:, 1], t, ripple)]
-                    for t in range(frames)]).astype(np.float32)
-    return meshio.make_sequence(out, g, metadata=metadata)
-
-
-def _pair(frames=3):
-    """(fine 5 mm grid with ripples, coarse 30 mm grid) of the same sheet and fold."""
-    return (_sheet_sequence(60, 40, frames, ripple=0.002), _sheet_sequence(10, 7, frames))
-
-
-def _rgb_patches(n=3, size=PATCH, seed=0, detail=0.3):
-    rng = np.random.default_rng(seed)
-    y, x = np.mgrid[0:size, 0:size] / size
-    out = []
-    for _ in range(n):
-        a, b = rng.uniform(1, 3, 2)
-        gx = 0.5 * np.sin(2 * np.pi * a * x) + detail * np.sin(2 * np.pi * 7 * y + rng.uniform())
-        gy = 0.5 * np.cos(2 * np.pi * b * y)
-        nrm = np.stack([-gx, -gy, np.ones_like(gx)], -1)
-        out.append((nrm / np.linalg.norm(nrm, axis=-1, keepdims=True) + 1) / 2)
-    mask = np.zeros((n, size, size, 1), np.float32)
-    mask[:, :, : size * 3 // 4] = 1
-    return np.asarray(out, np.float32) * mask, mask
-
-
-# --------------------------------------------------------------------------------------------
-# Scoring with shared Gram matrices
-# --------------------------------------------------------------------------------------------
-
-
-def test_method_losses_equal_score_patches_and_share_the_input_and_target_passes(tiny_vgg):
-    inp, mask = _rgb_patches(5, detail=0.0)
-    target, _ = _rgb_patches(5, seed=1, detail=0.4)
-    noisy = np.clip(inp + 0.2 * np.random.default_rng(2).standard_normal(inp.shape), 0, 1)
-    outputs = {"identity": evaluation.identity(inp, mask),
-               "noisy": (noisy * mask).astype(np.float32),
-               "unsharp": evaluation.unsharp_mask(inp, mask, 2.0, 1.0),
-               "oracle": target}
-    counter = {}
-    got = ec.method_losses(tiny_vgg, inp, target, mask, outputs, batch_size=2, counter=counter)
-    # 3 batches (2 + 2 + 1 padded): target and input once each, identity reuses the input.
-    assert counter["vgg_passes"] == 3 * (2 + 3)
-    for name, out in outputs.items():
-        ref = evaluation.score_patches(tiny_vgg, inp, out, target, mask, batch_size=2)
-        sc = ec.scores_from_losses(got["input"], got[name])
-        np.testing.assert_allclose(sc["loss_input"], ref["loss_input"], rtol=1e-5)
-        np.testing.assert_allclose(sc["loss_output"], ref["loss_output"], rtol=1e-5, atol=1e-12)
-        np.testing.assert_allclose(sc["improvement_signed"], ref["improvement_signed"],
-                                   rtol=1e-4, atol=1e-3)
-        np.testing.assert_array_equal(sc["valid"], ref["valid"])
-    ident = ec.scores_from_losses(got["input"], got["identity"])
-    oracle = ec.scores_from_losses(got["input"], got["oracle"])
-    assert ident["valid"].all()
-    np.testing.assert_array_equal(ident["improvement"], 0.0)
-    np.testing.assert_allclose(oracle["improvement_signed"], 100.0, atol=1e-3)
-
-
-def test_unsharp_setting_reads_the_sweep_best_or_falls_back(tmp_path):
-    p = tmp_path / "results.json"
-    p.write_text(json.dumps({"unsharp_sweep": {"sigma=2,amount=1": 3.0,
-                                               "sigma=12,amount=1.5": 7.5,
-                                               "sigma=8,amount=4": -60.0}}))
-    # Keys without "order=" predate the order-1 blur: they are order 0.
-    assert ec.unsharp_setting(p, order=0)[:2] == (12.0, 1.5)
-    assert ec.unsharp_setting(p, order=1)[:2] == ec.DEFAULT_UNSHARP
-    p.write_text(json.dumps({"unsharp_sweep": {"order=0,sigma=8,amount=1.5": 9.0,
-                                               "order=1,sigma=12,amount=1": 8.0,
-                                               "order=1,sigma=16,amount=2": 5.0}}))
-    assert ec.unsharp_setting(p, order=0)[:2] == (8.0, 1.5)
-    assert ec.unsharp_setting(p, order=1)[:2] == (12.0, 1.0)
-    assert ec.unsharp_setting(tmp_path / "missing.json")[:2] == ec.DEFAULT_UNSHARP
-    names = list(ec.baseline_methods({0: (8.0, 1.5), 1: (12.0, 1.0)}))
-    assert names[1:3] == ["unsharp order 0 (sigma=8,amount=1.5)",
-                          "unsharp order 1 (sigma=12,amount=1)"]
-
-
-# --------------------------------------------------------------------------------------------
-# Alignment
-# --------------------------------------------------------------------------------------------
-
-
-def _analytic_normals(layout, t=0):
-    """Normals of the fold (no ripple) at every texel center of `layout`: (H, W, 3)."""
-    h, w = layout.shape
-    col, row = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    u = (col - layout.margin) / layout.pixels_per_uv + layout.u_min
-    dzdx = 0.02 * 2 * np.pi / FOLD * np.cos(2 * np.pi * u / FOLD + 0.5 * t)
-    n = np.stack([-dzdx, np.zeros_like(dzdx), np.ones_like(dzdx)], -1)
-    return n / np.linalg.norm(n, axis=-1, keepdims=True)
-
-
-def test_coarse_and_fine_maps_share_one_grid_and_their_patches_align_in_uv():
-    fine, coarse = _sheet_sequence(60, 40, 1), _sheet_sequence(10, 7, 1)
-    # Stretch the coarse rest mesh by 1 %: its own layout_for scale would differ.
-    coarse = dataclasses.replace(coarse, garment=coarse.garment.replace(
-        vertices=np.asarray(coarse.garment.vertices) * 1.01))
-    pair = ec.aligned_pair(fine.garment, coarse.garment, TEXEL)
-    assert pair.fine.layout == pair.coarse.layout == pair.layout
-    assert pair.layout.pixels_per_uv == pytest.approx(1.0 / TEXEL)  # the fine (reference) scale
-    fm, cm = np.asarray(pair.fine.mask), np.asarray(pair.coarse.mask)
-    assert (pair.mask <= fm).all() and (pair.mask <= cm).all() and pair.mask.sum() > 0.9 * fm.sum()
-    truth = _analytic_normals(pair.layout)
-    inside = pair.mask[..., 0] > 0
-    for plan, tol in ((pair.fine, 0.5), (pair.coarse, 4.0)):
-        baked = ec.bake_map(plan, fine.frames[0] if plan is pair.fine else coarse.frames[0])
-        assert metrics.mean_angular_change(baked, truth, pair.mask) < tol
-    # The coarse mesh's own layout (scale from its stretched 3D areas) drifts off the grid.
-    own = normalmap.make_plan(coarse.garment, texel_size=TEXEL)
-    assert own.layout.pixels_per_uv != pytest.approx(pair.layout.pixels_per_uv)
-    # Patches cut at the same origins show the same cloth: input and target agree everywhere
-    # on the fold (the fine map's ripples tilt normals by < 33 degrees).
-    size = PATCH
-    mask = np.asarray(patches.pad_to_patch(pair.mask, size)[0])
-    origins, cov = ec.candidate_origins(mask, size, size // 2, 0.5)
-    ps = ec.aligned_patches(pair, fine.frames[0], coarse.frames[0], origins, size, 0)
-    assert ps.input.shape == ps.target.shape == (len(origins), size, size, 3)
-    truth_p = ec.cut(np.asarray(patches.pad_to_patch(truth, size)[0]), origins, size)
-    for k in range(len(origins)):
-        assert metrics.mean_angular_change(ps.input[k] * 2 - 1, truth_p[k], ps.mask[k]) < 4.0
-        # The fine map resolves the fold: a patch one texel off would be > 1 degree away.
-        assert metrics.mean_angular_change(ps.target[k] * 2 - 1, truth_p[k], ps.mask[k]) < 0.5
-    fine_rgb = np.asarray(patches.pad_to_patch(
-        normalmap.to_rgb(ec.bake_map(pair.fine, fine.frames[0])), size)[0]) * mask
-    np.testing.assert_array_equal(ps.target, np.asarray(patches.extract(fine_rgb, origins, size)))
-    np.testing.assert_array_equal(ps.mask, ec.cut(mask, origins, size))
-    assert inside.any() and not ps.input[ps.mask[..., 0] == 0].any()
-
-
-def test_candidate_origins_are_exactly_the_grid_patches_with_enough_coverage():
-    mask = np.zeros((100, 130, 1), np.float32)
-    mask[10:70, 20:110] = 1
-    origins, cov = ec.candidate_origins(mask, 32, 16, 0.5)
-    all_origins = patches.tile(mask, 32, 16)
-    brute = np.array([mask[r:r + 32, c:c + 32].mean() for r, c in all_origins])
-    np.testing.assert_array_equal(origins, all_origins[brute >= 0.5])
-    np.testing.assert_allclose(cov, brute[brute >= 0.5], rtol=1e-6)
-    chosen = ec.choose_origins(origins, 3, (1, 2))
-    assert len(chosen) == 3 and {tuple(o) for o in chosen} <= {tuple(o) for o in origins}
-    np.testing.assert_array_equal(chosen, ec.choose_origins(origins, 3, (1, 2)))  # seeded
+    return tiny_model()
 
 
 # --------------------------------------------------------------------------------------------
 # Table 1
 # --------------------------------------------------------------------------------------------
-
-
-SAMPLING = table1.Sampling(frames=3, frame_stride=2, patches_per_frame=2, patch_size=PATCH,
-                           texel_size=TEXEL, min_coverage=0.5, score_batch=2)
-
-
-def test_evaluate_cell_identity_scores_zero_and_the_target_scores_100(tiny_vgg, model):
-    fine, coarse = _pair()
-    methods = {"identity": lambda p: evaluation.identity(p.input, p.mask),
-               "oracle": lambda p: p.target,
-               table1.MODEL: ec.enhancer_method(model, batch_size=2)}
-    res = table1.evaluate_cell(fine, coarse, "denim_light", methods, tiny_vgg, SAMPLING)
-    np.testing.assert_array_equal(res["frame"], [0, 0, 2, 2])
-    assert res["origin"].shape == (4, 2) and (res["coverage"] >= 0.5).all()
-    assert res["timings"]["vgg_passes"] == 2 * (2 + 2)  # 2 frames x (input, target, 2 outputs)
-    sc = table1.cell_scores(res)
-    assert sc["identity"]["valid"].all()
-    np.testing.assert_array_equal(sc["identity"]["improvement"], 0.0)
-    np.testing.assert_allclose(sc["oracle"]["improvement_signed"], 100.0, atol=1e-3)
-    assert np.isfinite(sc[table1.MODEL]["improvement_signed"]).all()
-    assert np.abs(sc[table1.MODEL]["improvement_signed"]).max() > 0  # the random net acts
-    s = table1.summary(sc["oracle"])
-    assert s["n"] == 4 and s["signed_mean"] == pytest.approx(100.0, abs=1e-3)
-
-
-def test_model_method_outputs_unit_normals_inside_the_mask_only(model):
-    fine, coarse = _pair(1)
-    pair = ec.aligned_pair(fine.garment, coarse.garment, TEXEL)
-    mask = np.asarray(patches.pad_to_patch(pair.mask, PATCH)[0])
-    origins, _ = ec.candidate_origins(mask, PATCH, PATCH // 2, 0.1)
-    ps = ec.aligned_patches(pair, fine.frames[0], coarse.frames[0], origins[:3], PATCH, 4)
-    timings = {}
-    out = ec.enhancer_method(model, batch_size=2, timings=timings)(ps)
-    inside = ps.mask[..., 0] > 0
-    np.testing.assert_allclose(np.linalg.norm(out[inside] * 2 - 1, axis=-1), 1.0, atol=1e-5)
-    assert not out[~inside].any()
-    assert timings["network_patches"] == 3 and timings["compile_s"] > 0
-
-
-def test_run_cells_reuses_by_source_adds_missing_methods_and_upgrades_legacy_files(tmp_path):
-    cells = ec.table_cells(["dress"], ["silk_charmeuse"], ["dance", "walk"])
-    a, b = cells
-    store = {  # a: legacy file with m1 only; b: current file with m1 from another source
-        a.key: {"loss": {"m1": 1}, "sources": {"m1": "m1"}, "legacy": True, "timings": {}},
-        b.key: {"loss": {"m1": 1, "m2": 2}, "sources": {"m1": "old", "m2": "m2"},
-                "legacy": False, "timings": {"cell_s": 5.0}}}
-    saved, evaluated = {}, []
-
-    def evaluate(cell, names, progress):
-        evaluated.append((cell.key, list(names)))
-        if progress is not None:
-            progress(1, "step")
-        return {"loss": {n: 10 for n in names}, "timings": {}}
-
-    def merge(old, new, order):
-        if new.get("bad"):
-            raise ValueError
-        return {**old, "loss": {**old["loss"], **new["loss"]}, "timings": dict(old["timings"])}
-
-    common = dict(path_of=lambda c: tmp_path / c.key.replace("/", "_"),
-                  fingerprint_of=lambda c: {}, load=lambda p, f: next(
-                      v for k, v in store.items() if k.replace("/", "_") == p.name),
-                  save=lambda p, r, f, src: saved.__setitem__(p.name, (r, src)),
-                  evaluate=evaluate, merge=merge, field="loss", units=lambda n: 1, unit="x",
-                  log=lambda m: None)
-    got = ec.run_cells(cells, {"m1": None}, None, **common)
-    assert evaluated == [(b.key, ["m1"])]  # b's m1 came from another source
-    assert got[a.key]["loss"] == {"m1": 1} and got[b.key]["loss"] == {"m1": 10}
-    name_a = a.key.replace("/", "_")
-    assert saved[name_a][1] == {"m1": "m1"}  # the legacy file was rewritten with its sources
-    evaluated.clear()
-    got = ec.run_cells(cells, {"m1": None, "m3": None}, {"m1": "m1", "m3": "s3"}, **common)
-    assert (a.key, ["m3"]) in evaluated and got[a.key]["loss"] == {"m1": 1, "m3": 10}
-    assert saved[name_a][1] == {"m1": "m1", "m3": "s3"}
-    evaluated.clear()
-    ec.run_cells(cells, {"m1": None}, None, **common, fresh=True)
-    assert evaluated == [(a.key, ["m1"]), (b.key, ["m1"])]
-    # Patches that no longer match the stored ones: every method is evaluated again.
-    evaluated.clear()
-
-    def refuse(old, new, order):
-        raise ValueError("different patches")
-
-    ec.run_cells(cells[:1], {"m1": None, "m4": None}, None, **{**common, "merge": refuse})
-    assert evaluated == [(a.key, ["m4"]), (a.key, ["m1", "m4"])]
-
-
-def test_legacy_cell_sources_trust_an_unchanged_model_file_only(tmp_path):
-    f = tmp_path / "m.npz"
-    f.write_bytes(b"weights")
-    fp = {"model": str(f), "model_mtime": f.stat().st_mtime}
-    src = table1.legacy_sources(fp, ["identity", table1.MODEL, table1.WRONG])
-    digest = ec.file_digest(f)
-    assert digest.startswith("sha256:") and len(digest) == 7 + 16
-    assert src == {"identity": "identity", table1.MODEL: f"model {digest}",
-                   table1.WRONG: f"model {digest} wrong material"}
-    stale = table1.legacy_sources({**fp, "model_mtime": 1.0}, [table1.MODEL])
-    assert stale[table1.MODEL] == "unknown model"
-    assert ec.portable_path(ec.ROOT / "data" / "x.npz") == "data/x.npz"
-    assert ec.portable_path(tmp_path / "y") == str((tmp_path / "y").resolve())
-
-
-def test_merge_cell_adds_methods_on_the_same_patches_only():
-    base = {"frame": np.array([0, 0]), "origin": np.array([[0, 0], [4, 4]]),
-            "loss_input": np.array([1.0, 2.0]), "loss": {"a": np.array([0.5, 0.5])},
-            "timings": {"methods_s": {"a": 1.0}, "score_s": 2.0, "vgg_passes": 3}}
-    new = {**base, "loss": {"b": np.array([0.1, 0.2])},
-           "timings": {"methods_s": {"b": 0.5}, "score_s": 1.0, "vgg_passes": 2}}
-    got = table1.merge_cell(base, new, ["b", "a"])
-    assert list(got["loss"]) == ["b", "a"] and got["timings"]["vgg_passes"] == 5
-    with pytest.raises(ValueError):
-        table1.merge_cell(base, {**new, "loss_input": np.array([1.0, 2.5])}, ["a", "b"])
-    with pytest.raises(ValueError):
-        table1.merge_cell(base, {**new, "origin": np.array([[0, 0], [4, 8]])}, ["a", "b"])
-
-
-def test_wrong_material_swaps_the_table_materials_and_the_method_tells_the_model_so(model):
-    silk, denim = material_index("silk_charmeuse"), material_index("denim_light")
-    assert ec.wrong_material(silk) == denim and ec.wrong_material(denim) == silk
-    assert ec.wrong_material(material_index("wool_melton")) == silk
-    with pytest.raises(ValueError):
-        ec.wrong_material(silk, materials=("silk_charmeuse",))
-    # Give every material its own CIN parameters, so the material id changes the output.
-    key = jax.random.key(3, impl="rbg")
-    leaves, tree = jax.tree_util.tree_flatten(model.params)
-    keys = jax.random.split(key, len(leaves))
-    params = jax.tree_util.tree_unflatten(tree, [
-        x + 0.3 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys, strict=True)])
-    noisy = model._replace(params=params)
-    fine, coarse = _pair(1)
-    pair = ec.aligned_pair(fine.garment, coarse.garment, TEXEL)
-    mask = np.asarray(patches.pad_to_patch(pair.mask, PATCH)[0])
-    origins, _ = ec.candidate_origins(mask, PATCH, PATCH // 2, 0.1)
-    ps = ec.aligned_patches(pair, fine.frames[0], coarse.frames[0], origins[:2], PATCH, silk)
-    wrong = ec.enhancer_method(noisy, batch_size=2, material_of=ec.wrong_material)(ps)
-    right = ec.enhancer_method(noisy, batch_size=2)
-    np.testing.assert_allclose(wrong, right(dataclasses.replace(ps, material_id=denim)),
-                               atol=1e-6)
-    assert np.abs(wrong - right(ps)).max() > 1e-3
 
 
 def _spy_on_evaluate_cell(monkeypatch, module) -> list:
@@ -359,13 +63,14 @@ def _spy_on_evaluate_cell(monkeypatch, module) -> list:
 
 
 def _write_cell_files(root, garment, motion, material, frames=3):
-    """Tiny fine/coarse sheet files that `eval_common.cell_sequences` accepts for a cell."""
-    sc = ec.scene_for(garment, motion)
-    meta = {"scene_config": sc.to_json(), "material": material, "seed": ec.TEST_SEED}
-    fine, coarse = _pair(frames)
+    """Tiny fine/coarse sheet files that `evaluation.cells.cell_sequences` accepts for a cell."""
+    sc = cell_lib.scene_for(garment, motion)
+    meta = {"scene_config": sc.to_json(), "material": material, "seed": cell_lib.TEST_SEED}
+    fine, coarse = sheet_pair(frames)
     for res, seq in (("fine", fine), ("coarse", coarse)):
         seq = meshio.make_sequence(seq.frames, seq.garment, metadata=meta)
-        meshio.save_sequence(ec.sequence_file(root, sc.name, material, res, ec.TEST_SEED), seq)
+        path = cell_lib.sequence_file(root, sc.name, material, res, cell_lib.TEST_SEED)
+        meshio.save_sequence(path, seq)
 
 
 def test_table1_main_writes_results_and_resumes_from_stored_cells(tmp_path, monkeypatch,
@@ -388,8 +93,8 @@ def test_table1_main_writes_results_and_resumes_from_stored_cells(tmp_path, monk
                 "machine"):
         assert key in res
     assert set(res["machine"]) >= {"platform", "cpu_count", "jax"}
-    assert res["methods"][0] == "identity" and res["methods"][-2:] == [table1.MODEL,
-                                                                          table1.WRONG]
+    assert res["methods"][0] == "identity" and res["methods"][-2:] == [patchscores.MODEL,
+                                                                          patchscores.WRONG]
     assert set(res["cells"]) == {"dress_dance/silk_charmeuse", "dress_walk/silk_charmeuse"}
     cell = res["cells"]["dress_walk/silk_charmeuse"]
     assert cell["scene"] == "dress_walk" and cell["kind"] == "unseen garment"
@@ -404,7 +109,7 @@ def test_table1_main_writes_results_and_resumes_from_stored_cells(tmp_path, monk
     with np.load(out / "scores.npz") as z:
         assert z["dress_walk__silk_charmeuse/identity/improvement_signed"].shape == (4,)
     # A rerun with the same settings reuses the stored cells; other settings rescore.
-    monkeypatch.setattr(table1, "evaluate_cell", lambda *a, **k: pytest.fail("rescored"))
+    monkeypatch.setattr(patchscores, "evaluate_cell", lambda *a, **k: pytest.fail("rescored"))
     assert table1.main(argv) == 0
     assert json.loads((out / "results.json").read_text())["all"] == res["all"]
     with pytest.raises(pytest.fail.Exception):
@@ -412,7 +117,7 @@ def test_table1_main_writes_results_and_resumes_from_stored_cells(tmp_path, monk
     # An extra model is scored alone on the stored patches; the other methods are reused.
     monkeypatch.undo()
     monkeypatch.setattr(table1.vgg, "load_vgg19", lambda *a, **k: tiny_vgg)
-    calls = _spy_on_evaluate_cell(monkeypatch, table1)
+    calls = _spy_on_evaluate_cell(monkeypatch, patchscores)
     other = tmp_path / "other.npz"
     params = jax.tree.map(lambda x: x * 0.5, model.params)
     enhancer.save_enhancer(other, params, model.config)
@@ -429,63 +134,9 @@ def test_table1_main_writes_results_and_resumes_from_stored_cells(tmp_path, monk
         table1.main(argv + ["--extra", "no-path"])
 
 
-def test_scene_for_reuses_existing_scenes_and_derives_new_ones():
-    assert ec.scene_for("dress", "dance") is ec.scenes.SCENES["dress_dance"]
-    assert ec.scene_for("flared_skirt", "walk") is ec.scenes.SCENES["skirt_walk"]
-    cape = ec.scene_for("cape", "dance")
-    base = ec.scenes.SCENES["cape_walk"]
-    assert cape.name == "cape_dance" and cape.motion == "dance"
-    assert (cape.pins, cape.attach_to, cape.preroll_s) == (base.pins, base.attach_to, 2.0)
-    kinds = {c.key: c.kind for c in ec.table_cells()}
-    assert len(kinds) == 12
-    assert kinds["skirt_dance/denim_light"] == "seen garment, seen motion"
-    assert kinds["skirt_walk/denim_light"] == "seen garment, unseen motion"
-    assert kinds["cape_dance/silk_charmeuse"] == "unseen garment"
-
-
 # --------------------------------------------------------------------------------------------
 # Temporal coherence
 # --------------------------------------------------------------------------------------------
-
-
-def _rotating_sheet(frames, degrees_per_frame, nx=12, ny=8):
-    """A flat sheet turning rigidly about the x axis: every normal turns by the same angle."""
-    g = primitives.grid_sheet(nx, ny, size=SIZE)
-    v = np.asarray(g.vertices)
-    out = []
-    for t in range(frames):
-        a = np.radians(degrees_per_frame * t)
-        rot = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
-        out.append(v @ rot.T)
-    return meshio.make_sequence(np.asarray(out, np.float32), g)
-
-
-def test_flicker_of_a_rigid_rotation_is_its_angle_and_of_a_static_map_zero():
-    seq = _rotating_sheet(4, 3.0)
-    plan = normalmap.make_plan(seq.garment, texel_size=TEXEL)
-    maps = np.stack([ec.bake_map(plan, f) for f in seq.frames])
-    np.testing.assert_allclose(metrics.flicker_series(maps, plan.mask), 3.0, atol=1e-3)
-    np.testing.assert_allclose(metrics.flicker_series(maps[[1, 1, 1]], plan.mask), 0.0, atol=1e-4)
-    assert metrics.mean_angular_change(maps[0], maps[1], np.zeros_like(plan.mask)) == 0.0
-
-
-def test_sequence_flicker_static_is_zero_and_rotation_moves_coarse_and_fine(model):
-    static = _sheet_sequence(10, 7, 1)
-    static = meshio.make_sequence(np.repeat(static.frames, 3, 0), static.garment)
-    res = temporal.sequence_flicker(static, static, model, "wool_melton", [0, 1, 2],
-                                    batch_size=4)
-    for k in temporal.SERIES:
-        np.testing.assert_allclose(res[k], 0.0, atol=1e-3)
-    assert res["patches_per_frame"] > 0 and res["timings"]["network"] > 0
-    coarse, fine = _rotating_sheet(3, 2.0), _rotating_sheet(3, 2.0, nx=40, ny=30)
-    res = temporal.sequence_flicker(coarse, fine, model, "wool_melton", [0, 1, 2], batch_size=4)
-    np.testing.assert_allclose(res["coarse"], 2.0, atol=1e-3)
-    np.testing.assert_allclose(res["fine"], 2.0, atol=1e-3)
-    assert res["output"].shape == (2,) and np.isfinite(res["output"]).all()
-    s = temporal.summarize(res)
-    assert s["output_over_fine"] == pytest.approx(res["output"].mean() / 2.0, rel=1e-3)
-    with pytest.raises(ValueError, match="consecutive"):
-        temporal.sequence_flicker(coarse, fine, model, "wool_melton", [0, 2])
 
 
 def test_temporal_main_writes_results_and_plot(tmp_path, model):
@@ -514,7 +165,7 @@ def test_temporal_main_writes_results_and_plot(tmp_path, model):
 
 
 def test_time_pipeline_reports_every_stage_per_frame_and_compile_separately(model):
-    seq = _sheet_sequence(10, 7, 3)
+    seq = sheet_sequence(10, 7, 3)
     info = timing.time_pipeline(seq, model, "silk_chiffon", body=None, lift=True, batch_size=4,
                                 chunk_size=2)
     assert info["frames"] == 3 and info["warmup_frames"] == 2
@@ -545,7 +196,7 @@ def test_time_simulation_counts_simulated_frames_and_separates_the_first_call(mo
 
     monkeypatch.setattr(timing.scenes, "simulate", fake_simulate)
     monkeypatch.setattr(timing.scenes, "setup_scene", lambda *a, **k: None)
-    _, info = timing.time_simulation(ec.scenes.SCENES["dress_dance"], "silk_charmeuse",
+    _, info = timing.time_simulation(scenes.SCENES["dress_dance"], "silk_charmeuse",
                                      "coarse", frames=70)
     assert calls == [1, 70]
     assert info["simulated_frames"] == 5 + 70 - 1 and len(info["chunk_ms_per_frame"]) == 3
@@ -580,49 +231,8 @@ def test_timing_ratios_body_and_plot(tmp_path):
 # --------------------------------------------------------------------------------------------
 
 
-def test_chamfer_scores_hold_both_distances_and_both_ratios():
-    assert table2.chamfer_scores(2.0, 3.0) == {"c1": 2.0, "c2": 3.0, "dr": 50.0,
-                                               "dr_signed": -50.0}
-
-
-def test_gram_features_are_upper_triangles_with_layers_scaled_to_unit_median_norm():
-    rng = np.random.default_rng(1)
-
-    def sym(n, c, scale):
-        m = rng.normal(size=(n, c, c)) * scale
-        return m + m.transpose(0, 2, 1)
-
-    grams = {"small": sym(3, 2, 1.0), "big": sym(3, 4, 1000.0)}
-    flat = table2.upper_triangle(grams)
-    assert list(flat) == ["small", "big"]
-    assert flat["small"].shape == (3, 3) and flat["big"].shape == (3, 10)
-    assert flat["big"].dtype == np.float32
-    g = grams["small"][1]
-    np.testing.assert_allclose(flat["small"][1], [g[0, 0], g[0, 1], g[1, 1]], rtol=1e-6)
-    scales = table2.layer_scales(flat)
-    assert scales["big"] == pytest.approx(np.median(np.linalg.norm(flat["big"], axis=1)))
-    feats = table2.scaled_features(flat, scales)
-    assert feats.shape == (3, 13)
-    for block in (feats[:, :3], feats[:, 3:]):
-        assert np.median(np.linalg.norm(block, axis=1)) == pytest.approx(1.0)
-    # A layer's overall magnitude is scaled away.
-    louder = dict(flat, big=flat["big"] * 1e3)
-    np.testing.assert_allclose(table2.scaled_features(louder, table2.layer_scales(louder)), feats,
-                               rtol=1e-5)
-    # Layer-by-layer distances equal the distances of the concatenated features.
-    np.testing.assert_allclose(table2.scaled_sq_dists(flat, None, scales),
-                               metrics.sq_dists(feats), rtol=1e-9, atol=1e-12)
-    other = table2.upper_triangle({"small": sym(2, 2, 1.0), "big": sym(2, 4, 1000.0)})
-    np.testing.assert_allclose(table2.scaled_sq_dists(other, flat, scales),
-                               metrics.sq_dists(table2.scaled_features(other, scales), feats),
-                               rtol=1e-9)
-    assert table2.layer_scales({"zero": np.zeros((2, 3), np.float32)}) == {"zero": 1.0}
-    with pytest.raises(ValueError, match="Gram"):
-        table2.upper_triangle({"x": np.zeros((2, 3, 4))})
-
-
 def test_set_c_frames_are_between_table1_frames_never_on_them():
-    a = table1.Sampling().frame_indices
+    a = patchscores.Sampling().frame_indices
     c = table2.c_frame_indices(a, 200, 10)
     assert c == list(range(5, 200, 10)) and not set(a) & set(c)
     assert table2.c_frame_indices([0, 3, 6], 7, 3) == [1, 4, 5]  # past the end: the one before
@@ -630,16 +240,6 @@ def test_set_c_frames_are_between_table1_frames_never_on_them():
         table2.c_frame_indices([0, 1], 2, 1)
     with pytest.raises(ValueError, match="within 1 frames"):
         table2.c_frame_indices([0], 1, 2)
-
-
-def test_embedding_from_the_distance_matrix_equals_the_embedding_of_the_points():
-    x = np.random.default_rng(2).normal(size=(30, 50))
-    d2 = metrics.sq_dists(x)
-    pts = table2.points_from_sq_dists(d2)
-    np.testing.assert_allclose(metrics.sq_dists(pts), d2, atol=1e-9)
-    # Eigenvectors are defined up to sign.
-    np.testing.assert_allclose(np.abs(metrics.spectral_embedding(pts)),
-                               np.abs(metrics.spectral_embedding(x)), atol=1e-9)
 
 
 def _three_sets(n=20, seed=0):
@@ -659,31 +259,33 @@ def test_cell_comparison_finds_b_nearer_to_c_than_a_and_a_swap_reverses_it():
     res = {"frame": np.zeros(len(a), np.int32), "origin": np.zeros((len(a), 2), np.int32),
            "frame_c": np.ones(len(c), np.int32), "origin_c": np.zeros((len(c), 2), np.int32),
            "scales": {}, "n_candidates": 1, "timings": {},
-           "d2_ref": metrics.sq_dists(ac),
-           "d2_method": {"near": np.concatenate([metrics.sq_dists(b, ac), metrics.sq_dists(b)], 1),
-                         "same": np.concatenate([metrics.sq_dists(a, ac), metrics.sq_dists(a)], 1)}}
-    d2, labels = table2.union_sq_dists(res["d2_ref"], res["d2_method"]["near"], len(a))
-    np.testing.assert_allclose(d2, metrics.sq_dists(np.concatenate([a, b, c])), atol=1e-12)
+           "d2_ref": evaluation.sq_dists(ac),
+           "d2_method": {"near": np.concatenate([evaluation.sq_dists(b, ac),
+                                                 evaluation.sq_dists(b)], 1),
+                         "same": np.concatenate([evaluation.sq_dists(a, ac),
+                                                 evaluation.sq_dists(a)], 1)}}
+    d2, labels = set_lib.union_sq_dists(res["d2_ref"], res["d2_method"]["near"], len(a))
+    np.testing.assert_allclose(d2, evaluation.sq_dists(np.concatenate([a, b, c])), atol=1e-12)
     rec = table2.cell_record(res)
     near, same = rec["methods"]["near"], rec["methods"]["same"]
     for space in table2.SPACES:
         s = near[space]
         assert s["c2"] < s["c1"] and s["dr_signed"] > 0 and s["dr"] == s["dr_signed"]
         assert same[space]["dr_signed"] == pytest.approx(0.0, abs=1e-6)
-    assert near["full"]["c1"] == pytest.approx(table2.chamfer_distance(a, c), rel=1e-9)
-    assert near["full"]["c2"] == pytest.approx(table2.chamfer_distance(b, c), rel=1e-9)
+    assert near["full"]["c1"] == pytest.approx(evaluation.chamfer_distance(a, c), rel=1e-9)
+    assert near["full"]["c2"] == pytest.approx(evaluation.chamfer_distance(b, c), rel=1e-9)
     emb = near["embedding"]
     assert emb.shape == (60, 2) and emb.dtype == np.float32
     assert np.sqrt(((emb - emb.mean(0)) ** 2).sum(1).mean()) == pytest.approx(1.0, rel=1e-5)
     # Swapping the roles of a and b must flip the verdict.
-    swapped = table2.compare_sets(d2, np.choose(labels, [table2.SET_B, table2.SET_A,
-                                                         table2.SET_C]))
+    swapped = set_lib.compare_sets(d2, np.choose(labels, [set_lib.SET_B, set_lib.SET_A,
+                                                         set_lib.SET_C]))
     for space in table2.SPACES:
         assert swapped[space]["c2"] > swapped[space]["c1"]
         assert swapped[space]["dr_signed"] < 0 < swapped[space]["dr"]
     # The order of the rows does not matter.
     perm = np.random.default_rng(3).permutation(len(labels))
-    shuffled = table2.compare_sets(d2[np.ix_(perm, perm)], labels[perm])
+    shuffled = set_lib.compare_sets(d2[np.ix_(perm, perm)], labels[perm])
     for space in table2.SPACES:
         for k in ("c1", "c2"):
             assert shuffled[space][k] == pytest.approx(near[space][k], rel=1e-5)
@@ -720,13 +322,13 @@ def test_table2_main_uses_table1_patches_writes_results_and_resumes(tmp_path, mo
     assert "| silk_charmeuse | dance (seen) |" in table and "dress (unseen)" in table
     assert (out / "embeddings.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # Set a is Table 1's patches: same frames and origins.
-    c = ec.Cell("dress", "dance", "silk_charmeuse")
-    fine, coarse = (ec.load_first_frames(ec.sequence_file(seqs, "dress_dance", c.material, r,
-                                                          ec.TEST_SEED), 4)
-                    for r in ("fine", "coarse"))
-    sampling = table1.Sampling(frames=4, frame_stride=2, patches_per_frame=3, patch_size=PATCH,
+    c = cell_lib.Cell("dress", "dance", "silk_charmeuse")
+    fine, coarse = (cell_lib.load_first_frames(
+        cell_lib.sequence_file(seqs, "dress_dance", c.material, r, cell_lib.TEST_SEED), 4)
+        for r in ("fine", "coarse"))
+    sampling = patchscores.Sampling(frames=4, frame_stride=2, patches_per_frame=3, patch_size=PATCH,
                                texel_size=TEXEL, score_batch=3)
-    t1 = table1.evaluate_cell(fine, coarse, c.material, {}, tiny_vgg, sampling,
+    t1 = patchscores.evaluate_cell(fine, coarse, c.material, {}, tiny_vgg, sampling,
                               c.patch_seed)
     with np.load(out / "cells" / "dress_dance__silk_charmeuse.npz") as z:
         np.testing.assert_array_equal(z["frame"], t1["frame"])
@@ -774,46 +376,20 @@ def test_merge_records_checks_the_sets_and_orders_the_methods():
 # --------------------------------------------------------------------------------------------
 
 
-def test_border_pairs_mark_the_neighbour_pairs_across_tile_starts_and_ends():
-    origins = np.array([[0, 0], [16, 0], [28, 0]])  # rows 0, 16 and the clamped last row
-    got = stride.border_pairs(origins, 32, 60, axis=0)
-    # tiles start at 16, 28 and end after 31, 47, 59 (the last, at the map's edge, has no pair)
-    assert np.flatnonzero(got).tolist() == [15, 27, 31, 47]
-    assert np.flatnonzero(stride.border_pairs(origins, 32, 60, axis=1)).tolist() == [31]
-
-
-def test_seam_ratio_is_one_for_uniform_bending_and_sees_a_kink_at_a_tile_border():
-    h = w = 64
-    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
-    ang = np.radians(0.5) * (x + y)  # the normal turns 0.5 degrees per texel along x and y
-    nrm = np.stack([np.sin(ang), np.zeros_like(ang), np.cos(ang)], -1)
-    mask = np.ones((h, w), bool)
-    origins = np.array([[r, c] for r in (0, 16, 32) for c in (0, 16, 32)])
-    assert stride.seam_ratio(stride.seam_sums(nrm, mask, origins, 32)) == pytest.approx(1.0)
-    kinked = nrm.copy()
-    kinked[:, 16:] = nrm[:, 16:] @ np.array([[np.cos(0.1), 0, -np.sin(0.1)], [0, 1, 0],
-                                              [np.sin(0.1), 0, np.cos(0.1)]]).T
-    assert stride.seam_ratio(stride.seam_sums(kinked, mask, origins, 32)) > 1.5
-    off_border = nrm.copy()
-    off_border[:, 20:] = kinked[:, 16:60]  # the same kink between tiles' borders
-    assert stride.seam_ratio(stride.seam_sums(off_border, mask, origins, 32)) < 1.0
-    assert np.isnan(stride.seam_ratio(np.zeros(4)))
-
-
 def test_stride_identity_network_scores_zero_and_leaves_the_coarse_seams(tiny_vgg, model):
     params = {**model.params, "out": jax.tree.map(jax.numpy.zeros_like, model.params["out"])}
     ident = model._replace(params=params)
-    fine, coarse = _pair(3)
-    sampling = table1.Sampling(frames=3, frame_stride=1, patches_per_frame=2, patch_size=PATCH,
+    fine, coarse = sheet_pair(3)
+    sampling = patchscores.Sampling(frames=3, frame_stride=1, patches_per_frame=2, patch_size=PATCH,
                                texel_size=TEXEL, min_coverage=0.3, score_batch=2)
     res = stride.evaluate_cell(fine, coarse, "denim_light", ident, [8, 16, 24], tiny_vgg,
                                sampling, [0, 2], batch_size=2)
     for name in (stride.PATCH, 8, 16, 24):
-        sc = ec.scores_from_losses(res["loss_input"], res["loss"][name])
+        sc = evaluation.scores_from_losses(res["loss_input"], res["loss"][name])
         np.testing.assert_allclose(sc["improvement_signed"][sc["valid"]], 0.0, atol=1e-3)
     for s in (8, 16, 24):
-        assert stride.seam_ratio(res["seams"][s]) == pytest.approx(
-            stride.seam_ratio(res["seams_coarse"][s]), rel=1e-3)
+        assert seam_lib.seam_ratio(res["seams"][s]) == pytest.approx(
+            seam_lib.seam_ratio(res["seams_coarse"][s]), rel=1e-3)
     counts = [res["patches_per_frame"][s] for s in (8, 16, 24)]
     assert counts[0] > counts[1] > counts[2]
     pooled = stride.summarize({"a": res}, [8, 16, 24])
@@ -871,7 +447,7 @@ def test_report_assembles_stored_results_and_names_what_is_missing(tmp_path, mon
                         "--out", str(results / "table1")]) == 0
     (results / "timing").mkdir()
     (results / "timing" / "results.json").write_text(
-        (ec.RESULTS / "timing" / "results.json").read_text())  # the committed timing run
+        (suite.RESULTS / "timing" / "results.json").read_text())  # the committed timing run
     out = tmp_path / "REPORT.md"
     assert report.main(["--results", str(results), "--out", str(out)]) == 0
     text = out.read_text()
@@ -890,10 +466,10 @@ def test_report_assembles_stored_results_and_names_what_is_missing(tmp_path, mon
     for name in ("model_card", "sheet_only"):
         (results / name).mkdir()
         (results / name / "results.json").write_text(
-            (ec.RESULTS / "model_card" / "results.json").read_text())
+            (suite.RESULTS / "model_card" / "results.json").read_text())
     assert report.main(["--results", str(results), "--out", str(out)]) == 0
     text = out.read_text()
-    card = json.loads((ec.RESULTS / "model_card" / "results.json").read_text())
+    card = json.loads((suite.RESULTS / "model_card" / "results.json").read_text())
     unseen = card["methods"]["model"]["heldout"]["by_kind"]["unseen garment"]["signed_mean"]
     assert f"| sheet only | {unseen:+.1f} |" in text
     # ... and the headline compares it, and the model with its best baseline, in one line each
@@ -977,7 +553,7 @@ def test_fidelity_summary_and_report_section():
     assert m["new"]["object"]["signed_median"] == pytest.approx(20.0, abs=1e-3)
     assert m["new"]["band_ratio_to_fine"]["16_64mm"] == pytest.approx(0.05 / 0.06)
     assert set(m["new"]["detail"]["cell_medians"]) == {c["cell"] for c in cells}
-    rep = report.Report(ec.RESULTS)
+    rep = report.Report(suite.RESULTS)
     report.fidelity_section(rep, {"unseen garment": got})
     text = "\n".join(rep.lines)
     assert "| new | +70.0 (+70.0) | +30.0 [+30.0, +30.0] |  | +20.0 (+20.0) |" in text

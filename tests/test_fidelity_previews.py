@@ -15,9 +15,9 @@ import jax
 import numpy as np
 import pytest
 
-from experiments import eval_common as ec
 from experiments import fidelity_previews
 from wrinkle_jax import compare, enhancer, meshio, primitives
+from wrinkle_jax.evaluation import suite
 from wrinkle_jax.nn import unet
 
 SIZE = 0.24  # meters
@@ -63,7 +63,7 @@ def run(tmp_path_factory):
 
     out = tmp / "out"
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(fidelity_previews.ec, "cell_sequences", fake_cell_sequences)
+        mp.setattr(fidelity_previews.cell_lib, "cell_sequences", fake_cell_sequences)
         index = fidelity_previews.main(
             ["--model", str(model), "--frames", "2", "--frame", "1", "--scenes", "dress_dance",
              "--materials", "silk_charmeuse", "--panel", str(PANEL), "--crop", str(CROP),
@@ -114,8 +114,8 @@ def test_main_writes_both_rows_at_the_requested_sizes_and_an_index(run):
     h, w = cell["normals"]["map_size_texels"]
     assert 0 <= r and 0 <= c and r + CROP <= max(h, CROP) and c + CROP <= max(w, CROP)
     # The model lies outside the project here: its path is absolute; inside, relative.
-    assert on_disk["model"] == ec.portable_path(run["model"])
-    assert ec.portable_path(ec.ROOT / "wrinkle_jax" / "x.npz") == "wrinkle_jax/x.npz"
+    assert on_disk["model"] == suite.portable_path(run["model"])
+    assert suite.portable_path(suite.ROOT / "wrinkle_jax" / "x.npz") == "wrinkle_jax/x.npz"
 
 
 @pytest.mark.parametrize("row", ["meshes", "normals"])

@@ -258,7 +258,7 @@ FAILING = [
                          ids=[c[0] for c in FAILING])
 def test_bad_input_fails_with_one_line_and_no_output(root, tmp_path, capsys, monkeypatch, name,
                                                      make, argv, code, fragments):
-    from wrinkle_jax.nn import classifier
+    from wrinkle_jax import classifier
 
     monkeypatch.setattr(classifier, "DEFAULT_PATH", tmp_path / "no_classifier.npz")
     inputs = tmp_path / "inputs"

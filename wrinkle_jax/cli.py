@@ -594,7 +594,7 @@ def build_parser() -> argparse.ArgumentParser:
     from wrinkle_jax.sim.command import add_simulate_parser
 
     add_simulate_parser(sub)
-    from wrinkle_jax import classify_cli
+    from wrinkle_jax.classifier import cli as classify_cli
 
     classify_cli.register(sub)
     return parser

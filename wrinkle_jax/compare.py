@@ -8,7 +8,7 @@ Two rows of three panels for one frame of a coarse and a fine simulation of the 
              upscaled nearest-neighbour so single texels stay visible
 
 All three maps live on ONE pixel grid: the coarse and the fine mesh are baked on
-`aligned.shared_layout` (`aligned.aligned_pair`), and the pipeline is built on that same layout
+`patchsets.shared_layout` (`patchsets.aligned_pair`), and the pipeline is built on that same layout
 (`pipeline.make_pipeline(layout=...)`), so its enhanced map N* is already on the grid; a texel
 (r, c) is the same cloth in every map and the crop needs no resampling.
 
@@ -24,9 +24,10 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from wrinkle_jax import aligned, normalmap, patches, render
 from wrinkle_jax import enhancer as enhancer_lib
+from wrinkle_jax import normalmap, patches, render
 from wrinkle_jax import pipeline as pipeline_lib
+from wrinkle_jax.evaluation import patchsets
 from wrinkle_jax.mesh import Garment
 
 __all__ = ["FidelityPreviews", "MESH_LABELS", "MAP_LABELS", "crop_origin", "fidelity_previews",
@@ -53,7 +54,7 @@ def crop_origin(mask, size: int, stride: int | None = None) -> tuple[int, int]:
     if m.shape[0] < size or m.shape[1] < size:
         raise ValueError(f"mask {m.shape[:2]} is smaller than the crop {size}; pad it first")
     step = max(1, size // 8) if stride is None else int(stride)
-    origins, cov = aligned.candidate_origins(m, size, step, 0.0)
+    origins, cov = patchsets.candidate_origins(m, size, step, 0.0)
     if not len(origins):  # an empty mask: tile() keeps only windows touching it
         return 0, 0
     rows, cols = np.nonzero(m[..., 0] > 0)
@@ -162,11 +163,11 @@ def fidelity_previews(coarse: Garment, coarse_vertices, fine: Garment, fine_vert
         pipeline_lib.resolve_material(material, enhancer.config.materials)[0])
     cv = np.asarray(coarse_vertices, np.float32)
     fv = np.asarray(fine_vertices, np.float32)
-    pair = aligned.aligned_pair(fine, coarse, enhancer.config.texel_size)
+    pair = patchsets.aligned_pair(fine, coarse, enhancer.config.texel_size)
     pipe = pipeline_lib.make_pipeline(coarse, enhancer, config, layout=pair.layout)
     (frame,) = pipeline_lib.iter_enhance(pipe, cv[None], material_id, indices=[0])
-    maps = {"coarse": aligned.bake_map(pair.coarse, cv), "enhanced": frame.normal_map,
-            "fine": aligned.bake_map(pair.fine, fv)}
+    maps = {"coarse": patchsets.bake_map(pair.coarse, cv), "enhanced": frame.normal_map,
+            "fine": patchsets.bake_map(pair.fine, fv)}
     mask = np.asarray(pair.mask, np.float32)
     origin = crop_origin(patches.pad_to_patch(mask, crop)[0], crop)
     normals = map_row([maps["coarse"], maps["enhanced"], maps["fine"]], mask, origin, crop,

@@ -273,7 +273,7 @@ def build_pair_sequence(fine: GarmentSequence, coarse: GarmentSequence, name: st
 
     Unlike `build_sequence` (input = the fine map downsampled, pixel-aligned with its target),
     the input here is the coarse simulation of the same scene, material, seed and frame, baked
-    on the fine map's grid (`aligned.aligned_pair`), so the network sees what users give it.
+    on the fine map's grid (`patchsets.aligned_pair`), so the network sees what users give it.
     Input and target then agree only up to the simulations' divergence; losses meant for such
     pairs compare statistics (Gram matrices of detail maps), not pixels. The mask is where both
     meshes cover the texel. The shard format and index are `build_sequence`'s (7 channels), so
@@ -291,12 +291,12 @@ def build_pair_sequence(fine: GarmentSequence, coarse: GarmentSequence, name: st
     Returns:
       the index entries written (one, or two with a val part).
     """
-    from wrinkle_jax import aligned
+    from wrinkle_jax.evaluation import patchsets
 
     info = sequence_info(fine, name)
     split = split_of(info, config)
     size = config.patch_size
-    pair = aligned.aligned_pair(fine.garment, coarse.garment, config.texel_size)
+    pair = patchsets.aligned_pair(fine.garment, coarse.garment, config.texel_size)
     mask = np.asarray(patches.pad_to_patch(pair.mask, size)[0])
     counts = np.asarray(patches.crop_mask_counts(jnp.asarray(mask), size))
     if counts.max() < config.min_coverage * size * size:
@@ -315,8 +315,8 @@ def build_pair_sequence(fine: GarmentSequence, coarse: GarmentSequence, name: st
     for part_name, part_split, part_frames in parts:
         writer = _ShardWriter(shard_dir, part_name, config.shard_size)
         for t in part_frames:
-            f_map = patches.pad_to_patch(aligned.bake_map(pair.fine, fine.frames[t]), size)[0]
-            c_map = patches.pad_to_patch(aligned.bake_map(pair.coarse, coarse.frames[t]),
+            f_map = patches.pad_to_patch(patchsets.bake_map(pair.fine, fine.frames[t]), size)[0]
+            c_map = patches.pad_to_patch(patchsets.bake_map(pair.coarse, coarse.frames[t]),
                                          size)[0]
             stacked = np.concatenate([np.asarray(normalmap.to_rgb(c_map)) * mask,
                                       np.asarray(normalmap.to_rgb(f_map)) * mask, mask], -1)

@@ -316,7 +316,7 @@ def choose_material(flag: str | None, stored, materials, source: str) -> tuple[s
         what = f"stores the unknown material {stored!r}" if stored else "stores no material"
         raise UsageError(f"{source} {what}; pass --material NAME (one of {names})")
     if flag == "auto":
-        from wrinkle_jax.nn import classifier
+        from wrinkle_jax import classifier
         from wrinkle_jax.outdir import display_path
 
         if not Path(classifier.DEFAULT_PATH).is_file():

@@ -1,11 +1,11 @@
-"""Tests for wrinkle_jax.metrics.improvement_score (paper Sec. 5)."""
+"""Tests for wrinkle_jax.evaluation.improvement_score (paper Sec. 5)."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from wrinkle_jax import metrics
+from wrinkle_jax import evaluation
 from wrinkle_jax.nn import losses, vgg
 
 LAYERS = ("relu1_2", "relu2_1", "relu3_1")
@@ -25,11 +25,11 @@ def patches():
     return inp, out, tgt, mask
 
 
-score_jit = jax.jit(metrics.improvement_score, static_argnames=("layers",))
+score_jit = jax.jit(evaluation.improvement_score, static_argnames=("layers",))
 
 
 def test_from_losses_conventions():
-    s = metrics.improvement_score_from_losses(
+    s = evaluation.improvement_score_from_losses(
         loss_input=jnp.array([4.0, 4.0, 4.0, 4.0, 0.0, 0.0]),
         loss_output=jnp.array([0.0, 4.0, 1.0, 10.0, 0.0, 3.0]),
     )
@@ -37,7 +37,7 @@ def test_from_losses_conventions():
     np.testing.assert_allclose(s.signed_score, [100.0, 0.0, 75.0, -150.0, 100.0, 0.0])
     np.testing.assert_array_equal(s.valid, [True, True, True, True, False, False])
     # A nonzero L(N_hat) enters the denominator as in the paper's formula.
-    s = metrics.improvement_score_from_losses(jnp.array([5.0]), jnp.array([3.0]), 1.0)
+    s = evaluation.improvement_score_from_losses(jnp.array([5.0]), jnp.array([3.0]), 1.0)
     np.testing.assert_allclose(s.score, [50.0])
 
 
@@ -83,30 +83,31 @@ def test_degenerate_denominator(tiny_vgg, patches):
 def test_chamfer_distance_is_zero_symmetric_translation_invariant_and_hand_computed():
     rng = np.random.default_rng(0)
     x, y = rng.normal(size=(5, 3)), rng.normal(size=(7, 3))
-    assert metrics.chamfer_distance(x, x) == 0.0
-    cd = metrics.chamfer_distance(x, y)
-    assert cd > 0 and metrics.chamfer_distance(y, x) == pytest.approx(cd, rel=1e-12)
+    assert evaluation.chamfer_distance(x, x) == 0.0
+    cd = evaluation.chamfer_distance(x, y)
+    assert cd > 0 and evaluation.chamfer_distance(y, x) == pytest.approx(cd, rel=1e-12)
     shift = np.array([10.0, -3.0, 0.5])
-    assert metrics.chamfer_distance(x + shift, y + shift) == pytest.approx(cd, rel=1e-9)
+    assert evaluation.chamfer_distance(x + shift, y + shift) == pytest.approx(cd, rel=1e-9)
     # Both directions count: a subset is at distance 0 one way only.
-    assert metrics.chamfer_distance(x[:2], x) > 0
+    assert evaluation.chamfer_distance(x[:2], x) > 0
     # a = {(0, 0), (2, 0)}, c = {(0, 1)}: a -> c 1 and sqrt(5), c -> a 1.
     a, c = [[0.0, 0.0], [2.0, 0.0]], [[0.0, 1.0]]
     hand = ((1.0 + np.sqrt(5.0)) / 2 + 1.0) / 2
-    assert metrics.chamfer_distance(a, c) == pytest.approx(hand, rel=1e-12)
-    assert metrics.chamfer_from_sq_dists(metrics.sq_dists(a, c)) == pytest.approx(hand, rel=1e-12)
-    np.testing.assert_array_equal(np.diag(metrics.sq_dists(x)), 0.0)
+    assert evaluation.chamfer_distance(a, c) == pytest.approx(hand, rel=1e-12)
+    assert (evaluation.chamfer_from_sq_dists(evaluation.sq_dists(a, c))
+            == pytest.approx(hand, rel=1e-12))
+    np.testing.assert_array_equal(np.diag(evaluation.sq_dists(x)), 0.0)
 
 
 def test_decrease_ratio_paper_form_and_signed_form():
-    assert metrics.decrease_ratio(2.0, 0.5) == 75.0
-    assert metrics.decrease_ratio(2.0, 0.5, signed=True) == 75.0
+    assert evaluation.decrease_ratio(2.0, 0.5) == 75.0
+    assert evaluation.decrease_ratio(2.0, 0.5, signed=True) == 75.0
     # The paper's |.| form cannot tell "further from the fine patches" from "closer".
-    assert metrics.decrease_ratio(1.0, 1.5) == 50.0
-    assert metrics.decrease_ratio(1.0, 1.5, signed=True) == -50.0
-    assert metrics.decrease_ratio(1.0, 1.0, signed=True) == 0.0
-    assert np.isnan(metrics.decrease_ratio(0.0, 0.1))
-    assert np.isnan(metrics.decrease_ratio(np.nan, 1))
+    assert evaluation.decrease_ratio(1.0, 1.5) == 50.0
+    assert evaluation.decrease_ratio(1.0, 1.5, signed=True) == -50.0
+    assert evaluation.decrease_ratio(1.0, 1.0, signed=True) == 0.0
+    assert np.isnan(evaluation.decrease_ratio(0.0, 0.1))
+    assert np.isnan(evaluation.decrease_ratio(np.nan, 1))
 
 
 def test_normal_angles_are_accurate_for_tiny_angles_and_zero_for_zero_vectors():
@@ -114,16 +115,16 @@ def test_normal_angles_are_accurate_for_tiny_angles_and_zero_for_zero_vectors():
     for deg in (1e-4, 0.01, 1.0, 90.0, 179.0):
         r = np.radians(deg)
         b = np.array([np.sin(r), 0.0, np.cos(r)]) * 3.0  # length does not matter
-        assert metrics.normal_angles(a, b) == pytest.approx(deg, rel=1e-9)
-    assert metrics.normal_angles(a, np.zeros(3)) == 0.0
-    assert metrics.mean_angular_change(np.ones((2, 2, 3)), np.ones((2, 2, 3)),
+        assert evaluation.normal_angles(a, b) == pytest.approx(deg, rel=1e-9)
+    assert evaluation.normal_angles(a, np.zeros(3)) == 0.0
+    assert evaluation.mean_angular_change(np.ones((2, 2, 3)), np.ones((2, 2, 3)),
                                        np.ones((2, 2))) == 0.0
 
 
 def test_spectral_embedding_separates_two_clusters():
     rng = np.random.default_rng(1)
     x = np.concatenate([rng.normal(0, 0.1, (20, 5)), rng.normal(3, 0.1, (20, 5))])
-    emb = metrics.spectral_embedding(x, dim=2)
+    emb = evaluation.spectral_embedding(x, dim=2)
     assert emb.shape == (40, 2)
     first = np.sign(emb[:, 0])
     assert abs(first[:20].sum()) == 20 and abs(first[20:].sum()) == 20

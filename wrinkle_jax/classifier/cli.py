@@ -44,9 +44,8 @@ def _histogram_lines(result) -> list[str]:
 def _cmd_classify(args) -> int:
     import jax
 
-    from wrinkle_jax import meshio
+    from wrinkle_jax import classifier, meshio
     from wrinkle_jax.mesh import GarmentError
-    from wrinkle_jax.nn import classifier
     from wrinkle_jax.normalmap import NormalMapError
 
     prog = "wrinkle-jax classify"
@@ -81,9 +80,9 @@ def _cmd_train_classifier(args) -> int:
     import jax
     import numpy as np
 
-    from wrinkle_jax import classify_train as ct
+    from wrinkle_jax import classifier
+    from wrinkle_jax.classifier import training as ct
     from wrinkle_jax.mesh import GarmentError
-    from wrinkle_jax.nn import classifier
 
     prog = "wrinkle-jax train-classifier"
     data = Path(args.data)
@@ -133,7 +132,7 @@ def _cmd_train_classifier(args) -> int:
 
 def register(subparsers) -> None:
     """Add the `train-classifier` and `classify` sub-commands to an argparse subparsers."""
-    from wrinkle_jax.nn.classifier import ClassifierConfig
+    from wrinkle_jax.classifier import ClassifierConfig
 
     default = ClassifierConfig()
     p = subparsers.add_parser(
@@ -177,7 +176,7 @@ def register(subparsers) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Stand-alone entry (`python -m wrinkle_jax.classify_cli ...`) until cli.py wires it."""
+    """Stand-alone entry (`python -m wrinkle_jax.classifier.cli ...`) until cli.py wires it."""
     parser = argparse.ArgumentParser(prog="wrinkle-jax")
     register(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(argv)

@@ -20,11 +20,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax import normalmap, patches
+from wrinkle_jax import data, normalmap, patches
 from wrinkle_jax.mesh import Garment, global_uv_scale
 
 __all__ = ["AlignedPair", "PatchSet", "aligned_pair", "aligned_patches", "bake_map",
-           "candidate_origins", "choose_origins", "cut", "shared_layout"]
+           "candidate_origins", "choose_origins", "cut", "shared_layout", "take"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -155,3 +155,12 @@ def aligned_patches(pair: AlignedPair, fine_vertices, coarse_vertices, origins: 
     m = cut(mask, origins, size)
     return PatchSet(cut(coarse, origins, size) * m, cut(fine, origins, size) * m, m,
                     np.asarray(origins, np.int32), int(material_id))
+
+
+def take(ds: data.PatchDataset, n: int) -> dict:
+    """`n` patches of a data set spread evenly over it (all if fewer), as `ds.get`'s batch
+    dict plus "scene": (n,) the scene name of every patch."""
+    idx = np.unique(np.linspace(0, len(ds) - 1, min(n, len(ds))).round().astype(int))
+    b = ds.get(idx)
+    b["scene"] = np.array([ds.entries[j]["scene"] for j in ds.sequence_of[idx]])
+    return b

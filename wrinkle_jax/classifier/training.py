@@ -1,7 +1,7 @@
 """Training data for the material classifier: sequences -> cached VGG features of patches.
 
 The VGG19 is frozen, so its features are computed once per patch and cached; only the
-four-layer MLP is trained on them (`wrinkle_jax.nn.classifier.train_classifier`), which takes
+four-layer MLP is trained on them (`wrinkle_jax.classifier.train_classifier`), which takes
 seconds instead of hours on a CPU.
 
 On disk (`root/`), one folder per sequence variant::
@@ -32,10 +32,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wrinkle_jax import classifier as clf_mod
 from wrinkle_jax import data, material_index, normalmap
 from wrinkle_jax.fileio import atomic_write_bytes, atomic_write_text
 from wrinkle_jax.meshio import load_sequence
-from wrinkle_jax.nn import classifier as clf_mod
 
 # Candidate features measured by experiments/classifier_report.py (one VGG pass gives all).
 CANDIDATE_FEATURES = ("relu3_1:stats", "relu3_1:grid4", "relu4_1:stats", "relu4_1:grid4",

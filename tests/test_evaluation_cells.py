@@ -1,0 +1,69 @@
+"""Tests for the evaluation cells: scenes, sequences, resumable runs
+(`wrinkle_jax.evaluation.cells`)."""
+
+from __future__ import annotations
+
+from wrinkle_jax.evaluation import cells as cell_lib
+from wrinkle_jax.sim import scenes
+
+
+def test_run_cells_reuses_by_source_adds_missing_methods_and_upgrades_legacy_files(tmp_path):
+    cells = cell_lib.table_cells(["dress"], ["silk_charmeuse"], ["dance", "walk"])
+    a, b = cells
+    store = {  # a: legacy file with m1 only; b: current file with m1 from another source
+        a.key: {"loss": {"m1": 1}, "sources": {"m1": "m1"}, "legacy": True, "timings": {}},
+        b.key: {"loss": {"m1": 1, "m2": 2}, "sources": {"m1": "old", "m2": "m2"},
+                "legacy": False, "timings": {"cell_s": 5.0}}}
+    saved, evaluated = {}, []
+
+    def evaluate(cell, names, progress):
+        evaluated.append((cell.key, list(names)))
+        if progress is not None:
+            progress(1, "step")
+        return {"loss": {n: 10 for n in names}, "timings": {}}
+
+    def merge(old, new, order):
+        if new.get("bad"):
+            raise ValueError
+        return {**old, "loss": {**old["loss"], **new["loss"]}, "timings": dict(old["timings"])}
+
+    common = dict(path_of=lambda c: tmp_path / c.key.replace("/", "_"),
+                  fingerprint_of=lambda c: {}, load=lambda p, f: next(
+                      v for k, v in store.items() if k.replace("/", "_") == p.name),
+                  save=lambda p, r, f, src: saved.__setitem__(p.name, (r, src)),
+                  evaluate=evaluate, merge=merge, field="loss", units=lambda n: 1, unit="x",
+                  log=lambda m: None)
+    got = cell_lib.run_cells(cells, {"m1": None}, None, **common)
+    assert evaluated == [(b.key, ["m1"])]  # b's m1 came from another source
+    assert got[a.key]["loss"] == {"m1": 1} and got[b.key]["loss"] == {"m1": 10}
+    name_a = a.key.replace("/", "_")
+    assert saved[name_a][1] == {"m1": "m1"}  # the legacy file was rewritten with its sources
+    evaluated.clear()
+    got = cell_lib.run_cells(cells, {"m1": None, "m3": None}, {"m1": "m1", "m3": "s3"}, **common)
+    assert (a.key, ["m3"]) in evaluated and got[a.key]["loss"] == {"m1": 1, "m3": 10}
+    assert saved[name_a][1] == {"m1": "m1", "m3": "s3"}
+    evaluated.clear()
+    cell_lib.run_cells(cells, {"m1": None}, None, **common, fresh=True)
+    assert evaluated == [(a.key, ["m1"]), (b.key, ["m1"])]
+    # Patches that no longer match the stored ones: every method is evaluated again.
+    evaluated.clear()
+
+    def refuse(old, new, order):
+        raise ValueError("different patches")
+
+    cell_lib.run_cells(cells[:1], {"m1": None, "m4": None}, None, **{**common, "merge": refuse})
+    assert evaluated == [(a.key, ["m4"]), (a.key, ["m1", "m4"])]
+
+
+def test_scene_for_reuses_existing_scenes_and_derives_new_ones():
+    assert cell_lib.scene_for("dress", "dance") is scenes.SCENES["dress_dance"]
+    assert cell_lib.scene_for("flared_skirt", "walk") is scenes.SCENES["skirt_walk"]
+    cape = cell_lib.scene_for("cape", "dance")
+    base = scenes.SCENES["cape_walk"]
+    assert cape.name == "cape_dance" and cape.motion == "dance"
+    assert (cape.pins, cape.attach_to, cape.preroll_s) == (base.pins, base.attach_to, 2.0)
+    kinds = {c.key: c.kind for c in cell_lib.table_cells()}
+    assert len(kinds) == 12
+    assert kinds["skirt_dance/denim_light"] == "seen garment, seen motion"
+    assert kinds["skirt_walk/denim_light"] == "seen garment, unseen motion"
+    assert kinds["cape_dance/silk_charmeuse"] == "unseen garment"

@@ -1,0 +1,79 @@
+"""Tests for the methods scored on aligned patches (`wrinkle_jax.evaluation.methods`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import numpy as np
+import pytest
+from evaluation_fixtures import PATCH, TEXEL, sheet_pair, tiny_model  # tests/ is on sys.path
+
+from wrinkle_jax import material_index, patches
+from wrinkle_jax.evaluation import methods as method_lib
+from wrinkle_jax.evaluation import patchsets
+
+
+@pytest.fixture(scope="module")
+def model():
+    return tiny_model()
+
+
+def test_unsharp_setting_reads_the_sweep_best_or_falls_back(tmp_path):
+    p = tmp_path / "results.json"
+    p.write_text(json.dumps({"unsharp_sweep": {"sigma=2,amount=1": 3.0,
+                                               "sigma=12,amount=1.5": 7.5,
+                                               "sigma=8,amount=4": -60.0}}))
+    # Keys without "order=" predate the order-1 blur: they are order 0.
+    assert method_lib.unsharp_setting(p, order=0)[:2] == (12.0, 1.5)
+    assert method_lib.unsharp_setting(p, order=1)[:2] == method_lib.DEFAULT_UNSHARP
+    p.write_text(json.dumps({"unsharp_sweep": {"order=0,sigma=8,amount=1.5": 9.0,
+                                               "order=1,sigma=12,amount=1": 8.0,
+                                               "order=1,sigma=16,amount=2": 5.0}}))
+    assert method_lib.unsharp_setting(p, order=0)[:2] == (8.0, 1.5)
+    assert method_lib.unsharp_setting(p, order=1)[:2] == (12.0, 1.0)
+    assert method_lib.unsharp_setting(tmp_path / "missing.json")[:2] == method_lib.DEFAULT_UNSHARP
+    names = list(method_lib.baseline_methods({0: (8.0, 1.5), 1: (12.0, 1.0)}))
+    assert names[1:3] == ["unsharp order 0 (sigma=8,amount=1.5)",
+                          "unsharp order 1 (sigma=12,amount=1)"]
+
+
+def test_model_method_outputs_unit_normals_inside_the_mask_only(model):
+    fine, coarse = sheet_pair(1)
+    pair = patchsets.aligned_pair(fine.garment, coarse.garment, TEXEL)
+    mask = np.asarray(patches.pad_to_patch(pair.mask, PATCH)[0])
+    origins, _ = patchsets.candidate_origins(mask, PATCH, PATCH // 2, 0.1)
+    ps = patchsets.aligned_patches(pair, fine.frames[0], coarse.frames[0], origins[:3], PATCH, 4)
+    timings = {}
+    out = method_lib.enhancer_method(model, batch_size=2, timings=timings)(ps)
+    inside = ps.mask[..., 0] > 0
+    np.testing.assert_allclose(np.linalg.norm(out[inside] * 2 - 1, axis=-1), 1.0, atol=1e-5)
+    assert not out[~inside].any()
+    assert timings["network_patches"] == 3 and timings["compile_s"] > 0
+
+
+def test_wrong_material_swaps_the_table_materials_and_the_method_tells_the_model_so(model):
+    silk, denim = material_index("silk_charmeuse"), material_index("denim_light")
+    assert method_lib.wrong_material(silk) == denim and method_lib.wrong_material(denim) == silk
+    assert method_lib.wrong_material(material_index("wool_melton")) == silk
+    with pytest.raises(ValueError):
+        method_lib.wrong_material(silk, materials=("silk_charmeuse",))
+    # Give every material its own CIN parameters, so the material id changes the output.
+    key = jax.random.key(3, impl="rbg")
+    leaves, tree = jax.tree_util.tree_flatten(model.params)
+    keys = jax.random.split(key, len(leaves))
+    params = jax.tree_util.tree_unflatten(tree, [
+        x + 0.3 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys, strict=True)])
+    noisy = model._replace(params=params)
+    fine, coarse = sheet_pair(1)
+    pair = patchsets.aligned_pair(fine.garment, coarse.garment, TEXEL)
+    mask = np.asarray(patches.pad_to_patch(pair.mask, PATCH)[0])
+    origins, _ = patchsets.candidate_origins(mask, PATCH, PATCH // 2, 0.1)
+    ps = patchsets.aligned_patches(pair, fine.frames[0], coarse.frames[0], origins[:2], PATCH, silk)
+    wrong = method_lib.enhancer_method(noisy, batch_size=2,
+                                       material_of=method_lib.wrong_material)(ps)
+    right = method_lib.enhancer_method(noisy, batch_size=2)
+    np.testing.assert_allclose(wrong, right(dataclasses.replace(ps, material_id=denim)),
+                               atol=1e-6)
+    assert np.abs(wrong - right(ps)).max() > 1e-3

@@ -1,0 +1,80 @@
+"""Tests for scoring methods on a cell's aligned patches and the cell files
+(`wrinkle_jax.evaluation.patchscores`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from evaluation_fixtures import (  # tests/ is on sys.path
+    PATCH,
+    TEXEL,
+    sheet_pair,
+    tiny_model,
+    tiny_vgg_params,
+)
+
+from wrinkle_jax import evaluation
+from wrinkle_jax.evaluation import methods as method_lib
+from wrinkle_jax.evaluation import patchscores, suite
+
+
+@pytest.fixture(scope="module")
+def tiny_vgg():
+    return tiny_vgg_params()
+
+
+@pytest.fixture(scope="module")
+def model():
+    return tiny_model()
+
+
+SAMPLING = patchscores.Sampling(frames=3, frame_stride=2, patches_per_frame=2, patch_size=PATCH,
+                           texel_size=TEXEL, min_coverage=0.5, score_batch=2)
+
+
+def test_evaluate_cell_identity_scores_zero_and_the_target_scores_100(tiny_vgg, model):
+    fine, coarse = sheet_pair()
+    methods = {"identity": lambda p: evaluation.identity(p.input, p.mask),
+               "oracle": lambda p: p.target,
+               patchscores.MODEL: method_lib.enhancer_method(model, batch_size=2)}
+    res = patchscores.evaluate_cell(fine, coarse, "denim_light", methods, tiny_vgg, SAMPLING)
+    np.testing.assert_array_equal(res["frame"], [0, 0, 2, 2])
+    assert res["origin"].shape == (4, 2) and (res["coverage"] >= 0.5).all()
+    assert res["timings"]["vgg_passes"] == 2 * (2 + 2)  # 2 frames x (input, target, 2 outputs)
+    sc = patchscores.cell_scores(res)
+    assert sc["identity"]["valid"].all()
+    np.testing.assert_array_equal(sc["identity"]["improvement"], 0.0)
+    np.testing.assert_allclose(sc["oracle"]["improvement_signed"], 100.0, atol=1e-3)
+    assert np.isfinite(sc[patchscores.MODEL]["improvement_signed"]).all()
+    assert np.abs(sc[patchscores.MODEL]["improvement_signed"]).max() > 0  # the random net acts
+    s = patchscores.summary(sc["oracle"])
+    assert s["n"] == 4 and s["signed_mean"] == pytest.approx(100.0, abs=1e-3)
+
+
+def test_legacy_cell_sources_trust_an_unchanged_model_file_only(tmp_path):
+    f = tmp_path / "m.npz"
+    f.write_bytes(b"weights")
+    fp = {"model": str(f), "model_mtime": f.stat().st_mtime}
+    src = patchscores.legacy_sources(fp, ["identity", patchscores.MODEL, patchscores.WRONG])
+    digest = suite.file_digest(f)
+    assert digest.startswith("sha256:") and len(digest) == 7 + 16
+    assert src == {"identity": "identity", patchscores.MODEL: f"model {digest}",
+                   patchscores.WRONG: f"model {digest} wrong material"}
+    stale = patchscores.legacy_sources({**fp, "model_mtime": 1.0}, [patchscores.MODEL])
+    assert stale[patchscores.MODEL] == "unknown model"
+    assert suite.portable_path(suite.ROOT / "data" / "x.npz") == "data/x.npz"
+    assert suite.portable_path(tmp_path / "y") == str((tmp_path / "y").resolve())
+
+
+def test_merge_cell_adds_methods_on_the_same_patches_only():
+    base = {"frame": np.array([0, 0]), "origin": np.array([[0, 0], [4, 4]]),
+            "loss_input": np.array([1.0, 2.0]), "loss": {"a": np.array([0.5, 0.5])},
+            "timings": {"methods_s": {"a": 1.0}, "score_s": 2.0, "vgg_passes": 3}}
+    new = {**base, "loss": {"b": np.array([0.1, 0.2])},
+           "timings": {"methods_s": {"b": 0.5}, "score_s": 1.0, "vgg_passes": 2}}
+    got = patchscores.merge_cell(base, new, ["b", "a"])
+    assert list(got["loss"]) == ["b", "a"] and got["timings"]["vgg_passes"] == 5
+    with pytest.raises(ValueError):
+        patchscores.merge_cell(base, {**new, "loss_input": np.array([1.0, 2.5])}, ["a", "b"])
+    with pytest.raises(ValueError):
+        patchscores.merge_cell(base, {**new, "origin": np.array([[0, 0], [4, 8]])}, ["a", "b"])

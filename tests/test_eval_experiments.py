@@ -556,6 +556,7 @@ def test_fidelity_summary_and_report_section():
     rep = report.Report(suite.RESULTS)
     report.fidelity_section(rep, {"unseen garment": got})
     text = "\n".join(rep.lines)
-    assert "| new | +70.0 (+70.0) | +30.0 [+30.0, +30.0] |  | +20.0 (+20.0) |" in text
+    # Columns: vs the val-swept unsharp, vs the card's, vs the per-material gains (absent here).
+    assert "| new | +70.0 (+70.0) | +30.0 [+30.0, +30.0] |  |  | +20.0 (+20.0) |" in text
     rows = report.fidelity_headline({"unseen garment": got})
     assert len(rows) == 1 and "**+70.0**" in rows[0] and "median +40.0" in rows[0]

@@ -35,6 +35,7 @@ fine simulation's and the checkerboard level.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from pathlib import Path
@@ -219,22 +220,34 @@ def _load_cell(path: Path) -> dict:
         return json.loads(str(z["json"]))
 
 
+def _frames_digest(*frame_sets) -> str:
+    """sha1 of the float32 vertex positions of the given (T, V, 3) frame stacks."""
+    h = hashlib.sha1()
+    for f in frame_sets:
+        h.update(np.ascontiguousarray(np.asarray(f, np.float32)).tobytes())
+    return h.hexdigest()
+
+
 def score_cell(cell: cell_lib.Cell, methods: dict, sources: dict, vgg_params, args) -> dict:
     """Scores of `methods` (name -> callable(PatchSet, extras) -> outputs) on one cell, merged
     into the cached ones (a method is recomputed only when its source changed)."""
     path = _cell_file(cell)
     cached = _load_cell(path)
     frames = list(range(args.frame_offset, args.frames - 1, args.frame_stride))
-    fp = {"frames": frames, "patches_per_frame": args.patches, "sigma": SIGMA}
+    seqs = cell_lib.cell_sequences(cell, args.frames, log=lambda m: print(m, flush=True))
+    fine = cell_lib.load_first_frames(seqs["fine"], args.frames)  # t + 1 <= the last frame
+    coarse = cell_lib.load_first_frames(seqs["coarse"], args.frames)
+    # The simulations themselves are part of the fingerprint: a re-simulated cell (another
+    # machine's floating point diverges chaotically) invalidates every cached method, since
+    # the input's and the methods' losses must come from the same patches.
+    fp = {"frames": frames, "patches_per_frame": args.patches, "sigma": SIGMA,
+          "simulations": _frames_digest(fine.frames, coarse.frames)}
     if cached.get("fingerprint") != fp:
         cached = {}
     todo = {k: f for k, f in methods.items()
             if k not in cached.get("methods", {}) or cached["sources"].get(k) != sources[k]}
     if not todo and cached:
         return cached
-    seqs = cell_lib.cell_sequences(cell, args.frames, log=lambda m: print(m, flush=True))
-    fine = cell_lib.load_first_frames(seqs["fine"], args.frames)  # t + 1 <= the last frame
-    coarse = cell_lib.load_first_frames(seqs["coarse"], args.frames)
     size = 128
     pair = patchsets.aligned_pair(fine.garment, coarse.garment, normalmap.DEFAULT_TEXEL_SIZE)
     mask_full = np.asarray(patches.pad_to_patch(pair.mask, size)[0])

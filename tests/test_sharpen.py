@@ -290,5 +290,8 @@ def test_unet_blurs_match_the_reference_formula(monkeypatch, highpass, unsharp_s
     g_want = jax.grad(lambda p: run(p)[1])(params)
     assert float(jnp.abs(got - x).max()) > 1e-2  # the residual is not trivial
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=2e-6)
+    # Tolerance on the whole gradient's scale: biases feeding instance normalization have a
+    # zero gradient, so their computed values are rounding noise of either form.
+    scale = max(float(jnp.abs(b).max()) for b in jax.tree.leaves(g_want))
     for a, b in zip(jax.tree.leaves(g_got), jax.tree.leaves(g_want), strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-4 * float(jnp.abs(b).max()))
+        np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-4 * scale)

@@ -1,17 +1,25 @@
 """Benchmark the end-to-end pipeline on the bundled demo garment; prints one JSON object.
 
 Reported:
-  * per-frame time by stage (bake, tile, network, merge, lift) of `pipeline.enhance_sequence`
-    on the demo skirt (`wrinkle_jax/assets/demo_skirt.npz`), plus setup and compile once;
-  * patches/s of the jitted enhancer (`enhancer.make_apply`) against the batch size (1, 4, 8,
-    16), each batch size compiled first, then timed over the same number of patches (median of
-    `--reps` repetitions, wall time and process CPU time).
+  * the per-frame budget of the default pipeline (the CLI's settings: batch 16, chunk 4,
+    stride half a patch, lifting on) by stage -- bake, tile, network, merge, lift, write -- in
+    ms/frame, on the demo skirt (`wrinkle_jax/assets/demo_skirt.npz`, what `make demo` runs),
+    plus setup and compile once. "write" is what the CLI writes per frame (the 16-bit normal
+    map PNG and the detailed OBJ, into a temporary folder; no previews);
+  * the network's FLOPs per patch, counted from the parameter shapes (convolutions and
+    transposed convolutions: multiply-adds x 2 of the useful taps; and the masked blurs of the
+    unsharp base and the high-pass as the dense banded matmuls `sharpen.masked_blur` runs),
+    and the achieved GFLOP/s of the network stage (wall and process-CPU time);
+  * patches/s of the jitted enhancer (`enhancer.make_apply`) against the batch size, each batch
+    size compiled first, then timed over the same number of patches (median of `--reps`
+    repetitions, wall time and process CPU time); skipped with --quick.
 
 The model is the shipped one (`wrinkle_jax/assets/enhancer.npz`) when present, else a random
 width-32 enhancer of the default configuration (128-texel patches, 2 mm texels); the JSON
-says which. The machine is shared: the 1-minute load average is recorded.
+says which. The machine is shared: the 1-minute load average is recorded before and after.
 
-Usage: python benchmarks/bench_pipeline.py [--frames N] [--no-lift] [--reps R] [--patches P]
+Usage: python benchmarks/bench_pipeline.py [--quick] [--frames N] [--no-lift] [--reps R]
+  --quick: 4 frames (one chunk), no batch-size sweep (< 2 min on a quiet 2-core machine).
 """
 
 from __future__ import annotations
@@ -21,17 +29,21 @@ import json
 import os
 import platform
 import statistics
+import tempfile
 import time
+from collections.abc import Mapping
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax import enhancer, meshio, pipeline
+from wrinkle_jax import enhancer, meshio, normalmap, pipeline
 from wrinkle_jax.cli import _demo_sequence_path
-from wrinkle_jax.nn import unet
+from wrinkle_jax.nn import fastconv, unet
 
 BATCH_SIZES = (1, 4, 8, 16)
+STAGES = ("bake", "tile", "network", "merge", "lift", "write")
 
 
 def load_model() -> tuple[enhancer.Enhancer, str]:
@@ -42,24 +54,79 @@ def load_model() -> tuple[enhancer.Enhancer, str]:
     return model, "random width-32 (no shipped model yet)"
 
 
+def network_flops(model) -> dict:
+    """FLOPs per patch of the enhancer's forward, from its parameter shapes.
+
+    Convolutions: enc{k} (3x3 at size S / 2^(k-1)), dec{k} (4x4 stride-2 transposed: input
+    S / 2^(5-k); or a 3x3 conv after 2x up-sampling), out (3x3 at S): multiply-adds x 2.
+    Blurs: `sharpen.masked_blur`'s dense banded matmuls (order 1: 2 (C+1) + 1 row and
+    4 (C+1) + 2 column passes of C = 3 values; order 0: C + 1 of each), 2 S^3 FLOPs a pass.
+    """
+    cfg, params = model.config, model.params
+    s = cfg.patch_size
+    conv = 0
+    for name, layer in params.items():
+        if not isinstance(layer, Mapping) or "kernel" not in layer:
+            continue
+        k = np.shape(layer["kernel"])
+        if name.startswith("enc"):
+            size = s >> (int(name[3:]) - 1)
+            conv += fastconv.conv3x3_flops(size, size, k[2], k[3])
+        elif name.startswith("dec"):
+            size = (s >> 4) << (int(name[3:]) - 1)  # input size
+            conv += (fastconv.conv_transpose4x4s2_flops(size, size, k[2], k[3]) if k[0] == 4
+                     else fastconv.conv3x3_flops(2 * size, 2 * size, k[2], k[3]))
+        elif name == "out":
+            conv += fastconv.conv3x3_flops(s, s, k[2], k[3])
+    passes = (2 * 4 + 1) + (4 * 4 + 2) if cfg.blur_order == 1 else 2 * 4
+    blurs = (cfg.residual and cfg.residual_base == "unsharp") + (cfg.residual_highpass > 0)
+    blur = blurs * passes * 2 * s**3
+    return {"conv": conv, "blur": blur, "total": conv + blur}
+
+
+def frame_writer(folder: Path, pipe_mask, fine):
+    """What the CLI writes per frame (normal map PNG, detailed OBJ), previews excluded."""
+    def write(frame: pipeline.EnhancedFrame) -> None:
+        normalmap.save_normal_map_png(folder / f"normal_map_{frame.index:05d}.png",
+                                      frame.normal_map, pipe_mask)
+        if frame.detailed is not None:
+            meshio.save_obj(folder / f"frame_{frame.index:05d}.obj", fine, frame.detailed)
+    return write
+
+
 def stage_times(model, frames: int, lift: bool, batch: int, chunk: int) -> dict:
     seq = meshio.load_sequence(_demo_sequence_path())
     sel = list(range(min(frames, len(seq))))
-    res = pipeline.enhance_sequence(seq, "silk_charmeuse", enhancer=model, lift=lift,
-                                    batch_size=batch, chunk_size=chunk, frames=sel, keep=False,
-                                    writer=lambda frame: None)
+    config = pipeline.PipelineConfig(batch_size=batch, chunk_size=chunk, lift=lift)
+    pipe = pipeline.make_pipeline(seq.garment, model, config)
+    fine = None if pipe.fine_garment is None else jax.tree.map(np.asarray, pipe.fine_garment)
+    cpu0 = time.process_time()
+    with tempfile.TemporaryDirectory(prefix="bench-pipeline-") as tmp:
+        res = pipeline.enhance_sequence(seq, "silk_charmeuse", frames=sel, keep=False,
+                                        writer=frame_writer(Path(tmp), pipe.mask, fine),
+                                        pipeline=pipe)
+    cpu = time.process_time() - cpu0
     n = len(sel)
-    per_frame = {k: 1e3 * res.timings[k] / n
-                 for k in ("bake", "tile", "network", "merge", "lift")}
+    per_frame = {k: round(1e3 * res.timings[k] / n, 2) for k in STAGES}
+    flops = network_flops(model)
+    patches = res.patches["network"] + res.patches["padding"]  # patches the network ran
+    net_s = res.timings["network"]
     return {
         "garment": "demo_skirt", "frames": n, "coarse_vertices": seq.garment.num_vertices,
         "detailed_vertices": None if res.fine_garment is None else
         res.fine_garment.num_vertices,
         "map_shape": list(res.mask.shape[:2]), "patches": res.patches,
         "batch_size": batch, "chunk_size": chunk,
-        "ms_per_frame": per_frame, "ms_per_frame_total": sum(per_frame.values()),
-        "setup_s": res.timings["setup"], "compile_s": res.timings["compile"],
-        "wall_s": res.timings["total"],
+        "ms_per_frame": per_frame, "ms_per_frame_total": round(sum(per_frame.values()), 2),
+        "network": {
+            "gflop_per_patch": {k: round(v / 1e9, 4) for k, v in flops.items()},
+            "patches_per_frame_run": patches / n,
+            "gflops_per_s": round(flops["total"] * patches / net_s / 1e9, 2),
+            "conv_gflops_per_s": round(flops["conv"] * patches / net_s / 1e9, 2),
+        },
+        "cpu_s_per_frame_all_stages": round(cpu / n, 3),
+        "setup_s": round(res.timings["setup"], 3), "compile_s": round(res.timings["compile"], 3),
+        "wall_s": round(res.timings["total"], 3),
     }
 
 
@@ -92,24 +159,30 @@ def throughput(model, patches: int, reps: int) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true",
+                    help="4 frames (one chunk), no batch-size sweep")
     ap.add_argument("--frames", type=int, default=12, help="demo frames to enhance")
     ap.add_argument("--no-lift", action="store_true", help="skip the lifting stage")
-    ap.add_argument("--batch", type=int, default=8, help="pipeline patches per U-Net call")
+    ap.add_argument("--batch", type=int, default=16, help="pipeline patches per U-Net call")
     ap.add_argument("--chunk", type=int, default=4, help="pipeline frames per chunk")
     ap.add_argument("--patches", type=int, default=32, help="patches per timed repetition")
     ap.add_argument("--reps", type=int, default=3)
     args = ap.parse_args()
+    frames = min(args.frames, args.chunk) if args.quick else args.frames
+    load_before = os.getloadavg()[0]
     model, which = load_model()
     report = {
         "benchmark": "pipeline",
+        "quick": args.quick,
         "model": which,
         "model_config": model.config.to_json(),
         "conv_impl": getattr(model.model, "conv_impl", None),
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
-                    "jax": jax.__version__, "load_avg_1m_before": os.getloadavg()[0]},
+                    "jax": jax.__version__, "load_avg_1m_before": load_before},
     }
-    report["stages"] = stage_times(model, args.frames, not args.no_lift, args.batch, args.chunk)
-    report["enhancer_patches_per_s_by_batch"] = throughput(model, args.patches, args.reps)
+    report["stages"] = stage_times(model, frames, not args.no_lift, args.batch, args.chunk)
+    if not args.quick:
+        report["enhancer_patches_per_s_by_batch"] = throughput(model, args.patches, args.reps)
     report["machine"]["load_avg_1m_after"] = os.getloadavg()[0]
     print(json.dumps(report, indent=2))
 

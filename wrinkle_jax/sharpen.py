@@ -54,15 +54,26 @@ def _band_matrix(n: int, taps: np.ndarray) -> np.ndarray:
     return np.where(ok, taps[np.clip(d, 0, len(taps) - 1)], 0.0).astype(np.float32)
 
 
-def _sep_filter(x, taps_h, taps_w):
-    """Zero-padded separable correlation of (N, H, W, C): sum_de taps_h[d] taps_w[e] x[i+d, j+e].
+def _bands(n: int, *taps: np.ndarray):
+    """The (n, n) band matrices of several tap vectors stacked along rows: (K n, n)."""
+    return jnp.asarray(np.concatenate([_band_matrix(n, t) for t in taps], axis=0))
 
-    As two dense banded matmuls: XLA:CPU runs a depthwise 49-tap convolution ~10x slower
-    than the equivalent (H x H) and (W x W) matmuls at patch sizes.
-    """
-    bh = jnp.asarray(_band_matrix(x.shape[1], taps_h))
-    bw = jnp.asarray(_band_matrix(x.shape[2], taps_w))
-    return jnp.einsum("kw,nhwc->nhkc", bw, jnp.einsum("ij,njwc->niwc", bh, x))
+
+def _rows(planes, *taps):
+    """Zero-padded correlation along the rows of (H, P, N, W) planes with each of K tap
+    vectors: (K, H, P, N, W). One dense banded matmul (K H x H) @ (H, P N W): XLA:CPU runs a
+    depthwise 49-tap convolution ~10x slower than the equivalent matmuls at patch sizes."""
+    h = planes.shape[0]
+    out = jnp.einsum("ij,j...->i...", _bands(h, *taps), planes)
+    return out.reshape(len(taps), *planes.shape)
+
+
+def _cols(planes, *taps):
+    """The same along the last (column) axis of (..., W) planes: (..., K, W), one matmul
+    (... , W) @ (W, K W)."""
+    w = planes.shape[-1]
+    out = jnp.einsum("...w,vw->...v", planes, _bands(w, *taps))
+    return out.reshape(*planes.shape[:-1], len(taps), w)
 
 
 # Ridge on the local slope, relative to the window's offset variance (~sigma^2 inside the
@@ -82,37 +93,53 @@ def masked_blur(n, mask, sigma: float, order: int = 1):
     Returns:
       (N, H, W, C) blurred values (order 0: 0 where no masked texel is in reach; order 1: 0
       outside the mask).
+
+    Several fields on the same mask and sigma (e.g. a network's input and its residual) should
+    be blurred in one call, stacked along C: the mask's moments are then computed once.
+
+    The Gaussian moments are separable sums of dense banded matmuls on the planes laid out as
+    (H, C + 1, N, W), where both the row and the column pass are plain matrix products (no
+    transposes between them), and each row pass is shared by the column passes that need it:
+    order 1 costs 2 (C + 1) + 1 row and 4 (C + 1) + 2 column passes.
     """
     if order not in (0, 1):
         raise ValueError(f"masked_blur order must be 0 or 1, got {order!r}")
     g = gaussian_kernel(sigma)
+    # Planes (H, C + 1, N, W): the masked values, then the mask.
+    planes = jnp.transpose(jnp.concatenate([n * mask, mask], axis=-1), (1, 3, 0, 2))
     if order == 0:
-        both = _sep_filter(jnp.concatenate([n * mask, mask], axis=-1), g, g)
-        num, den = both[..., :-1], both[..., -1:]
-        return num / jnp.maximum(den, 1e-8)
+        m0 = _cols(_rows(planes, g)[0], g)[..., 0, :]
+        out = m0[:, :-1] / jnp.maximum(m0[:, -1:], 1e-8)
+        return jnp.transpose(out, (2, 0, 3, 1))
     d = np.arange(len(g), dtype=np.float32) - (len(g) - 1) // 2  # offset q - p (texels)
     g1, g2 = g * d, g * d * d
-    both = jnp.concatenate([n * mask, mask], axis=-1)
-    m0, my, mx = (_sep_filter(both, a, b) for a, b in ((g, g), (g1, g), (g, g1)))
-    myy = _sep_filter(mask, g2, g)
-    mxx = _sep_filter(mask, g, g2)
-    mxy = _sep_filter(mask, g1, g1)
-    w = jnp.maximum(m0[..., -1:], 1e-8)
-    # Weighted means of the offsets and of the values, and their (co)variances.
-    uy, ux, v = my[..., -1:] / w, mx[..., -1:] / w, m0[..., :-1] / w
+    rows = _rows(planes, g, g1)                      # (2, H, C+1, N, W): taps g, g1 along H
+    both = _cols(rows, g, g1)                        # (2, H, C+1, N, 2, W): then g, g1 along W
+    m0, mx = both[0, ..., 0, :], both[0, ..., 1, :]  # moments 1, x of (values, mask)
+    my, mxy = both[1, ..., 0, :], both[1, :, -1, :, 1, :]
+    mk = planes[:, -1]                               # (H, N, W)
+    myy = _cols(_rows(mk, g2)[0], g)[..., 0, :]
+    mxx = _cols(rows[0, :, -1], g2)[..., 0, :]
+    # Weighted means of the offsets and of the values, and their (co)variances; the mask's
+    # moments are (H, N, W), broadcast over the C value planes as (H, 1, N, W).
+    w = jnp.maximum(m0[:, -1], 1e-8)
+    uy, ux = my[:, -1] / w, mx[:, -1] / w
     cyy = myy / w - uy * uy + _SLOPE_RIDGE * sigma**2
     cxx = mxx / w - ux * ux + _SLOPE_RIDGE * sigma**2
     cxy = mxy / w - uy * ux
-    sy = my[..., :-1] / w - uy * v
-    sx = mx[..., :-1] / w - ux * v
     det = cyy * cxx - cxy * cxy
+    w, uy, ux, cyy, cxx, cxy, det = (a[:, None] for a in (w, uy, ux, cyy, cxx, cxy, det))
+    v = m0[:, :-1] / w
+    sy = my[:, :-1] / w - uy * v
+    sx = mx[:, :-1] / w - ux * v
     by = (cxx * sy - cxy * sx) / det
     bx = (cyy * sx - cxy * sy) / det
     # The plane through the weighted mean, evaluated at offset 0 (the centre texel).
-    return (v - by * uy - bx * ux) * (mask > 0)
+    out = (v - by * uy - bx * ux) * (mk[:, None] > 0)
+    return jnp.transpose(out, (2, 0, 3, 1))
 
 
-def unsharp_rgb(x, sigma: float, amount, mask=None, order: int = 1):
+def unsharp_rgb(x, sigma: float, amount, mask=None, order: int = 1, blurred=None):
     """Unsharp-mask RGB-form normal-map patches.
 
     Args:
@@ -122,6 +149,8 @@ def unsharp_rgb(x, sigma: float, amount, mask=None, order: int = 1):
       mask: (N, H, W, 1) garment mask; None to infer it from `x` (`mask_from_rgb`).
       order: `masked_blur` order (1: flat tilted panels stay unchanged; 0: the OpenCV
         normalized-convolution form of `evaluation.unsharp_mask(order=0)`).
+      blurred: None, or the (N, H, W, 3) ``masked_blur(x * 2 - 1, mask, sigma, order)`` when
+        the caller has it already (blurred together with other fields on the same mask).
     Returns:
       (N, H, W, 3) float32 RGB form of unit normals inside the mask, 0 outside.
     """
@@ -130,7 +159,8 @@ def unsharp_rgb(x, sigma: float, amount, mask=None, order: int = 1):
     n = x * 2.0 - 1.0
     a = jnp.asarray(amount, jnp.float32)
     a = a.reshape((-1, 1, 1, 1)) if a.ndim == 1 else a
-    s = n + a * (n - masked_blur(n, mask, sigma, order))
+    low = masked_blur(n, mask, sigma, order) if blurred is None else blurred
+    s = n + a * (n - low)
     # Guarded normalization: s is never ~0 inside the mask for moderate gains, and the
     # guard keeps the gradient finite on the background.
     norm = jnp.sqrt(jnp.sum(s * s, axis=-1, keepdims=True) + 1e-12)

@@ -243,15 +243,23 @@ class CINUNet(nn.Module):
         out = conv(3, name="out")(h).astype(jnp.float32)
         if self.residual:
             base = x
+            base_low = None  # the unsharp base's blur, when blurred with the high-pass's
             if self.residual_highpass > 0:
-                out = out - sharpen.masked_blur(out, mask, self.residual_highpass,
-                                                self.blur_order)
+                if self.residual_base == "unsharp" and self.residual_highpass == self.unsharp_sigma:
+                    # Same mask and radius: one blur of both fields shares the mask's moments.
+                    low = sharpen.masked_blur(jnp.concatenate([out, x * 2.0 - 1.0], axis=-1),
+                                              mask, self.residual_highpass, self.blur_order)
+                    low, base_low = low[..., :3], low[..., 3:]
+                else:
+                    low = sharpen.masked_blur(out, mask, self.residual_highpass,
+                                              self.blur_order)
+                out = out - low
             if self.residual_base == "unsharp":
                 gain = self.param("unsharp_amount",
                                   nn.initializers.constant(self.unsharp_amount),
                                   (self.num_materials,), jnp.float32)
                 base = sharpen.unsharp_rgb(base, self.unsharp_sigma, gain[material], mask,
-                                          self.blur_order)
+                                          self.blur_order, blurred=base_low)
             elif self.residual_base != "input":
                 raise ValueError(f"unknown residual_base {self.residual_base!r}")
             out = base + out

@@ -1,0 +1,162 @@
+"""Benchmark the U-Net's masked blurs in the network stage; prints one JSON object.
+
+The network stage (`stages.network_stage`, jitted as the streaming pipeline runs it) of the
+shipped model on one frame of the bundled demo skirt, with `sharpen.masked_blur` as it is now
+(moments shared, planes laid out so that both separable passes are plain matmuls) against the
+original formula, kept below as `reference_masked_blur` (every moment its own separable filter
+on NHWC). The shipped model has an order-1 unsharp base (sigma 16) and an order-1 high-passed
+residual (sigma 8): two blurs per patch. Also timed: the network without any blur (a lower
+bound), and each blur on its own.
+
+Timing: every variant compiled first, run once, then the repetitions alternate between the
+variants (A B C A B C ...) so that the load on this shared machine hits all alike; medians of
+process CPU time (all threads; the steadier number under load) and of wall time. The 1-minute
+load average is recorded before and after. Ratios are new / reference (lower is faster).
+
+Usage: python benchmarks/bench_blur.py [--reps R] [--batch B]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wrinkle_jax import enhancer, meshio, normalmap, patches, sharpen, stages
+from wrinkle_jax.cli import _demo_sequence_path
+
+
+def reference_masked_blur(n, mask, sigma: float, order: int = 1):
+    """`sharpen.masked_blur` as first written: every moment its own separable filter, two
+    (H x H) banded matmuls on NHWC (the same formula as tests/test_sharpen.py's reference)."""
+    g = sharpen.gaussian_kernel(sigma)
+
+    def sep(x, th, tw):
+        bh = jnp.asarray(sharpen._band_matrix(x.shape[1], th))
+        bw = jnp.asarray(sharpen._band_matrix(x.shape[2], tw))
+        return jnp.einsum("kw,nhwc->nhkc", bw, jnp.einsum("ij,njwc->niwc", bh, x))
+
+    both = jnp.concatenate([n * mask, mask], axis=-1)
+    if order == 0:
+        m = sep(both, g, g)
+        return m[..., :-1] / jnp.maximum(m[..., -1:], 1e-8)
+    d = np.arange(len(g), dtype=np.float32) - (len(g) - 1) // 2
+    g1, g2 = g * d, g * d * d
+    m0, my, mx = (sep(both, a, b) for a, b in ((g, g), (g1, g), (g, g1)))
+    myy, mxx, mxy = sep(mask, g2, g), sep(mask, g, g2), sep(mask, g1, g1)
+    w = jnp.maximum(m0[..., -1:], 1e-8)
+    uy, ux, v = my[..., -1:] / w, mx[..., -1:] / w, m0[..., :-1] / w
+    ridge = sharpen._SLOPE_RIDGE * sigma**2
+    cyy, cxx = myy / w - uy * uy + ridge, mxx / w - ux * ux + ridge
+    cxy = mxy / w - uy * ux
+    sy, sx = my[..., :-1] / w - uy * v, mx[..., :-1] / w - ux * v
+    det = cyy * cxx - cxy * cxy
+    by, bx = (cxx * sy - cxy * sx) / det, (cyy * sx - cxy * sy) / det
+    return (v - by * uy - bx * ux) * (mask > 0)
+
+
+def _no_blur(n, mask, sigma, order=1):
+    return jnp.zeros_like(n)
+
+
+def demo_tiles(enh):
+    """One demo frame's network input patches (P, S, S, 3), as the pipeline cuts them."""
+    seq = meshio.load_sequence(_demo_sequence_path())
+    size = enh.config.patch_size
+    plan = normalmap.make_plan(seq.garment, texel_size=enh.config.texel_size)
+    padded, _ = patches.pad_to_patch(np.asarray(plan.mask), size)
+    origins = patches.tile(padded, size=size, stride=size // 2)
+    _, rgb = stages.bake_stage(plan, jnp.asarray(seq.frames[0]), jnp.asarray(padded),
+                               padded_shape=tuple(padded.shape[:2]))
+    return stages.tile_stage(rgb, jnp.asarray(origins), size=size)
+
+
+def compiled_stage(enh, blur, tiles, batch: int):
+    """The jitted network stage compiled with `blur` as `sharpen.masked_blur`."""
+    saved = sharpen.masked_blur
+    sharpen.masked_blur = blur
+    try:
+        apply = enhancer.make_apply(enh)
+        fn = jax.jit(stages.network_stage, static_argnames=("apply", "batch_size"))
+        return fn.lower(apply, enh.params, tiles, jnp.int32(0), batch_size=batch).compile()
+    finally:
+        sharpen.masked_blur = saved
+
+
+def alternate(runs: dict, reps: int) -> dict:
+    """{name: zero-argument callable} -> {name: (median CPU s, median wall s)}; one untimed call
+    each, then `reps` rounds alternating between the names."""
+    for fn in runs.values():
+        jax.block_until_ready(fn())
+    cpu = {k: [] for k in runs}
+    wall = {k: [] for k in runs}
+    for _ in range(reps):
+        for k, fn in runs.items():
+            c0, t0 = time.process_time(), time.perf_counter()
+            jax.block_until_ready(fn())
+            cpu[k].append(time.process_time() - c0)
+            wall[k].append(time.perf_counter() - t0)
+    return {k: (statistics.median(cpu[k]), statistics.median(wall[k])) for k in runs}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--reps", type=int, default=5, help="alternating rounds")
+    ap.add_argument("--batch", type=int, default=16, help="patches per U-Net call (CLI default)")
+    args = ap.parse_args()
+    load_before = os.getloadavg()[0]
+    enh = enhancer.load_enhancer()
+    cfg = enh.config
+    tiles = demo_tiles(enh)
+    p = int(tiles.shape[0])
+    variants = {"shared": sharpen.masked_blur, "reference": reference_masked_blur,
+                "no_blur": _no_blur}
+    stage = {k: compiled_stage(enh, f, tiles, args.batch) for k, f in variants.items()}
+    params, mat = enh.params, jnp.int32(0)
+    out = {k: s(params, tiles, mat) for k, s in stage.items()}
+    err = float(jnp.abs(out["shared"] - out["reference"]).max())
+    t = alternate({k: (lambda s=s: s(params, tiles, mat)) for k, s in stage.items()}, args.reps)
+
+    # Each blur on its own, on one batch of the frame's patches (values in [-1, 1]).
+    x = tiles[: args.batch] * 2.0 - 1.0
+    mask = sharpen.mask_from_rgb(tiles[: args.batch])
+    blur_runs = {}
+    for sigma in sorted({cfg.unsharp_sigma, cfg.residual_highpass} - {0.0}):
+        for name, f in (("shared", sharpen.masked_blur), ("reference", reference_masked_blur)):
+            jf = jax.jit(lambda v, m, f=f, s=sigma: f(v, m, s, cfg.blur_order))
+            blur_runs[f"{name}_sigma{sigma:g}"] = lambda jf=jf: jf(x, mask)
+    tb = alternate(blur_runs, args.reps)
+
+    def ms(sec, count):
+        return round(1e3 * sec / count, 3)
+
+    report = {
+        "benchmark": "blur",
+        "model": {"width": cfg.width, "unsharp_sigma": cfg.unsharp_sigma,
+                  "residual_highpass": cfg.residual_highpass, "blur_order": cfg.blur_order},
+        "frame": {"garment": "demo_skirt", "patches": p, "batch_size": args.batch},
+        "network_stage_ms_per_frame": {k: {"cpu": ms(c, 1), "wall": ms(w, 1)}
+                                       for k, (c, w) in t.items()},
+        "network_stage_ratio_shared_over_reference": {
+            "cpu": round(t["shared"][0] / t["reference"][0], 3),
+            "wall": round(t["shared"][1] / t["reference"][1], 3)},
+        "blur_share_of_stage_cpu": {
+            k: round(1 - t["no_blur"][0] / t[k][0], 3) for k in ("shared", "reference")},
+        "max_abs_output_difference": err,
+        "blur_alone_ms_per_patch": {k: {"cpu": ms(c, args.batch), "wall": ms(w, args.batch)}
+                                    for k, (c, w) in tb.items()},
+        "reps": args.reps,
+        "load_avg_1m": {"before": round(load_before, 2), "after": round(os.getloadavg()[0], 2)},
+        "cpus": os.cpu_count(),
+    }
+    print(json.dumps(report, indent=2))
+
+
+if __name__ == "__main__":
+    main()

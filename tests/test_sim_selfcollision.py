@@ -5,6 +5,7 @@ candidates are counted, never silently lost."""
 
 from __future__ import annotations
 
+import dataclasses
 import re
 
 import jax
@@ -141,7 +142,11 @@ def test_folded_sheet_stays_intersection_free():
     # Short here (24 frames, the top layer lands on the bottom one over the ball); the
     # 300-frame run is experiments/self_collision.py.
     scene = CS.folded_sheet(pd=0.02, length=0.4, width=0.2, frames=24)
-    state, xs = _run(scene, X.SimConfig(self_collision=CFG))
+    # Where the fold presses the two layers together a vertex can see more than 16 triangles
+    # within the margin (one was dropped, and counted, on a fresh CI machine): the bound is
+    # raised so the test checks that with enough room nothing is dropped.
+    config = dataclasses.replace(CFG, max_contacts=32)
+    state, xs = _run(scene, X.SimConfig(self_collision=config))
     assert np.isfinite(xs).all()
     assert np.asarray(state.self_overflow).tolist() == [0, 0]
     assert _pairs(xs, scene.model.faces, every=3) == [0] * 8

@@ -70,6 +70,8 @@ FIDELITY_METHODS = {
     "oracle_downsampled": "D: fine map downsampled (fine large scale, no detail)",
     "detail_noise": "candidate, session 6: detail space + texel noise (not shipped)",
     "detail_bilinear": "candidate, session 7: + bilinear decoder, 4-texel noise (not shipped)",
+    "detail_logratio": "candidate, session 9: per-material unsharp base, log-ratio style loss "
+                       "(not shipped)",
 }
 
 

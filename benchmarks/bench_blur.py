@@ -3,7 +3,7 @@
 The network stage (`stages.network_stage`, jitted as the streaming pipeline runs it) of the
 shipped model on one frame of the bundled demo skirt, with `sharpen.masked_blur` as it is now
 (moments shared, planes laid out so that both separable passes are plain matmuls) against the
-original formula, kept below as `reference_masked_blur` (every moment its own separable filter
+original formula, `sharpen.masked_blur_reference` (every moment its own separable filter
 on NHWC). The shipped model has an order-1 unsharp base (sigma 16) and an order-1 high-passed
 residual (sigma 8): two blurs per patch. Also timed: the network without any blur (a lower
 bound), and each blur on its own.
@@ -30,35 +30,6 @@ import numpy as np
 
 from wrinkle_jax import enhancer, meshio, normalmap, patches, sharpen, stages
 from wrinkle_jax.cli import _demo_sequence_path
-
-
-def reference_masked_blur(n, mask, sigma: float, order: int = 1):
-    """`sharpen.masked_blur` as first written: every moment its own separable filter, two
-    (H x H) banded matmuls on NHWC (the same formula as tests/test_sharpen.py's reference)."""
-    g = sharpen.gaussian_kernel(sigma)
-
-    def sep(x, th, tw):
-        bh = jnp.asarray(sharpen._band_matrix(x.shape[1], th))
-        bw = jnp.asarray(sharpen._band_matrix(x.shape[2], tw))
-        return jnp.einsum("kw,nhwc->nhkc", bw, jnp.einsum("ij,njwc->niwc", bh, x))
-
-    both = jnp.concatenate([n * mask, mask], axis=-1)
-    if order == 0:
-        m = sep(both, g, g)
-        return m[..., :-1] / jnp.maximum(m[..., -1:], 1e-8)
-    d = np.arange(len(g), dtype=np.float32) - (len(g) - 1) // 2
-    g1, g2 = g * d, g * d * d
-    m0, my, mx = (sep(both, a, b) for a, b in ((g, g), (g1, g), (g, g1)))
-    myy, mxx, mxy = sep(mask, g2, g), sep(mask, g, g2), sep(mask, g1, g1)
-    w = jnp.maximum(m0[..., -1:], 1e-8)
-    uy, ux, v = my[..., -1:] / w, mx[..., -1:] / w, m0[..., :-1] / w
-    ridge = sharpen._SLOPE_RIDGE * sigma**2
-    cyy, cxx = myy / w - uy * uy + ridge, mxx / w - ux * ux + ridge
-    cxy = mxy / w - uy * ux
-    sy, sx = my[..., :-1] / w - uy * v, mx[..., :-1] / w - ux * v
-    det = cyy * cxx - cxy * cxy
-    by, bx = (cxx * sy - cxy * sx) / det, (cyy * sx - cxy * sy) / det
-    return (v - by * uy - bx * ux) * (mask > 0)
 
 
 def _no_blur(n, mask, sigma, order=1):
@@ -112,10 +83,10 @@ def main() -> None:
     args = ap.parse_args()
     load_before = os.getloadavg()[0]
     enh = enhancer.load_enhancer()
-    cfg = enh.config
+    cfg = enh.config.unet  # the U-Net settings (UNetConfig)
     tiles = demo_tiles(enh)
     p = int(tiles.shape[0])
-    variants = {"shared": sharpen.masked_blur, "reference": reference_masked_blur,
+    variants = {"shared": sharpen.masked_blur, "reference": sharpen.masked_blur_reference,
                 "no_blur": _no_blur}
     stage = {k: compiled_stage(enh, f, tiles, args.batch) for k, f in variants.items()}
     params, mat = enh.params, jnp.int32(0)
@@ -128,7 +99,8 @@ def main() -> None:
     mask = sharpen.mask_from_rgb(tiles[: args.batch])
     blur_runs = {}
     for sigma in sorted({cfg.unsharp_sigma, cfg.residual_highpass} - {0.0}):
-        for name, f in (("shared", sharpen.masked_blur), ("reference", reference_masked_blur)):
+        for name, f in (("shared", sharpen.masked_blur),
+                        ("reference", sharpen.masked_blur_reference)):
             jf = jax.jit(lambda v, m, f=f, s=sigma: f(v, m, s, cfg.blur_order))
             blur_runs[f"{name}_sigma{sigma:g}"] = lambda jf=jf: jf(x, mask)
     tb = alternate(blur_runs, args.reps)

@@ -180,35 +180,6 @@ def test_highpassed_residual_cannot_shift_orientation():
     assert mean_hp < 0.2 * mean_plain
 
 
-def _reference_masked_blur(n, mask, sigma, order):
-    """The masked blur as first written (before the moments were shared): every moment its
-    own separable filter, two (H x H) banded matmuls in NHWC."""
-    g = sharpen.gaussian_kernel(sigma)
-
-    def sep(x, th, tw):
-        bh = jnp.asarray(sharpen._band_matrix(x.shape[1], th))
-        bw = jnp.asarray(sharpen._band_matrix(x.shape[2], tw))
-        return jnp.einsum("kw,nhwc->nhkc", bw, jnp.einsum("ij,njwc->niwc", bh, x))
-
-    both = jnp.concatenate([n * mask, mask], axis=-1)
-    if order == 0:
-        m = sep(both, g, g)
-        return m[..., :-1] / jnp.maximum(m[..., -1:], 1e-8)
-    d = np.arange(len(g), dtype=np.float32) - (len(g) - 1) // 2
-    g1, g2 = g * d, g * d * d
-    m0, my, mx = (sep(both, a, b) for a, b in ((g, g), (g1, g), (g, g1)))
-    myy, mxx, mxy = sep(mask, g2, g), sep(mask, g, g2), sep(mask, g1, g1)
-    w = jnp.maximum(m0[..., -1:], 1e-8)
-    uy, ux, v = my[..., -1:] / w, mx[..., -1:] / w, m0[..., :-1] / w
-    ridge = sharpen._SLOPE_RIDGE * sigma**2
-    cyy, cxx = myy / w - uy * uy + ridge, mxx / w - ux * ux + ridge
-    cxy = mxy / w - uy * ux
-    sy, sx = my[..., :-1] / w - uy * v, mx[..., :-1] / w - ux * v
-    det = cyy * cxx - cxy * cxy
-    by, bx = (cxx * sy - cxy * sx) / det, (cyy * sx - cxy * sy) / det
-    return (v - by * uy - bx * ux) * (mask > 0)
-
-
 def _random_masked(shape, seed):
     """Random values on random blob masks (holes, islands, one-texel strips, an empty patch),
     with a soft-edged weight on one patch."""
@@ -237,7 +208,7 @@ def test_shared_moment_blur_matches_the_reference_formula(shape, sigma, order):
     random values and masks, for non-square patches and kernels wider than the patch."""
     n, mask = _random_masked(shape, seed=int(sigma) + order)
     got = np.asarray(sharpen.masked_blur(n, mask, sigma, order))
-    want = np.asarray(_reference_masked_blur(n, mask, sigma, order))
+    want = np.asarray(sharpen.masked_blur_reference(n, mask, sigma, order))
     assert np.all(np.isfinite(got))
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
     assert np.all(got[-1] == 0)  # the empty patch
@@ -252,7 +223,7 @@ def test_shared_moment_blur_gradient_matches_the_reference():
     def loss(blur, nn_, mm):
         return jnp.sum(w * blur(nn_, mm, 5.0, 1))
 
-    ref = functools.partial(loss, _reference_masked_blur)
+    ref = functools.partial(loss, sharpen.masked_blur_reference)
     new = functools.partial(loss, sharpen.masked_blur)
     gn_new, gm_new = jax.grad(new, argnums=(0, 1))(n, mask)
     gn_ref, gm_ref = jax.grad(ref, argnums=(0, 1))(n, mask)
@@ -285,7 +256,7 @@ def test_unet_blurs_match_the_reference_formula(monkeypatch, highpass, unsharp_s
 
     got, _ = run(params)
     g_got = jax.grad(lambda p: run(p)[1])(params)
-    monkeypatch.setattr(sharpen, "masked_blur", _reference_masked_blur)
+    monkeypatch.setattr(sharpen, "masked_blur", sharpen.masked_blur_reference)
     want, _ = run(params)
     g_want = jax.grad(lambda p: run(p)[1])(params)
     assert float(jnp.abs(got - x).max()) > 1e-2  # the residual is not trivial

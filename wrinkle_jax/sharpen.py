@@ -139,6 +139,36 @@ def masked_blur(n, mask, sigma: float, order: int = 1):
     return jnp.transpose(out, (2, 0, 3, 1))
 
 
+def masked_blur_reference(n, mask, sigma: float, order: int = 1):
+    """`masked_blur` as first written, the direct formula: every moment its own separable
+    filter, two (H x H) banded matmuls on NHWC. Same result to float32 rounding, slower;
+    kept as the reference that tests and `benchmarks/bench_blur.py` compare against."""
+    g = gaussian_kernel(sigma)
+
+    def sep(x, th, tw):
+        bh = jnp.asarray(_band_matrix(x.shape[1], th))
+        bw = jnp.asarray(_band_matrix(x.shape[2], tw))
+        return jnp.einsum("kw,nhwc->nhkc", bw, jnp.einsum("ij,njwc->niwc", bh, x))
+
+    both = jnp.concatenate([n * mask, mask], axis=-1)
+    if order == 0:
+        m = sep(both, g, g)
+        return m[..., :-1] / jnp.maximum(m[..., -1:], 1e-8)
+    d = np.arange(len(g), dtype=np.float32) - (len(g) - 1) // 2
+    g1, g2 = g * d, g * d * d
+    m0, my, mx = (sep(both, a, b) for a, b in ((g, g), (g1, g), (g, g1)))
+    myy, mxx, mxy = sep(mask, g2, g), sep(mask, g, g2), sep(mask, g1, g1)
+    w = jnp.maximum(m0[..., -1:], 1e-8)
+    uy, ux, v = my[..., -1:] / w, mx[..., -1:] / w, m0[..., :-1] / w
+    ridge = _SLOPE_RIDGE * sigma**2
+    cyy, cxx = myy / w - uy * uy + ridge, mxx / w - ux * ux + ridge
+    cxy = mxy / w - uy * ux
+    sy, sx = my[..., :-1] / w - uy * v, mx[..., :-1] / w - ux * v
+    det = cyy * cxx - cxy * cxy
+    by, bx = (cxx * sy - cxy * sx) / det, (cyy * sx - cxy * sy) / det
+    return (v - by * uy - bx * ux) * (mask > 0)
+
+
 def unsharp_rgb(x, sigma: float, amount, mask=None, order: int = 1, blurred=None):
     """Unsharp-mask RGB-form normal-map patches.
 

@@ -78,8 +78,9 @@ def network_flops(model) -> dict:
                      else fastconv.conv3x3_flops(2 * size, 2 * size, k[2], k[3]))
         elif name == "out":
             conv += fastconv.conv3x3_flops(s, s, k[2], k[3])
-    passes = (2 * 4 + 1) + (4 * 4 + 2) if cfg.blur_order == 1 else 2 * 4
-    blurs = (cfg.residual and cfg.residual_base == "unsharp") + (cfg.residual_highpass > 0)
+    net = cfg.unet
+    passes = (2 * 4 + 1) + (4 * 4 + 2) if net.blur_order == 1 else 2 * 4
+    blurs = (net.residual and net.residual_base == "unsharp") + (net.residual_highpass > 0)
     blur = blurs * passes * 2 * s**3
     return {"conv": conv, "blur": blur, "total": conv + blur}
 

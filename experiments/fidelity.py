@@ -157,14 +157,20 @@ def val_models(args, vgg_params) -> dict:
         name, path = spec.split("=", 1)
         models[name] = method_lib.enhancer_method(enhancer.load_enhancer(path))
     rng = np.random.default_rng(0)
-    scores = {k: [] for k in ["unsharp_material", *models]}
+    donor_rng = np.random.default_rng(0)
+    scores = {k: [] for k in ["unsharp_material", *models,
+                              *(TRANSPLANTS if args.transplant else ())]}
     mats = []
-    for mid, mat in enumerate(MATERIALS):
+    picks = {}
+    for mid in range(len(MATERIALS)):
         rows = np.flatnonzero(ds.materials == mid)
-        if not len(rows) or mid not in settings:
+        picks[mid] = rows[np.unique(np.linspace(0, len(rows) - 1,
+                                                min(args.sweep_patches, len(rows)))
+                                    .round().astype(int))]
+    for mid, mat in enumerate(MATERIALS):
+        pick = picks[mid]
+        if not len(pick) or mid not in settings:
             continue
-        pick = rows[np.unique(np.linspace(0, len(rows) - 1, min(args.sweep_patches, len(rows)))
-                              .round().astype(int))]
         b = ds.get(pick)
         ps = patchsets.PatchSet(input=b["input"], target=b["target"], mask=b["mask"],
                               origins=rng.integers(0, 4096, (len(pick), 2)).astype(np.int32),
@@ -172,6 +178,8 @@ def val_models(args, vgg_params) -> dict:
         outs = {"unsharp_material": evaluation.unsharp_mask(ps.input, ps.mask, *settings[mid],
                                                             order=1)}
         outs.update({k: f(ps) for k, f in models.items()})
+        if args.transplant:
+            outs.update(transplants(ds, ps, picks, mid, donor_rng))
         outs = {k: np.asarray(v, np.float32) * ps.mask for k, v in outs.items()}
         d_in, d_tgt, *d_outs = (np.asarray(x) for x in detail.on_reference_branch_rgb(
             ps.input, (ps.target, *outs.values()), ps.mask, SIGMA))
@@ -201,6 +209,40 @@ def val_models(args, vgg_params) -> dict:
               + ", ".join(f"{m} {x:+.1f}" for m, x in entry["material_medians"].items()),
               flush=True)
     return got
+
+
+TRANSPLANTS = ("oracle_aligned", "transplant_same_material", "transplant_same_rot90",
+               "transplant_other_material")
+
+
+def transplants(ds, ps, picks, mid, rng) -> dict:
+    """The coarse input's large scale carrying fine detail from elsewhere (val diagnostic): its
+    own target's (the aligned ceiling), another val patch's of the same material (real
+    wrinkles of the right fabric, not aligned with this patch), the same turned 90 degrees (the
+    detail vectors turned with it), and a patch of another material. Does the detail-only
+    score reward this patch's detail, or any plausible texture of the fabric?"""
+    n = len(ps.input)
+    own = np.asarray(detail.to_detail_rgb(ps.target, ps.mask, SIGMA))
+    flat = np.float32([0.5, 0.5, 1.0])
+    own = np.where(ps.mask > 0, own, flat)
+    donor = np.roll(np.arange(n), 7)
+
+    def rot90(d):
+        v = np.rot90(d, 1, axes=(1, 2)) * 2.0 - 1.0
+        return (np.stack([-v[..., 1], v[..., 0], v[..., 2]], -1) + 1.0) / 2.0
+
+    _, large, branch = detail.decompose(ps.input * 2.0 - 1.0, ps.mask, SIGMA)
+
+    def put(d):  # detail maps (flat +z outside their garment) on the input's large scale
+        return detail.from_detail_rgb(d, large, branch, ps.mask)
+
+    other = (mid + 1 + rng.integers(0, len(MATERIALS) - 1)) % len(MATERIALS)
+    b = ds.get(picks[other][:n])
+    return {"oracle_aligned": put(own),
+            "transplant_same_material": put(own[donor]),
+            "transplant_same_rot90": put(rot90(own[donor])),
+            "transplant_other_material": detail.transplant_rgb(ps.input, b["target"], ps.mask,
+                                                               b["mask"], SIGMA)}
 
 
 def unsharp_best() -> tuple[float, float]:
@@ -421,6 +463,9 @@ def main(argv=None) -> int:
     ap.add_argument("--patches", type=int, default=8)
     ap.add_argument("--ceilings", type=int, default=1)
     ap.add_argument("--val-out", default=None, help="val: write the JSON here")
+    ap.add_argument("--transplant", type=int, default=0,
+                    help="val: also score the coarse input carrying fine detail from its own "
+                         "target / other patches (`transplants`)")
     args = ap.parse_args(argv)
     if args.command == "report":
         cells = [_load_cell(p) for p in sorted((OUT / "cells").glob("*.npz"))]

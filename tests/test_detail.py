@@ -137,5 +137,32 @@ def test_gradients_are_finite_and_match_finite_differences():
         jax.config.update("jax_enable_x64", False)
 
 
+def test_transplant_carries_the_donors_detail_onto_the_large_scale():
+    wrinkled = _wrinkled(32)
+    mask = np.ones(wrinkled.shape[:-1] + (1,), np.float32)
+    x = (wrinkled @ _rot_y(60.0).T + 1) / 2          # the wrinkles on a tilted panel
+    donor = (wrinkled @ _rot_z(90.0).T @ _rot_y(-35.0).T + 1) / 2  # twisted, other tilt
+    # A map given its own detail is itself.
+    np.testing.assert_allclose(detail.transplant_rgb(x, x, mask, mask, 4.0), x, atol=2e-5)
+    # The donor's detail, not x's: the result's detail is the donor's (its twist included),
+    # whatever the donor's own large-scale orientation.
+    out = detail.transplant_rgb(x, donor, mask, mask, 4.0)
+    d_out = np.asarray(detail.to_detail_rgb(out, mask, 4.0))
+    d_donor = np.asarray(detail.to_detail_rgb(donor, mask, 4.0))
+    d_x = np.asarray(detail.to_detail_rgb(x, mask, 4.0))
+    inner = (slice(None), slice(8, -8), slice(8, -8))
+    err = np.abs(d_out - d_donor)[inner].max()
+    assert err < 0.02, err
+    assert np.abs(d_x - d_donor)[inner].max() > 0.1  # 5x the bound: the test tells them apart
+    # Where the donor has no garment, only x's large scale remains (detail +z).
+    half = mask.copy()
+    half[:, :, 16:] = 0.0
+    out = detail.transplant_rgb(x, donor, mask, half, 4.0)
+    _, large, _ = detail.decompose(x * 2.0 - 1.0, mask, 4.0)
+    np.testing.assert_allclose(np.asarray(out)[:, :, 16:],
+                               ((np.asarray(large) + 1) / 2)[:, :, 16:],
+                               atol=2e-5)
+
+
 def test_module_example():
     assert doctest.testmod(detail, raise_on_error=False).failed == 0

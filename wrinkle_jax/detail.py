@@ -40,7 +40,8 @@ import jax.numpy as jnp
 from wrinkle_jax import sharpen
 
 __all__ = ["DEFAULT_SIGMA", "branch_of", "decompose", "from_detail", "from_detail_rgb",
-           "large_scale", "on_reference_branch_rgb", "to_detail", "to_detail_rgb"]
+           "large_scale", "on_reference_branch_rgb", "to_detail", "to_detail_rgb",
+           "transplant_rgb"]
 
 # Low-pass radius in texels (2 mm texels: 16 mm): the wrinkle band (16-64 mm) stays in the
 # detail, the coarse/fine large-scale divergence (>= 30 mm) leaves it. Chosen by measurement
@@ -157,3 +158,24 @@ def from_detail_rgb(d_rgb, large, branch, mask):
     """
     d = jnp.asarray(d_rgb, jnp.result_type(d_rgb, jnp.float32)) * 2.0 - 1.0
     return _unit_rgb(from_detail(d, large, branch), mask)
+
+
+def transplant_rgb(x, donor, mask, donor_mask, sigma: float = DEFAULT_SIGMA):
+    """`x`'s large scale carrying `donor`'s detail (RGB forms): what a map would look like with
+    another map's wrinkles, e.g. the fine target's own detail on the coarse input (the
+    aligned ceiling) or another patch's (texture statistics without alignment).
+
+    Args:
+      x, donor: (N, H, W, 3) RGB-form patches; mask, donor_mask: (N, H, W, 1) their masks.
+      sigma: low-pass radius in texels.
+    Returns:
+      (N, H, W, 3) RGB form inside `mask`, 0 outside; where the donor has no garment its
+      detail is flat (+z), so only `x`'s large scale shows.
+    """
+    x = jnp.asarray(x, jnp.result_type(x, jnp.float32))
+    mask = jnp.asarray(mask, x.dtype)
+    _, large, branch = decompose(x * 2.0 - 1.0, mask, sigma)
+    d = to_detail_rgb(donor, donor_mask, sigma)
+    flat = jnp.asarray([0.5, 0.5, 1.0], x.dtype)
+    d = jnp.where(jnp.asarray(donor_mask) > 0, d, flat)
+    return from_detail_rgb(d, large, branch, mask)

@@ -20,7 +20,8 @@ length (issue 24, item 2).
       after settling; the overhang at which the angle is 41.5 degrees is interpolated
       (log-linear) between the bracketing strips.
       Peirce's closed form c = l (cos(theta/2) / (8 tan theta))^(1/3) for a strip of overhang
-      l and chord angle theta is reported too; at theta = 41.5 degrees it gives c = l / 2.
+      l and chord angle theta is reported per strip too (at 41.5 degrees it gives 0.509 l,
+      the instrument's 1/2; a numerical heavy-elastica solve gives l = 2.000 c there).
 
 Settling: gravity, no air; extra velocity damping (`settle_damping`, 1/s) is added to the
 fabric's own so the specimen comes to rest quickly (damping moves no equilibrium). The run

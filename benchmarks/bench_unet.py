@@ -269,14 +269,15 @@ class Stepper:
 def bench_inference(widths, batches, reps, rng):
     rows, errors = [], {}
     for width in widths:
-        params = unet.init_params(unet.CINUNet(width=width), jax.random.key(0, impl="rbg"))
+        params = unet.init_params(unet.UNetConfig(width=width).module(5),
+                                  jax.random.key(0, impl="rbg"))
         fwd_flops = unet_flops(width)[0]
         for batch in batches:
             x = jnp.asarray(synthetic_normal_maps(rng, batch))
             m = jnp.asarray(rng.integers(0, 5, batch), jnp.int32)
             runs, compile_s, outs = {}, {}, {}
             for impl in (PLAIN, FAST):
-                f = jax.jit(unet.CINUNet(width=width, conv_impl=impl).apply)
+                f = jax.jit(unet.CINUNet(unet.UNetConfig(width=width), conv_impl=impl).apply)
                 compiled, compile_s[impl] = compile_timed(f, {"params": params}, x, m)
                 runs[impl] = lambda c=compiled, a=({"params": params}, x, m): c(*a)
                 outs[impl] = np.asarray(runs[impl](), np.float64)

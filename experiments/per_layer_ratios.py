@@ -5,7 +5,7 @@
 Explains a run's held-out improvement score layer by layer: for the run's last checkpoint
 (`RUN_DIR`, e.g. `outputs/short_runs/width_unsharp/w32`) and for the unsharp-mask baseline
 (sigma 8, amount 1; masked blur of order 0 and of order 1), on the same `--n` held-out
-patches (`short_runs.heldout_eval_set`), it
+patches (spread evenly over the held-out split, `evaluation.patchsets.take`), it
 prints and writes each layer's mean input loss, its share of the evaluation yardstick
 (`evaluation.EVAL_LAYERS`), and the mean and median output/input loss ratio, plus the patches
 whose yardstick ratio is worst with their per-layer ratios. This is how the content term on
@@ -22,8 +22,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import short_runs
-from wrinkle_jax import MATERIALS, evaluation, train
+from wrinkle_jax import MATERIALS, data, evaluation, train
+from wrinkle_jax.evaluation import patchsets
 from wrinkle_jax.nn import losses, vgg
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -79,9 +79,9 @@ def main(argv=None) -> None:
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     cfg, state = train.restore_run(args.run)
-    held = short_runs.heldout_eval_set(args.data, args.n)
+    held = patchsets.take(data.PatchDataset(args.data, "heldout"), args.n)
     vgg_params = vgg.load_vgg19()
-    outs = {"run": short_runs.enhance(cfg, state.params, held),
+    outs = {"run": train.enhance_batch(cfg, state.params, held),
             **{f"unsharp order {o} sigma 8 amount 1":
                evaluation.unsharp_mask(held["input"], held["mask"], 8.0, 1.0, o) for o in (0, 1)}}
     result = {"run": args.run, "steps": int(state.step), "n": len(held["input"]),

@@ -2,13 +2,13 @@
 
     python -m experiments.short_runs residual [--minutes 6]   # width 32, residual vs plain
     python -m experiments.short_runs width [--widths 8,16,32] [--minutes 6 | --steps N \
-        --minutes 1000] [--tag shipped] [recipe flags of experiments.train_default]
+        --minutes 1000] [--tag shipped] [recipe flags: wrinkle_jax.recipe.add_recipe_args]
 
-The recipe is `experiments.train_default`'s (same flags, same defaults: the shipped model's);
-the study changes only the width (or residual). Every variant trains from scratch on
-`data/patches` (train split, `experiments.make_dataset`) with the same seed, data order, loss
-and optimizer until `--steps` or `--minutes` of wall time, whichever comes first, then is scored
-on the same fixed held-out patches (test-only garments and motion) with
+The recipe is `experiments.train_default`'s (same flags, `wrinkle_jax.recipe`, same defaults:
+the shipped model's); the study changes only the width (or residual). Every variant trains
+from scratch on `data/patches` (train split, `experiments.make_dataset`) with the same seed,
+data order, loss and optimizer until `--steps` or `--minutes` of wall time, whichever comes
+first, then is scored on the same fixed held-out patches (test-only garments and motion) with
 `evaluation.score_patches` on `evaluation.EVAL_LAYERS`, and its inference speed is timed
 (ms/patch, batch 16, `conv_impl="im2col_bf16"`, best of 5). Runs go to
 `outputs/short_runs/<study>/<variant>/` (checkpoints: a later, longer run can resume from them);
@@ -36,8 +36,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import train_default
-from wrinkle_jax import data, enhancer, evaluation, train
+from wrinkle_jax import data, evaluation, recipe, train
+from wrinkle_jax.evaluation import patchsets
 from wrinkle_jax.nn import vgg
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -54,14 +54,6 @@ def variants(study: str, base: train.TrainConfig,
             for w in widths}
 
 
-def heldout_eval_set(root, n: int = 96) -> dict:
-    ds = data.PatchDataset(root, "heldout")
-    idx = np.unique(np.linspace(0, len(ds) - 1, n).round().astype(int))
-    batch = ds.get(idx)
-    batch["scene"] = np.array([ds.entries[j]["scene"] for j in ds.sequence_of[idx]])
-    return batch
-
-
 def infer_ms_per_patch(config: train.TrainConfig, params, reps: int = 5, batch: int = 16) -> float:
     model = dataclasses.replace(config, conv_impl="im2col_bf16").model()
     fn = jax.jit(lambda p, x, m: model.apply({"params": p}, x, m))
@@ -76,14 +68,6 @@ def infer_ms_per_patch(config: train.TrainConfig, params, reps: int = 5, batch: 
     return 1e3 * best / batch
 
 
-def enhance(config: train.TrainConfig, params, batch, size: int = 16) -> np.ndarray:
-    """A training run's unit-normal outputs on a batch of patches."""
-    model = config.model()
-    fn = jax.jit(lambda p, x, m: jnp.clip(model.apply({"params": p}, x, m), 0.0, 1.0))
-    return enhancer.enhance_patches(fn, params, batch["input"], batch["material"],
-                                    batch["mask"], size)
-
-
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("study", choices=("residual", "width"))
@@ -93,7 +77,7 @@ def main(argv=None) -> None:
     ap.add_argument("--only", default=None,
                     help="comma-separated variant names, in run order ('none': no training)")
     ap.add_argument("--tag", default="", help="suffix of the run and results folders")
-    train_default.add_recipe_args(ap)
+    recipe.add_recipe_args(ap)
     args = ap.parse_args(argv)
     study = args.study + (f"_{args.tag}" if args.tag else "")
     runs_dir = ROOT / "outputs" / "short_runs" / study
@@ -102,7 +86,7 @@ def main(argv=None) -> None:
     results_path = res_dir / "results.json"
     results = json.loads(results_path.read_text()) if results_path.exists() else {}
     vgg_params = vgg.load_vgg19()
-    held = heldout_eval_set(args.data)
+    held = patchsets.take(data.PatchDataset(args.data, "heldout"), 96)
     if args.residual_base == "unsharp" and "unsharp base (untrained)" not in results:
         # The starting point every variant must beat: the base alone, on the same patches.
         out = evaluation.unsharp_mask(held["input"], held["mask"], args.unsharp_sigma,
@@ -113,7 +97,7 @@ def main(argv=None) -> None:
             "steps": 0, "infer_ms_per_patch": 0.0,
             "heldout": evaluation.summarize(sc, held["scene"])}
         results_path.write_text(json.dumps(results, indent=1) + "\n")
-    base = train_default.config_from_args(args)
+    base = recipe.config_from_args(args)
     configs = variants(args.study, base, tuple(int(w) for w in args.widths.split(",")))
     for name in (args.only.split(",") if args.only else configs):  # --only also sets the order
         if name == "none":  # --only none: just the untrained base on the eval patches
@@ -124,7 +108,7 @@ def main(argv=None) -> None:
                           progress=False, time_limit_s=60 * args.minutes)
         wall = time.time() - t0
         params = got["state"].params
-        out = enhance(cfg, params, held)
+        out = train.enhance_batch(cfg, params, held)
         sc = evaluation.score_patches(vgg_params, held["input"], out, held["target"],
                                       held["mask"])
         summary = evaluation.summarize(sc, held["scene"])

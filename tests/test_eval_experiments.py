@@ -501,11 +501,12 @@ def test_make_sequences_only_selects_the_named_scenes_in_plan_order():
 def test_recipe_flag_defaults_are_the_shipped_recipe_and_the_width_study_changes_width_only():
     import argparse
 
-    from experiments import short_runs, train_default
+    from experiments import short_runs
+    from wrinkle_jax import recipe
 
     ap = argparse.ArgumentParser()
-    train_default.add_recipe_args(ap)
-    cfg = train_default.config_from_args(ap.parse_args([]))
+    recipe.add_recipe_args(ap)
+    cfg = recipe.config_from_args(ap.parse_args([]))
     shipped = enhancer.load_enhancer().meta["train_config"]
     got = cfg.to_json()
     differ = {k for k in shipped if k in got and list(np.atleast_1d(got[k]))

@@ -194,7 +194,7 @@ def test_flop_counts():
 
 @pytest.fixture(scope="module")
 def net():
-    model = unet.CINUNet(num_materials=3, width=4, input_norm="imagenet", residual=True)
+    model = unet.UNetConfig(width=4, input_norm="imagenet", residual=True).module(3)
     params = unet.init_params(model, jax.random.key(0, impl="rbg"), patch_size=32)
     k1, k2 = jax.random.split(jax.random.key(1, impl="rbg"))
     for name in ("cin1", "cin2", "cin3", "cin4"):
@@ -219,7 +219,7 @@ def _flat(tree):
 def test_fast_forms_share_parameters():
     """Same names, shapes and initial values (so checkpoints and torch conversion carry over);
     "im2col_f32" builds the identical modules."""
-    model = unet.CINUNet(num_materials=2, width=2)
+    model = unet.CINUNet(unet.UNetConfig(width=2), num_materials=2)
     key = jax.random.key(5, impl="rbg")
     ref = unet.init_params(model, key, patch_size=16)
     got = unet.init_params(model.clone(conv_impl="im2col_bf16"), key, patch_size=16)

@@ -3,6 +3,7 @@ invariants and gradients, and the U-Net's unsharp residual base."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
@@ -135,8 +136,8 @@ def test_gradient_matches_finite_differences(order):
 
 def test_unet_unsharp_base_starts_as_unsharp_mask():
     x, m = _folds(n=2)
-    model = unet.CINUNet(num_materials=3, width=4, residual=True, residual_base="unsharp",
-                         unsharp_sigma=2.0, unsharp_amount=1.5)
+    model = unet.UNetConfig(width=4, residual=True, residual_base="unsharp", unsharp_sigma=2.0,
+                            unsharp_amount=1.5).module(3)
     params = unet.init_params(model, jax.random.key(0, impl="rbg"), 32)
     assert params["unsharp_amount"].shape == (3,)
     params = {**params, "out": jax.tree.map(jnp.zeros_like, params["out"])}
@@ -147,7 +148,7 @@ def test_unet_unsharp_base_starts_as_unsharp_mask():
     got = np.asarray(model.apply({"params": params}, x, jnp.array([0, 2])))
     np.testing.assert_allclose(got[1], x[1], atol=1e-6)
     with pytest.raises(ValueError, match="residual_base"):
-        unet.CINUNet(width=4, residual=True, residual_base="blur").init(
+        unet.CINUNet(unet.UNetConfig(width=4, residual=True, residual_base="blur")).init(
             jax.random.key(0, impl="rbg"), x, jnp.array([0, 0]))
 
 
@@ -155,9 +156,9 @@ def test_highpassed_residual_cannot_shift_orientation():
     """A constant residual (the output conv's bias alone) tilts every normal of a patch; the
     high-passed residual removes it exactly, while detail still passes."""
     x, _ = _folds(n=2)
-    kw = dict(num_materials=2, width=4, residual=True, residual_base="unsharp",
-              unsharp_sigma=2.0)
-    plain, hp = unet.CINUNet(**kw), unet.CINUNet(**kw, residual_highpass=4.0)
+    cfg = unet.UNetConfig(width=4, residual=True, residual_base="unsharp", unsharp_sigma=2.0)
+    plain = cfg.module(2)
+    hp = dataclasses.replace(cfg, residual_highpass=4.0).module(2)
     params = unet.init_params(plain, jax.random.key(0, impl="rbg"), 32)
     bias = jnp.array([0.3, -0.2, 0.1])
     params = {**params, "out": {"kernel": jnp.zeros_like(params["out"]["kernel"]),
@@ -241,8 +242,8 @@ def test_unet_blurs_match_the_reference_formula(monkeypatch, highpass, unsharp_s
     formula to float32 rounding, on random masked inputs and random weights."""
     x, m = _folds(n=3)
     x = x * np.asarray(_random_masked((3, 32, 32, 1), seed=9)[1])  # ragged masks
-    model = unet.CINUNet(num_materials=2, width=4, residual=True, residual_base="unsharp",
-                         unsharp_sigma=unsharp_sigma, residual_highpass=highpass)
+    model = unet.UNetConfig(width=4, residual=True, residual_base="unsharp",
+                            unsharp_sigma=unsharp_sigma, residual_highpass=highpass).module(2)
     params = unet.init_params(model, jax.random.key(3, impl="rbg"), 32)
     rng = np.random.default_rng(4)
     params = {**params, "out": jax.tree.map(

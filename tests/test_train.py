@@ -167,6 +167,24 @@ def test_residual_network_starts_as_identity():
     assert np.abs(np.asarray(out) - np.asarray(x)).max() > 1e-3
 
 
+
+def test_enhance_batch_of_an_untrained_residual_run_returns_its_masked_input():
+    """The zero-initialized residual network is the identity, so `enhance_batch` gives back
+    each patch's unit normals inside its mask and 0 outside, in order, across chunks (5
+    patches in chunks of 2: the last chunk repeats a patch)."""
+    rng = np.random.default_rng(3)
+    n = rng.normal(size=(5, 32, 32, 3)) + [0.0, 0.0, 2.0]
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    mask = np.zeros((5, 32, 32, 1), np.float32)
+    for k in range(5):
+        mask[k, 2 * k:20 + 2 * k, 3:29] = 1.0
+    x = ((n + 1) / 2 * mask).astype(np.float32)
+    batch = {"input": x, "material": np.array([0, 1, 2, 3, 4]), "mask": mask}
+    state = train.create_train_state(CONFIG, jax.random.key(2, impl="rbg"), patch_size=32)
+    got = train.enhance_batch(CONFIG, state.params, batch, batch_size=2)
+    assert got.shape == x.shape and got.dtype == np.float32
+    np.testing.assert_allclose(got, x, atol=2e-6)
+
 def test_detail_noise_recipe_trains_and_scores_detail(data_root, tiny_vgg):
     """The detail-space, texel-noise configuration: starts as the identity, learns, and its
     loss ignores a large-scale tilt of the target (only detail counts)."""

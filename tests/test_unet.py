@@ -14,14 +14,14 @@ from wrinkle_jax.nn import unet
 
 
 def test_width64_parameter_count():
-    model = unet.CINUNet(num_materials=5, width=64)
+    model = unet.CINUNet(unet.UNetConfig(width=64), num_materials=5)
     shapes = jax.eval_shape(lambda: unet.init_params(model, jax.random.PRNGKey(0)))
     assert unet.count_params(shapes) == 8_510_083
 
 
 @pytest.fixture(scope="module")
 def small():
-    model = unet.CINUNet(num_materials=3, width=4, input_norm="none")
+    model = unet.CINUNet(unet.UNetConfig(width=4, input_norm="none"), num_materials=3)
     # rbg keys: threefry draws compile slowly on CPU (see unet.init_params).
     params = unet.init_params(model, jax.random.key(0, impl="rbg"), patch_size=32)
     # Give the CIN tables distinct per-material values (init is ones/zeros for all materials).
@@ -63,8 +63,8 @@ def test_constant_patch_is_finite(small):
 def test_residual_adds_input(small):
     _, params = small
     x = jax.random.uniform(jax.random.PRNGKey(3), (1, 32, 32, 3))
-    plain = unet.CINUNet(num_materials=3, width=4, input_norm="none")
-    res = unet.CINUNet(num_materials=3, width=4, input_norm="none", residual=True)
+    plain = unet.CINUNet(unet.UNetConfig(width=4, input_norm="none"), num_materials=3)
+    res = unet.CINUNet(unet.UNetConfig(width=4, input_norm="none", residual=True), num_materials=3)
     m = jnp.array([1])
     np.testing.assert_allclose(res.apply({"params": params}, x, m),
                                x + plain.apply({"params": params}, x, m), atol=1e-6)
@@ -155,9 +155,10 @@ def _random_state_dict(width=4, materials=2, seed=0):
 
 def test_torch_state_dict_reproduces_reference_forward():
     sd = _random_state_dict(width=4, materials=2)
-    params, config = unet.from_torch_state_dict(sd)
-    assert config == dict(num_materials=2, width=4, input_norm="imagenet", residual=False)
-    model = unet.CINUNet(**config)
+    params, kwargs = unet.from_torch_state_dict(sd)
+    assert kwargs == dict(num_materials=2, config=unet.UNetConfig(width=4, input_norm="imagenet",
+                                                                  residual=False))
+    model = unet.CINUNet(**kwargs)
     x = np.random.default_rng(1).uniform(size=(2, 32, 48, 3)).astype(np.float32)
     y = np.asarray(jax.jit(model.apply)({"params": params}, x, jnp.array([0, 1])))
     for n, k in ((0, 0), (1, 1)):
@@ -177,7 +178,7 @@ def test_load_torch_checkpoint(tmp_path):
     path = tmp_path / "authors.pth"
     save_state_dict(path, sd, wrap_key="model")
     model, params = unet.load_torch_checkpoint(path)
-    assert model.width == 4 and model.num_materials == 5
+    assert model.config.width == 4 and model.num_materials == 5
     x = np.random.default_rng(2).uniform(size=(1, 32, 32, 3)).astype(np.float32)
     y = np.asarray(model.apply({"params": params}, x, jnp.array([4])))
     ref = _np_forward({k: v.astype(np.float64) for k, v in sd.items()}, x[0], 4)
@@ -201,8 +202,8 @@ def _tilted_wrinkles(n=2, size=32, seed=0):
 def test_detail_space_model_starts_as_identity_and_keeps_the_large_scale():
     from wrinkle_jax import detail
 
-    model = unet.CINUNet(num_materials=2, width=4, input_norm="none", residual=True,
-                         detail_sigma=4.0, residual_highpass=16.0)
+    model = unet.UNetConfig(width=4, input_norm="none", residual=True, detail_sigma=4.0,
+                            residual_highpass=16.0).module(2)
     params = unet.init_params(model, jax.random.key(0, impl="rbg"), patch_size=32)
     params = {**params, "out": jax.tree.map(lambda p: 0.05 * p, params["out"])}
     x = _tilted_wrinkles()
@@ -237,8 +238,8 @@ def test_texel_noise_is_fixed_to_the_texel():
 
 
 def test_noise_model_depends_on_origins_only_through_the_noise():
-    model = unet.CINUNet(num_materials=2, width=4, input_norm="none", residual=True,
-                         detail_sigma=4.0, noise_channels=2)
+    model = unet.UNetConfig(width=4, input_norm="none", residual=True, detail_sigma=4.0,
+                            noise_channels=2).module(2)
     params = unet.init_params(model, jax.random.key(1, impl="rbg"), patch_size=32)
     assert params["enc1"]["kernel"].shape == (3, 3, 5, 4)
     x = _tilted_wrinkles(1)
@@ -303,41 +304,52 @@ def test_resize_decoders_avoid_the_transposed_conv_checkerboard():
     mask = np.ones((2, 32, 32, 1))
     ratio = {}
     for up in ("transpose", "bilinear"):
-        model = unet.CINUNet(num_materials=2, width=8, input_norm="none", residual=False,
-                             upsample=up, conv_impl="im2col_f32")
+        model = unet.UNetConfig(width=8, input_norm="none", residual=False,
+                                upsample=up).module(2, "im2col_f32")
         params = unet.init_params(model, jax.random.key(0, impl="rbg"), patch_size=32)
         y = model.apply({"params": params}, x, jnp.array([0, 1]))
         ratio[up] = float(evaluation.checker_rms(y, mask).mean() / np.asarray(y).std())
         if up == "bilinear":
             assert params["dec1"]["kernel"].shape == (3, 3, 64, 64)
-            ref = unet.CINUNet(num_materials=2, width=8, input_norm="none", residual=False,
-                               upsample=up, conv_impl="xla")
+            ref = unet.UNetConfig(width=8, input_norm="none", residual=False,
+                                  upsample=up).module(2, "xla")
             np.testing.assert_allclose(ref.apply({"params": params}, x, jnp.array([0, 1])), y,
                                        rtol=1e-4, atol=1e-4)
     assert ratio["transpose"] > 0.5
     assert ratio["bilinear"] < 0.25 * ratio["transpose"]
     with pytest.raises(ValueError, match="upsample"):
-        unet.CINUNet(num_materials=2, width=4, upsample="pixelshuffle").init(
+        unet.CINUNet(unet.UNetConfig(width=4, upsample="pixelshuffle"), num_materials=2).init(
             jax.random.key(0), x, jnp.array([0, 1]))
 
 
 def test_unet_config_builds_the_module_it_describes():
-    """`UNetConfig`'s fields are `CINUNet`'s attributes with the same defaults, and `module`
-    passes every one of them (so no setting can be dropped between a config and the net)."""
+    """`CINUNet` holds its settings only as a `UNetConfig` (no field of the config repeated as
+    a module attribute, so they cannot disagree), and `module` passes the config whole."""
     import dataclasses
 
     names = [f.name for f in dataclasses.fields(unet.UNetConfig)]
-    default = unet.CINUNet()
-    assert all(getattr(default, n) == v for n, v in unet.UNetConfig().to_json().items())
+    own = {f.name for f in dataclasses.fields(unet.CINUNet)}
+    assert not own & set(names)
+    assert unet.CINUNet().config == unet.UNetConfig()
     changed = {"width": 8, "residual": True, "input_norm": "none", "residual_base": "unsharp",
                "unsharp_sigma": 3.0, "unsharp_amount": 0.5, "residual_highpass": 5.0,
                "blur_order": 0, "detail_sigma": 4.0, "noise_channels": 2, "noise_scale": 3,
                "upsample": "bilinear"}
     assert sorted(changed) == sorted(names)
-    assert all(getattr(default, n) != v for n, v in changed.items())
-    model = unet.UNetConfig(**changed).module(num_materials=3, conv_impl="im2col_f32")
-    assert all(getattr(model, n) == v for n, v in changed.items())
+    assert all(getattr(unet.UNetConfig(), n) != v for n, v in changed.items())
+    cfg = unet.UNetConfig(**changed)
+    model = cfg.module(num_materials=3, conv_impl="im2col_f32")
+    assert model.config is cfg
     assert (model.num_materials, model.conv_impl) == (3, "im2col_f32")
+    # The settings reach the computation: the noise channels widen the first conv, the
+    # unsharp base adds its per-material gain (initialized to unsharp_amount), the width sets
+    # the first level, and the bilinear decoder has 3x3 kernels.
+    shapes = jax.eval_shape(lambda: unet.init_params(model, jax.random.key(0, impl="rbg"), 32))
+    assert shapes["enc1"]["kernel"].shape == (3, 3, 3 + 2, 8)
+    assert shapes["unsharp_amount"].shape == (3,)
+    assert shapes["dec4"]["kernel"].shape == (3, 3, 16, 8)
+    params = unet.init_params(model, jax.random.key(0, impl="rbg"), 32)
+    np.testing.assert_array_equal(params["unsharp_amount"], 0.5)
     # Flat JSON of an outer config: own keys stay, missing settings take the outer default
     # except blur_order (files from before it existed used order 0).
     net, rest = unet.UNetConfig.split_json({"width": 8, "steps": 3}, unet.RECIPE_UNET)

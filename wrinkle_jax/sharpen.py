@@ -2,7 +2,7 @@
 
 The same operation as the OpenCV baseline `wrinkle_jax.evaluation.unsharp_mask` (which the
 tests compare against), written in JAX so that it can sit inside a network: the enhancer's
-residual base (`nn.unet.CINUNet(residual_base="unsharp")`) starts from the best non-learned
+residual base (`nn.unet.UNetConfig(residual_base="unsharp")`) starts from the best non-learned
 sharpening and learns a correction on top of it, with a learnable per-material gain.
 
     n' = normalize(n + amount * (n - blur_sigma(n)))

@@ -364,6 +364,25 @@ def export_run(run_dir: str | os.PathLike, out_path: str | os.PathLike,
     return enhancer.save_enhancer(out_path, jax.device_get(state.params), econf, meta)
 
 
+def enhance_batch(config: TrainConfig, params, batch: dict, batch_size: int = 16) -> np.ndarray:
+    """A training run's network (`config.model()`, its `conv_impl`) on a batch of patches.
+
+    Args:
+      params: the run's parameters (e.g. `restore_run(run)[1].params`).
+      batch: "input" (N, S, S, 3) RGB-form patches in [0, 1], "material" (N,) int ids,
+        "mask" (N, S, S, 1) {0, 1} (a `data.PatchDataset.get` batch).
+    Returns:
+      (N, S, S, 3) float32 RGB form: the output clipped to [0, 1], renormalized to unit normals
+      inside the mask, 0 outside (`enhancer.enhance_patches`, jitted chunks of `batch_size`).
+    """
+    from wrinkle_jax import enhancer  # enhancer is not needed to train; keep the import local
+
+    model = config.model()
+    fn = jax.jit(lambda p, x, m: jnp.clip(model.apply({"params": p}, x, m), 0.0, 1.0))
+    return enhancer.enhance_patches(fn, params, batch["input"], batch["material"],
+                                    batch["mask"], batch_size)
+
+
 # --------------------------------------------------------------------------------------------
 # The loop
 # --------------------------------------------------------------------------------------------

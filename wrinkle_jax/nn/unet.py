@@ -18,6 +18,7 @@ With width=64 and 5 materials the network has 8,510,083 parameters.
 
 Settings: `UNetConfig` holds the architecture (width, residual base, detail space, noise, ...)
 as one frozen, serializable config that the training, model-file and PatchGAN configs nest;
+`CINUNet` takes it as its `config` attribute (the module repeats none of its fields), and
 `UNetConfig.module(num_materials, conv_impl)` builds the `CINUNet`. `RECIPE_UNET` is the
 shipped model's.
 
@@ -54,7 +55,8 @@ Interop: `from_torch_state_dict` converts the authors' PyTorch state dict (modul
 `E1_Conv2d`..`E4_Conv2d`, `D1_Deconv2d`..`D4_Deconv2d`, `D{1..4}_CIN.inns.{k}.weight|bias`,
 `out_Conv2d`) into our parameters; `load_torch_checkpoint` reads their `torch.save` file through
 the safe, torch-free reader. Their network normalizes its input with the ImageNet statistics
-and has no global residual: use `CINUNet(input_norm="imagenet", residual=False)`.
+and has no global residual: use `UNetConfig(input_norm="imagenet", residual=False)`
+(`from_torch_state_dict` returns it).
 """
 
 from __future__ import annotations
@@ -110,18 +112,27 @@ class CIN(nn.Module):
         return (y * gamma + beta).astype(x.dtype)
 
 
-class CINUNet(nn.Module):
-    """Material-conditioned U-Net (see the module docstring).
+@dataclasses.dataclass(frozen=True)
+class UNetConfig:
+    """The U-Net's architecture settings: what `CINUNet` computes and which parameters it has,
+    apart from the number of materials (the model's material list sets it) and the convolution
+    form (same parameters for every form). Static, hashable; `CINUNet` takes one as its
+    `config`, and one is nested in every config that builds a U-Net (`train.TrainConfig`,
+    `enhancer.EnhancerConfig`, `nn.patchgan.GANConfig`). `RECIPE_UNET` is the shipped model's.
+    On disk the settings are stored flat, among the outer config's own fields (`split_json`),
+    so every file written before this class existed still reads.
 
     Attributes:
-      num_materials: number of materials the CIN tables hold.
       width: channels of the first level (w); the levels use w, 2w, 4w, 8w.
       residual: return base + network output (a global residual) instead of the output.
+      input_norm: "imagenet" (normalize RGB by ImageNet mean/std, as the authors do) or "none".
       residual_base: "input" (base = the input) or "unsharp" (base = the unsharp-masked input,
         `sharpen.unsharp_rgb` with `unsharp_sigma` texels and a per-material gain, parameter
         ``unsharp_amount`` (num_materials,), initialized to `unsharp_amount`). With a
         zero-initialized output conv the untrained network then IS the best non-learned
         baseline, and training learns what sharpening misses.
+      unsharp_sigma: radius (texels) of the unsharp base's masked blur.
+      unsharp_amount: initial value of the learned per-material unsharp gain.
       residual_highpass: 0, or a Gaussian radius in texels: the network's residual is
         high-passed (minus its masked blur, `sharpen.masked_blur`) so it can add detail but not
         shift the patch's low-frequency orientation -- which the style loss's early layers
@@ -130,10 +141,6 @@ class CINUNet(nn.Module):
         (`sharpen.masked_blur`): 1 (local plane; flat tilted panels pass unchanged) or 0 (local
         mean, which turns every mask border into a spurious ramp; models trained before
         session 4 use it).
-      input_norm: "imagenet" (normalize RGB by ImageNet mean/std, as the authors do) or "none".
-      norm: the conditional normalization layer factory (called with num_materials).
-      dtype: computation dtype of the "xla" convolutions (parameters stay float32).
-      conv_impl: "xla", "im2col_bf16" (fast on CPU) or "im2col_f32" (see the module docstring).
       detail_sigma: 0, or the low-pass radius (texels) of the detail representation the network
         works in (see the module docstring); the output is then unit normals on the input's
         large scale, 0 outside the mask.
@@ -150,7 +157,6 @@ class CINUNet(nn.Module):
         resize forms' decoder kernels are 3x3, so their parameters differ from "transpose".
     """
 
-    num_materials: int = 5
     width: int = 64
     residual: bool = False
     input_norm: str = "imagenet"
@@ -159,13 +165,58 @@ class CINUNet(nn.Module):
     unsharp_amount: float = 1.0
     residual_highpass: float = 0.0
     blur_order: int = 1
-    norm: Callable[..., nn.Module] = CIN
-    dtype: jnp.dtype = jnp.float32
-    conv_impl: str = "xla"
     detail_sigma: float = 0.0
     noise_channels: int = 0
     noise_scale: int = 1
     upsample: str = "transpose"
+
+    def module(self, num_materials: int, conv_impl: str = "xla") -> CINUNet:
+        """The `CINUNet` with these settings for `num_materials` materials."""
+        return CINUNet(config=self, num_materials=num_materials, conv_impl=conv_impl)
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def split_json(cls, d: dict, default: UNetConfig) -> tuple[UNetConfig, dict]:
+        """Split an outer config's flat JSON dict into (the U-Net's settings, the other keys).
+
+        Settings missing from `d` take `default`'s values, except `blur_order`: files written
+        before it existed were trained with the order-0 (local mean) blur, so it reads as 0.
+        """
+        names = {f.name for f in dataclasses.fields(cls)}
+        own = {k: v for k, v in d.items() if k in names}
+        own.setdefault("blur_order", 0)
+        return (dataclasses.replace(default, **own),
+                {k: v for k, v in d.items() if k not in names})
+
+
+# The shipped model's U-Net (wrinkle_jax/assets/enhancer.npz, MODEL_CARD.md): width 16 (the
+# width study's choice), a global residual on the unsharp-masked input (sigma 16 texels, a
+# learned per-material gain starting at 1) with the residual high-passed at 8 texels.
+RECIPE_UNET = UNetConfig(width=16, residual=True, residual_base="unsharp", unsharp_sigma=16.0,
+                         unsharp_amount=1.0, residual_highpass=8.0, blur_order=1)
+
+
+class CINUNet(nn.Module):
+    """Material-conditioned U-Net (see the module docstring).
+
+    Attributes:
+      config: the architecture settings (`UNetConfig`: width, residual base, detail space,
+        noise, up-sampling; see there). The module has no copies of them, so a config and the
+        module built from it cannot disagree.
+      num_materials: number of materials the CIN tables hold.
+      norm: the conditional normalization layer factory (called with num_materials).
+      dtype: computation dtype of the "xla" convolutions (parameters stay float32).
+      conv_impl: "xla", "im2col_bf16" (fast on CPU) or "im2col_f32" (see the module docstring);
+        the parameters are the same for every form.
+    """
+
+    config: UNetConfig = UNetConfig()
+    num_materials: int = 5
+    norm: Callable[..., nn.Module] = CIN
+    dtype: jnp.dtype = jnp.float32
+    conv_impl: str = "xla"
 
     @nn.compact
     def __call__(self, x, material, origins=None):
@@ -182,22 +233,23 @@ class CINUNet(nn.Module):
         """
         if x.shape[1] % 16 or x.shape[2] % 16:
             raise ValueError(f"patch size must be divisible by 16, got {x.shape[1:3]}")
+        cfg = self.config
         material = jnp.asarray(material, jnp.int32).reshape(x.shape[0])
         x = x.astype(jnp.float32)
         mask = sharpen.mask_from_rgb(x)  # one mask for detail, high-pass and unsharp base
-        if self.detail_sigma > 0:
-            d, large, branch = detail.decompose(x * 2.0 - 1.0, mask, self.detail_sigma)
+        if cfg.detail_sigma > 0:
+            d, large, branch = detail.decompose(x * 2.0 - 1.0, mask, cfg.detail_sigma)
             x = (d + 1.0) * 0.5 * mask
         h = x
-        if self.input_norm == "imagenet":
+        if cfg.input_norm == "imagenet":
             h = (h - jnp.asarray(IMAGENET_MEAN)) / jnp.asarray(IMAGENET_STD)
-        elif self.input_norm != "none":
-            raise ValueError(f"unknown input_norm {self.input_norm!r}")
-        if self.noise_channels > 0:
+        elif cfg.input_norm != "none":
+            raise ValueError(f"unknown input_norm {cfg.input_norm!r}")
+        if cfg.noise_channels > 0:
             if origins is None:
                 origins = jnp.zeros((x.shape[0], 2), jnp.int32)
-            noise = texel_noise(origins, x.shape[1], x.shape[2], self.noise_channels,
-                                scale=self.noise_scale)
+            noise = texel_noise(origins, x.shape[1], x.shape[2], cfg.noise_channels,
+                                scale=cfg.noise_scale)
             h = jnp.concatenate([h, noise * mask], axis=-1)
         if self.conv_impl not in CONV_IMPLS:
             raise ValueError(f"unknown conv_impl {self.conv_impl!r}; expected one of "
@@ -224,16 +276,16 @@ class CINUNet(nn.Module):
                 # The raw 3-channel image: bfloat16 would round its fine detail to 8 bits (the
                 # largest single error source); float32 costs little here (K = 27).
                 layer = functools.partial(conv, compute_dtype=jnp.float32)
-            h = nn.relu(layer(self.width * 2**level, name=f"enc{level + 1}")(h))
+            h = nn.relu(layer(cfg.width * 2**level, name=f"enc{level + 1}")(h))
             skips.append(h)
             h = nn.max_pool(h, (2, 2), strides=(2, 2)) if compute is None else _max_pool2(h)
-        if self.upsample in ("nearest", "bilinear"):
-            deconv = _ResizeConv(conv, self.upsample)
-        elif self.upsample != "transpose":
-            raise ValueError(f"unknown upsample {self.upsample!r}; expected transpose, "
+        if cfg.upsample in ("nearest", "bilinear"):
+            deconv = _ResizeConv(conv, cfg.upsample)
+        elif cfg.upsample != "transpose":
+            raise ValueError(f"unknown upsample {cfg.upsample!r}; expected transpose, "
                              "nearest or bilinear")
         for level in reversed(range(NUM_LEVELS)):
-            h = deconv(self.width * 2**level, name=f"dec{NUM_LEVELS - level}")(h)
+            h = deconv(cfg.width * 2**level, name=f"dec{NUM_LEVELS - level}")(h)
             h = h + skips[level]
             h = norm(num_materials=self.num_materials, name=f"cin{NUM_LEVELS - level}")(
                 h, material)
@@ -241,86 +293,31 @@ class CINUNet(nn.Module):
         if compute is not None:  # 1% of the FLOPs: keep the output's last rounding float32
             conv = functools.partial(conv, compute_dtype=jnp.float32)
         out = conv(3, name="out")(h).astype(jnp.float32)
-        if self.residual:
+        if cfg.residual:
             base = x
             base_low = None  # the unsharp base's blur, when blurred with the high-pass's
-            if self.residual_highpass > 0:
-                if self.residual_base == "unsharp" and self.residual_highpass == self.unsharp_sigma:
+            if cfg.residual_highpass > 0:
+                if cfg.residual_base == "unsharp" and cfg.residual_highpass == cfg.unsharp_sigma:
                     # Same mask and radius: one blur of both fields shares the mask's moments.
                     low = sharpen.masked_blur(jnp.concatenate([out, x * 2.0 - 1.0], axis=-1),
-                                              mask, self.residual_highpass, self.blur_order)
+                                              mask, cfg.residual_highpass, cfg.blur_order)
                     low, base_low = low[..., :3], low[..., 3:]
                 else:
-                    low = sharpen.masked_blur(out, mask, self.residual_highpass,
-                                              self.blur_order)
+                    low = sharpen.masked_blur(out, mask, cfg.residual_highpass,
+                                              cfg.blur_order)
                 out = out - low
-            if self.residual_base == "unsharp":
+            if cfg.residual_base == "unsharp":
                 gain = self.param("unsharp_amount",
-                                  nn.initializers.constant(self.unsharp_amount),
+                                  nn.initializers.constant(cfg.unsharp_amount),
                                   (self.num_materials,), jnp.float32)
-                base = sharpen.unsharp_rgb(base, self.unsharp_sigma, gain[material], mask,
-                                          self.blur_order, blurred=base_low)
-            elif self.residual_base != "input":
-                raise ValueError(f"unknown residual_base {self.residual_base!r}")
+                base = sharpen.unsharp_rgb(base, cfg.unsharp_sigma, gain[material], mask,
+                                          cfg.blur_order, blurred=base_low)
+            elif cfg.residual_base != "input":
+                raise ValueError(f"unknown residual_base {cfg.residual_base!r}")
             out = base + out
-        if self.detail_sigma > 0:
+        if cfg.detail_sigma > 0:
             out = detail.from_detail_rgb(out, large, branch, mask)
         return out
-
-
-@dataclasses.dataclass(frozen=True)
-class UNetConfig:
-    """The U-Net's architecture settings: what `CINUNet` computes and which parameters it has,
-    apart from the number of materials (the model's material list sets it) and the convolution
-    form (same parameters for every form). Static, hashable; one of these is nested in every
-    config that builds a U-Net (`train.TrainConfig`, `enhancer.EnhancerConfig`,
-    `nn.patchgan.GANConfig`).
-
-    The fields and their defaults are `CINUNet`'s attributes of the same names (see there);
-    `RECIPE_UNET` is the shipped model's. On disk the settings are stored flat, among the
-    outer config's own fields (`split_json`), so every file written before this class existed
-    still reads.
-    """
-
-    width: int = 64
-    residual: bool = False
-    input_norm: str = "imagenet"
-    residual_base: str = "input"
-    unsharp_sigma: float = 8.0
-    unsharp_amount: float = 1.0
-    residual_highpass: float = 0.0
-    blur_order: int = 1
-    detail_sigma: float = 0.0
-    noise_channels: int = 0
-    noise_scale: int = 1
-    upsample: str = "transpose"
-
-    def module(self, num_materials: int, conv_impl: str = "xla") -> CINUNet:
-        """The `CINUNet` with these settings for `num_materials` materials."""
-        return CINUNet(num_materials=num_materials, conv_impl=conv_impl, **self.to_json())
-
-    def to_json(self) -> dict:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def split_json(cls, d: dict, default: UNetConfig) -> tuple[UNetConfig, dict]:
-        """Split an outer config's flat JSON dict into (the U-Net's settings, the other keys).
-
-        Settings missing from `d` take `default`'s values, except `blur_order`: files written
-        before it existed were trained with the order-0 (local mean) blur, so it reads as 0.
-        """
-        names = {f.name for f in dataclasses.fields(cls)}
-        own = {k: v for k, v in d.items() if k in names}
-        own.setdefault("blur_order", 0)
-        return (dataclasses.replace(default, **own),
-                {k: v for k, v in d.items() if k not in names})
-
-
-# The shipped model's U-Net (wrinkle_jax/assets/enhancer.npz, MODEL_CARD.md): width 16 (the
-# width study's choice), a global residual on the unsharp-masked input (sigma 16 texels, a
-# learned per-material gain starting at 1) with the residual high-passed at 8 texels.
-RECIPE_UNET = UNetConfig(width=16, residual=True, residual_base="unsharp", unsharp_sigma=16.0,
-                         unsharp_amount=1.0, residual_highpass=8.0, blur_order=1)
 
 
 class _ResizeConv:
@@ -499,9 +496,9 @@ def from_torch_state_dict(state_dict: dict) -> tuple[dict, dict]:
     with the flipped kernel); CIN tables stack `D{l}_CIN.inns.{k}` over materials k.
 
     Returns:
-      (params, config): params for `CINUNet`, and the constructor arguments that reproduce the
-      authors' forward pass (width and material count read from the weights,
-      input_norm="imagenet", residual=False).
+      (params, kwargs): params for `CINUNet`, and the constructor arguments that reproduce the
+      authors' forward pass, ``CINUNet(**kwargs)``: `num_materials` and a `config` (UNetConfig)
+      with the width read from the weights, input_norm="imagenet", residual=False.
     """
     sd = {k.removeprefix("module."): v for k, v in state_dict.items()}
     params: dict = {}
@@ -525,9 +522,8 @@ def from_torch_state_dict(state_dict: dict) -> tuple[dict, dict]:
                      "bias": _get(sd, "out_Conv2d.bias", 1)}
     num_materials = params["cin1"]["scale"].shape[0]
     params = jax.tree_util.tree_map(lambda a: jnp.asarray(np.ascontiguousarray(a)), params)
-    config = dict(num_materials=int(num_materials), width=width, input_norm="imagenet",
-                  residual=False)
-    return params, config
+    config = UNetConfig(width=width, input_norm="imagenet", residual=False)
+    return params, dict(num_materials=int(num_materials), config=config)
 
 
 def load_torch_checkpoint(path: str | os.PathLike) -> tuple[CINUNet, dict]:

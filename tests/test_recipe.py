@@ -1,0 +1,97 @@
+"""`wrinkle_jax.recipe`: the training recipe's flags (shared by `experiments.train_default` and
+`experiments.short_runs`) default to `train.RECIPE`, a known command line sets exactly its
+settings, and `--material-gains` parses."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+
+from wrinkle_jax import MATERIALS, enhancer, recipe, train
+from wrinkle_jax.nn import unet
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _parse(argv):
+    ap = argparse.ArgumentParser()
+    recipe.add_recipe_args(ap)
+    return recipe.config_from_args(ap.parse_args(argv))
+
+
+def test_recipe_is_the_shipped_models_and_the_flags_default_to_it():
+    assert _parse([]) == train.RECIPE
+    assert train.RECIPE.unet == unet.RECIPE_UNET
+    shipped = enhancer.load_enhancer().meta["train_config"]
+    assert train.TrainConfig.from_json(shipped) == train.RECIPE
+    assert enhancer.load_enhancer().config.unet == unet.RECIPE_UNET
+
+
+def test_the_detail_recipe_command_line_sets_exactly_its_flags():
+    argv = ("--detail-sigma 8 --noise-channels 4 --noise-scale 4 --upsample bilinear "
+            "--residual-base unsharp --unsharp-sigma 16 --unsharp-amount 1 "
+            "--residual-highpass 16 --style-layers relu1_2,relu2_1,relu3_1,relu4_1 "
+            "--relative-floor 300 --w-s 10 --w-c 0.1 --width 16 --lr 2e-4").split()
+    got = _parse(argv)
+    net = dataclasses.replace(unet.RECIPE_UNET, detail_sigma=8.0, noise_channels=4,
+                              noise_scale=4, upsample="bilinear", residual_highpass=16.0)
+    assert got == dataclasses.replace(
+        train.RECIPE, unet=net, relative_floor=300.0,
+        style_layers=("relu1_2", "relu2_1", "relu3_1", "relu4_1"))
+    # ... which is the committed detail model's training config, as that run wrote it
+    meta = enhancer.load_enhancer(ROOT / "experiments/results/fidelity/detail_bilinear.npz").meta
+    saved = train.TrainConfig.from_json(meta["train_config"])
+    assert saved.unet == got.unet and saved.style_layers == got.style_layers
+    assert _parse(["--relative-floor", "0"]).relative_floor is None
+
+
+def test_a_command_line_sets_every_flag_to_its_setting():
+    """Each flag lands in its own field (none swapped, none dropped), with the flag's type."""
+    argv = ("--width 24 --residual 0 --style-layers relu2_2,relu3_1 --normalize-channels 1 "
+            "--w-c 0.5 --steps 123 --lr 3e-4 --w-s 7.5 --relative-floor 50 --relative-log 1 "
+            "--residual-base input --unsharp-sigma 4 --unsharp-amount 0.75 "
+            "--residual-highpass 6 --blur-order 0 --detail-sigma 2 --noise-channels 3 "
+            "--noise-scale 2 --upsample nearest --batch-size 4").split()
+    got = _parse(argv)
+    assert got.unet == unet.UNetConfig(
+        width=24, residual=False, input_norm=unet.RECIPE_UNET.input_norm, residual_base="input",
+        unsharp_sigma=4.0, unsharp_amount=0.75, residual_highpass=6.0, blur_order=0,
+        detail_sigma=2.0, noise_channels=3, noise_scale=2, upsample="nearest")
+    assert (got.style_layers, got.normalize_channels, got.w_c, got.steps, got.learning_rate,
+            got.w_s, got.relative_floor, got.relative_log, got.batch_size) == (
+        ("relu2_2", "relu3_1"), True, 0.5, 123, 3e-4, 7.5, 50.0, True, 4)
+    # Settings without a flag stay the recipe's.
+    assert dataclasses.replace(got, unet=train.RECIPE.unet, style_layers=train.RECIPE.style_layers,
+                               normalize_channels=train.RECIPE.normalize_channels,
+                               w_c=train.RECIPE.w_c, steps=train.RECIPE.steps,
+                               learning_rate=train.RECIPE.learning_rate, w_s=train.RECIPE.w_s,
+                               relative_floor=train.RECIPE.relative_floor,
+                               relative_log=train.RECIPE.relative_log,
+                               batch_size=train.RECIPE.batch_size) == train.RECIPE
+    with pytest.raises(SystemExit):  # argparse rejects a value outside the choices
+        _parse(["--upsample", "cubic"])
+
+
+def test_material_gains_from_values_and_from_a_sweep(tmp_path):
+    values = [0.5, 1.0, 1.5, 2.0, 2.5]
+    assert recipe.material_gains(",".join(map(str, values)), 16.0) == values
+    with pytest.raises(ValueError, match="5 values, got 2"):
+        recipe.material_gains("1,2", 16.0)
+    # A sweep: per material, the best median at the asked sigma (not the best overall).
+    scores = {}
+    for i, mat in enumerate(MATERIALS):
+        scores[mat] = {f"sigma=16,amount={a}": {"median": -abs(a - 0.25 * (i + 1))}
+                       for a in (0.25, 0.5, 0.75, 1.0, 1.25)}
+        scores[mat]["sigma=8,amount=3"] = {"median": 100.0}
+    path = tmp_path / "sweep.json"
+    path.write_text(json.dumps({"scores": scores}))
+    assert recipe.material_gains("sweep", 16.0, path) == [0.25, 0.5, 0.75, 1.0, 1.25]
+    assert recipe.material_gains("sweep", 8.0, path) == [3.0] * len(MATERIALS)
+    with pytest.raises(ValueError, match="no setting at sigma 4"):
+        recipe.material_gains("sweep", 4.0, path)
+    # The committed sweep reads (the default file).
+    assert len(recipe.material_gains("sweep", 16.0)) == len(MATERIALS)

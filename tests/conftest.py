@@ -20,6 +20,7 @@ import tempfile
 import jax
 import numpy as np
 import pytest
+from evaluation_fixtures import tiny_model, tiny_vgg_params  # tests/ is on sys.path
 
 from wrinkle_jax import data, primitives
 from wrinkle_jax.meshio import make_sequence, save_sequence
@@ -89,6 +90,18 @@ def cube():
 @pytest.fixture(scope="session")
 def skirt():
     return primitives.flared_skirt(n_theta=32, n_s=8)
+
+
+# The evaluation tests' tiny VGG and tiny enhancer, built once per worker. A file that needs
+# other sizes defines its own fixture of the same name (pytest takes the nearest one).
+@pytest.fixture(scope="session")
+def tiny_vgg():
+    return tiny_vgg_params()
+
+
+@pytest.fixture(scope="session")
+def model():
+    return tiny_model()
 
 
 

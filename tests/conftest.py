@@ -14,7 +14,8 @@ For the same reason the tests compile with XLA's backend optimisation level 0 (L
 XLA_FLAGS already sets a level: the programs are small and run briefly, so the time LLVM spends
 optimising them is rarely won back. Measured on this machine (user CPU, one process): the two
 U-Net blur tests of test_sharpen.py 31.6 s -> 26.2 s, the XPBD free-fall and PatchGAN data-term
-tests together 33.8 s -> 26.9 s. The level changes code generation, not the floating-point
+tests together 33.8 s -> 26.9 s; the simulation-bound test_sim_selfcollision.py 74.9 s
+(default level 3) -> 79.5 s. The level changes code generation, not the floating-point
 semantics (XLA's CPU fast-math stays off). Subprocesses that tests start inherit the flag.
 """
 

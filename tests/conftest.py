@@ -9,6 +9,14 @@ runs exactly the executable it would have compiled. The folder is made by the fi
 (the xdist controller), handed to the workers through the environment and removed at the end;
 it is never set for subprocesses that tests start (JAX reads only its own variables).
 Set WRINKLE_JAX_TEST_JIT_CACHE=off to compile everything afresh.
+
+For the same reason the tests compile with XLA's backend optimisation level 0 (LLVM -O0) unless
+XLA_FLAGS already sets a level: the programs are small and run briefly, so the time LLVM spends
+optimising them is rarely won back. Measured on this machine (user CPU, one process): the two
+U-Net blur tests of test_sharpen.py 31.6 s -> 26.2 s, the XPBD free-fall and PatchGAN data-term
+tests together 33.8 s -> 26.9 s; the simulation-bound test_sim_selfcollision.py 74.9 s
+(default level 3) -> 79.5 s. The level changes code generation, not the floating-point
+semantics (XLA's CPU fast-math stays off). Subprocesses that tests start inherit the flag.
 """
 
 from __future__ import annotations
@@ -17,9 +25,15 @@ import os
 import shutil
 import tempfile
 
-import jax
+# Before JAX creates its CPU backend (which reads XLA_FLAGS once).
+if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
+                               + " --xla_backend_optimization_level=0").strip()
+
+import jax  # noqa: E402
 import numpy as np
 import pytest
+from evaluation_fixtures import tiny_model, tiny_vgg_params  # tests/ is on sys.path
 
 from wrinkle_jax import data, primitives
 from wrinkle_jax.meshio import make_sequence, save_sequence
@@ -51,9 +65,13 @@ def pytest_unconfigure(config):
 # The longest files first: pytest-xdist (with --dist loadfile --no-loadscope-reorder, as in the
 # Makefile) hands files to the workers in collection order as they free up, so a long file
 # collected last would run alone at the end. (Without --no-loadscope-reorder xdist orders files
-# by their number of tests instead.) The order within a file is kept.
-SLOW_FILES_FIRST = ("test_train.py", "test_patchgan.py", "test_eval_experiments.py",
-                    "test_notebooks.py", "test_sim_detail.py")
+# by their number of tests instead.) The order within a file is kept. Ranked by the sum of each
+# file's phases among the 80 slowest of a 2-worker run on a quiet 2-core machine (test_unet.py,
+# test_sim_*.py would otherwise start last, in alphabetical order).
+SLOW_FILES_FIRST = ("test_train.py", "test_patchgan.py", "test_sim_selfcollision.py",
+                    "test_sharpen.py", "test_fastconv.py", "test_unet.py", "test_sim_xpbd.py",
+                    "test_lift.py", "test_eval_experiments.py", "test_notebooks.py",
+                    "test_sim_detail.py", "test_cli_train.py")
 
 
 def pytest_collection_modifyitems(config, items):
@@ -90,6 +108,17 @@ def cube():
 def skirt():
     return primitives.flared_skirt(n_theta=32, n_s=8)
 
+
+# The evaluation tests' tiny VGG and tiny enhancer, built once per worker. A file that needs
+# other sizes defines its own fixture of the same name (pytest takes the nearest one).
+@pytest.fixture(scope="session")
+def tiny_vgg():
+    return tiny_vgg_params()
+
+
+@pytest.fixture(scope="session")
+def model():
+    return tiny_model()
 
 
 @pytest.fixture(scope="session")

@@ -1,5 +1,6 @@
 """Shared pieces of the evaluation tests (tests/ is on sys.path): a tiny VGG, a tiny enhancer
-and analytic sheet sequences (a travelling fold, optional fine ripples), meters."""
+analytic sheet sequences (a travelling fold, optional fine ripples) and the cell files
+that the evaluation scripts read; meters."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import jax
 import numpy as np
 
 from wrinkle_jax import enhancer, meshio, primitives
+from wrinkle_jax.evaluation import cells
 from wrinkle_jax.nn import unet, vgg
 
 SIZE = (0.3, 0.2)  # sheet, meters
@@ -44,3 +46,13 @@ def sheet_pair(frames=3):
     """(fine 5 mm grid with ripples, coarse 30 mm grid) of the same sheet and fold."""
     return (sheet_sequence(60, 40, frames, ripple=0.002), sheet_sequence(10, 7, frames))
 
+
+def write_cell_files(root, garment, motion, material, frames=3):
+    """Tiny fine/coarse sheet files that `evaluation.cells.cell_sequences` accepts for a cell."""
+    sc = cells.scene_for(garment, motion)
+    meta = {"scene_config": sc.to_json(), "material": material, "seed": cells.TEST_SEED}
+    fine, coarse = sheet_pair(frames)
+    for res, seq in (("fine", fine), ("coarse", coarse)):
+        seq = meshio.make_sequence(seq.frames, seq.garment, metadata=meta)
+        path = cells.sequence_file(root, sc.name, material, res, cells.TEST_SEED)
+        meshio.save_sequence(path, seq)

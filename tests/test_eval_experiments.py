@@ -21,28 +21,16 @@ from evaluation_fixtures import (  # tests/ is on sys.path
     TEXEL,
     sheet_pair,
     sheet_sequence,
-    tiny_model,
-    tiny_vgg_params,
+    write_cell_files,
 )
 
 from experiments import report, stride, table1, table2, temporal, timing
-from wrinkle_jax import MATERIALS, enhancer, evaluation, meshio
+from wrinkle_jax import MATERIALS, enhancer, evaluation
 from wrinkle_jax.evaluation import cells as cell_lib
 from wrinkle_jax.evaluation import patchscores, suite
 from wrinkle_jax.evaluation import seams as seam_lib
 from wrinkle_jax.evaluation import sets as set_lib
 from wrinkle_jax.sim import scenes
-
-
-@pytest.fixture(scope="module")
-def tiny_vgg():
-    return tiny_vgg_params()
-
-
-@pytest.fixture(scope="module")
-def model():
-    return tiny_model()
-
 
 # --------------------------------------------------------------------------------------------
 # Table 1
@@ -62,22 +50,11 @@ def _spy_on_evaluate_cell(monkeypatch, module) -> list:
     return calls
 
 
-def _write_cell_files(root, garment, motion, material, frames=3):
-    """Tiny fine/coarse sheet files that `evaluation.cells.cell_sequences` accepts for a cell."""
-    sc = cell_lib.scene_for(garment, motion)
-    meta = {"scene_config": sc.to_json(), "material": material, "seed": cell_lib.TEST_SEED}
-    fine, coarse = sheet_pair(frames)
-    for res, seq in (("fine", fine), ("coarse", coarse)):
-        seq = meshio.make_sequence(seq.frames, seq.garment, metadata=meta)
-        path = cell_lib.sequence_file(root, sc.name, material, res, cell_lib.TEST_SEED)
-        meshio.save_sequence(path, seq)
-
-
 def test_table1_main_writes_results_and_resumes_from_stored_cells(tmp_path, monkeypatch,
                                                                   tiny_vgg, model):
     seqs = tmp_path / "seqs"
-    _write_cell_files(seqs, "dress", "dance", "silk_charmeuse")
-    _write_cell_files(seqs, "dress", "walk", "silk_charmeuse")
+    write_cell_files(seqs, "dress", "dance", "silk_charmeuse")
+    write_cell_files(seqs, "dress", "walk", "silk_charmeuse")
     model_path = tmp_path / "tiny.npz"
     enhancer.save_enhancer(model_path, model.params, model.config)
     monkeypatch.setattr(table1.vgg, "load_vgg19", lambda *a, **k: tiny_vgg)
@@ -141,7 +118,7 @@ def test_table1_main_writes_results_and_resumes_from_stored_cells(tmp_path, monk
 
 def test_temporal_main_writes_results_and_plot(tmp_path, model):
     seqs = tmp_path / "seqs"
-    _write_cell_files(seqs, "cape", "dance", "denim_light", frames=3)
+    write_cell_files(seqs, "cape", "dance", "denim_light", frames=3)
     model_path = tmp_path / "tiny.npz"
     enhancer.save_enhancer(model_path, model.params, model.config)
     out = tmp_path / "out"
@@ -294,7 +271,7 @@ def test_cell_comparison_finds_b_nearer_to_c_than_a_and_a_swap_reverses_it():
 def test_table2_main_uses_table1_patches_writes_results_and_resumes(tmp_path, monkeypatch,
                                                                       tiny_vgg, model):
     seqs = tmp_path / "seqs"
-    _write_cell_files(seqs, "dress", "dance", "silk_charmeuse", frames=4)
+    write_cell_files(seqs, "dress", "dance", "silk_charmeuse", frames=4)
     model_path = tmp_path / "tiny.npz"
     enhancer.save_enhancer(model_path, model.params, model.config)
     monkeypatch.setattr(table2.vgg, "load_vgg19", lambda *a, **k: tiny_vgg)
@@ -400,7 +377,7 @@ def test_stride_identity_network_scores_zero_and_leaves_the_coarse_seams(tiny_vg
 
 def test_stride_main_writes_results_table_and_plot(tmp_path, monkeypatch, tiny_vgg, model):
     seqs = tmp_path / "seqs"
-    _write_cell_files(seqs, "dress", "walk", "silk_charmeuse", frames=3)
+    write_cell_files(seqs, "dress", "walk", "silk_charmeuse", frames=3)
     model_path = tmp_path / "tiny.npz"
     enhancer.save_enhancer(model_path, model.params, model.config)
     monkeypatch.setattr(stride.vgg, "load_vgg19", lambda *a, **k: tiny_vgg)
@@ -435,8 +412,8 @@ def test_report_demote_and_drop():
 def test_report_assembles_stored_results_and_names_what_is_missing(tmp_path, monkeypatch,
                                                                    tiny_vgg, model):
     seqs = tmp_path / "seqs"
-    _write_cell_files(seqs, "dress", "walk", "silk_charmeuse")
-    _write_cell_files(seqs, "dress", "walk", "denim_light")
+    write_cell_files(seqs, "dress", "walk", "silk_charmeuse")
+    write_cell_files(seqs, "dress", "walk", "denim_light")
     model_path = tmp_path / "tiny.npz"
     enhancer.save_enhancer(model_path, model.params, model.config)
     monkeypatch.setattr(table1.vgg, "load_vgg19", lambda *a, **k: tiny_vgg)

@@ -2,18 +2,9 @@
 
 from __future__ import annotations
 
-import jax
 import numpy as np
-import pytest
 
 from wrinkle_jax import evaluation
-from wrinkle_jax.nn import vgg
-
-
-@pytest.fixture(scope="module")
-def tiny_vgg():
-    return vgg.init_vgg19(jax.random.key(0, impl="rbg"), widths=(4, 8, 8, 8, 8), num_convs=16,
-                          spec=vgg.VGGSpec("custom", "REFLECT"))
 
 
 def _patches(n=3, size=32, seed=0, detail=0.3):

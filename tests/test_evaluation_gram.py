@@ -3,16 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
-from evaluation_fixtures import PATCH, tiny_vgg_params  # tests/ is on sys.path
+from evaluation_fixtures import PATCH  # tests/ is on sys.path
 
 from wrinkle_jax import evaluation
 from wrinkle_jax.evaluation import gram
-
-
-@pytest.fixture(scope="module")
-def tiny_vgg():
-    return tiny_vgg_params()
 
 
 def _rgb_patches(n=3, size=PATCH, seed=0, detail=0.3):

@@ -8,16 +8,11 @@ import json
 import jax
 import numpy as np
 import pytest
-from evaluation_fixtures import PATCH, TEXEL, sheet_pair, tiny_model  # tests/ is on sys.path
+from evaluation_fixtures import PATCH, TEXEL, sheet_pair  # tests/ is on sys.path
 
 from wrinkle_jax import material_index, patches
 from wrinkle_jax.evaluation import methods as method_lib
 from wrinkle_jax.evaluation import patchsets
-
-
-@pytest.fixture(scope="module")
-def model():
-    return tiny_model()
 
 
 def test_unsharp_setting_reads_the_sweep_best_or_falls_back(tmp_path):

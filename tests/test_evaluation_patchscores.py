@@ -9,24 +9,11 @@ from evaluation_fixtures import (  # tests/ is on sys.path
     PATCH,
     TEXEL,
     sheet_pair,
-    tiny_model,
-    tiny_vgg_params,
 )
 
 from wrinkle_jax import evaluation
 from wrinkle_jax.evaluation import methods as method_lib
 from wrinkle_jax.evaluation import patchscores, suite
-
-
-@pytest.fixture(scope="module")
-def tiny_vgg():
-    return tiny_vgg_params()
-
-
-@pytest.fixture(scope="module")
-def model():
-    return tiny_model()
-
 
 SAMPLING = patchscores.Sampling(frames=3, frame_stride=2, patches_per_frame=2, patch_size=PATCH,
                            texel_size=TEXEL, min_coverage=0.5, score_batch=2)

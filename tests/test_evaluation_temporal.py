@@ -5,17 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from evaluation_fixtures import SIZE, TEXEL, sheet_sequence, tiny_model  # tests/ is on sys.path
+from evaluation_fixtures import SIZE, TEXEL, sheet_sequence  # tests/ is on sys.path
 
 from experiments import temporal
 from wrinkle_jax import evaluation, meshio, normalmap, primitives
 from wrinkle_jax.evaluation import patchsets
 from wrinkle_jax.evaluation import temporal as temporal_lib
-
-
-@pytest.fixture(scope="module")
-def model():
-    return tiny_model()
 
 
 def _rotating_sheet(frames, degrees_per_frame, nx=12, ny=8):

@@ -68,7 +68,8 @@ def pytest_unconfigure(config):
 # by their number of tests instead.) The order within a file is kept. Ranked by the sum of each
 # file's phases among the 80 slowest of a 2-worker run on a quiet 2-core machine (test_unet.py,
 # test_sim_*.py would otherwise start last, in alphabetical order).
-SLOW_FILES_FIRST = ("test_train.py", "test_patchgan.py", "test_sim_selfcollision.py",
+SLOW_FILES_FIRST = ("test_train.py", "test_sim_textile.py", "test_patchgan.py",
+                    "test_sim_selfcollision.py",
                     "test_sharpen.py", "test_fastconv.py", "test_unet.py", "test_sim_xpbd.py",
                     "test_lift.py", "test_eval_experiments.py", "test_notebooks.py",
                     "test_sim_detail.py", "test_cli_train.py")

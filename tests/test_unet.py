@@ -153,16 +153,26 @@ def _random_state_dict(width=4, materials=2, seed=0):
     return {k: v.astype(np.float32) for k, v in sd.items()}
 
 
+def _denormalized(ref):
+    """The authors' ImageNet-normalized output as the RGB form: ref * std + mean."""
+    return ref * np.array(unet.IMAGENET_STD) + np.array(unet.IMAGENET_MEAN)
+
+
 def test_torch_state_dict_reproduces_reference_forward():
     sd = _random_state_dict(width=4, materials=2)
     params, config = unet.from_torch_state_dict(sd)
-    assert config == dict(num_materials=2, width=4, input_norm="imagenet", residual=False)
+    assert config == dict(num_materials=2, width=4, input_norm="imagenet", residual=False,
+                          output_norm="imagenet")
     model = unet.CINUNet(**config)
+    raw = unet.CINUNet(**{**config, "output_norm": "none"})
     x = np.random.default_rng(1).uniform(size=(2, 32, 48, 3)).astype(np.float32)
     y = np.asarray(jax.jit(model.apply)({"params": params}, x, jnp.array([0, 1])))
+    y_raw = np.asarray(jax.jit(raw.apply)({"params": params}, x, jnp.array([0, 1])))
     for n, k in ((0, 0), (1, 1)):
         ref = _np_forward({kk: v.astype(np.float64) for kk, v in sd.items()}, x[n], k)
-        np.testing.assert_allclose(y[n], ref, rtol=1e-4, atol=1e-4)
+        # The raw network is the authors' forward pass; the converted one de-normalizes it once.
+        np.testing.assert_allclose(y_raw[n], ref, rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(y[n], _denormalized(ref), rtol=1e-4, atol=1e-4)
 
 
 def test_state_dict_errors():
@@ -181,7 +191,7 @@ def test_load_torch_checkpoint(tmp_path):
     x = np.random.default_rng(2).uniform(size=(1, 32, 32, 3)).astype(np.float32)
     y = np.asarray(model.apply({"params": params}, x, jnp.array([4])))
     ref = _np_forward({k: v.astype(np.float64) for k, v in sd.items()}, x[0], 4)
-    np.testing.assert_allclose(y[0], ref, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(y[0], _denormalized(ref), rtol=1e-4, atol=1e-4)
 
 
 def _tilted_wrinkles(n=2, size=32, seed=0):
@@ -329,7 +339,8 @@ def test_unet_config_builds_the_module_it_describes():
     names = [f.name for f in dataclasses.fields(unet.UNetConfig)]
     default = unet.CINUNet()
     assert all(getattr(default, n) == v for n, v in unet.UNetConfig().to_json().items())
-    changed = {"width": 8, "residual": True, "input_norm": "none", "residual_base": "unsharp",
+    changed = {"width": 8, "residual": True, "input_norm": "none", "output_norm": "imagenet",
+               "residual_base": "unsharp",
                "unsharp_sigma": 3.0, "unsharp_amount": 0.5, "residual_highpass": 5.0,
                "blur_order": 0, "detail_sigma": 4.0, "noise_channels": 2, "noise_scale": 3,
                "upsample": "bilinear"}
@@ -343,3 +354,4 @@ def test_unet_config_builds_the_module_it_describes():
     net, rest = unet.UNetConfig.split_json({"width": 8, "steps": 3}, unet.RECIPE_UNET)
     assert rest == {"steps": 3}
     assert net == dataclasses.replace(unet.RECIPE_UNET, width=8, blur_order=0)
+

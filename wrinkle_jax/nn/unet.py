@@ -10,7 +10,8 @@ Architecture (paper, "Network architecture", and the authors' published network)
       (the post-ReLU, pre-pool activations are the skips s1..s4)
     decoder, 4 x: 4x4 stride-2 transposed conv -> add skip -> CIN(material) -> ReLU
       channels 8w, 4w, 2w, w (skips s4, s3, s2, s1); sizes 8 -> 16 -> 32 -> 64 -> 128
-    3x3 conv to 3 channels  [+ base, with `residual=True`: the input itself, or with
+    3x3 conv to 3 channels  [-> output_norm="imagenet": de-normalized, out * std + mean]
+                            [+ base, with `residual=True`: the input itself, or with
                              residual_base="unsharp" the unsharp-masked input with a learnable
                              per-material gain (`wrinkle_jax.sharpen`)]
 
@@ -54,7 +55,11 @@ Interop: `from_torch_state_dict` converts the authors' PyTorch state dict (modul
 `E1_Conv2d`..`E4_Conv2d`, `D1_Deconv2d`..`D4_Deconv2d`, `D{1..4}_CIN.inns.{k}.weight|bias`,
 `out_Conv2d`) into our parameters; `load_torch_checkpoint` reads their `torch.save` file through
 the safe, torch-free reader. Their network normalizes its input with the ImageNet statistics
-and has no global residual: use `CINUNet(input_norm="imagenet", residual=False)`.
+and has no global residual, and its output is in the same ImageNet-normalized units as its
+input (nothing in it undoes the input normalization): `from_torch_state_dict`'s config sets
+`input_norm="imagenet", residual=False, output_norm="imagenet"`, so the converted network
+outputs the RGB form in [0, 1] like ours (`enhancer.from_torch_checkpoint` makes a
+pipeline-ready model of it).
 """
 
 from __future__ import annotations
@@ -131,6 +136,9 @@ class CINUNet(nn.Module):
         mean, which turns every mask border into a spurious ramp; models trained before
         session 4 use it).
       input_norm: "imagenet" (normalize RGB by ImageNet mean/std, as the authors do) or "none".
+      output_norm: "none", or "imagenet": the output conv computes ImageNet-normalized RGB (the
+        authors' network) and is de-normalized (out * std + mean) to the RGB form before
+        anything else uses it, so `__call__` always returns the RGB form.
       norm: the conditional normalization layer factory (called with num_materials).
       dtype: computation dtype of the "xla" convolutions (parameters stay float32).
       conv_impl: "xla", "im2col_bf16" (fast on CPU) or "im2col_f32" (see the module docstring).
@@ -154,6 +162,7 @@ class CINUNet(nn.Module):
     width: int = 64
     residual: bool = False
     input_norm: str = "imagenet"
+    output_norm: str = "none"
     residual_base: str = "input"
     unsharp_sigma: float = 8.0
     unsharp_amount: float = 1.0
@@ -241,6 +250,10 @@ class CINUNet(nn.Module):
         if compute is not None:  # 1% of the FLOPs: keep the output's last rounding float32
             conv = functools.partial(conv, compute_dtype=jnp.float32)
         out = conv(3, name="out")(h).astype(jnp.float32)
+        if self.output_norm == "imagenet":
+            out = out * jnp.asarray(IMAGENET_STD) + jnp.asarray(IMAGENET_MEAN)
+        elif self.output_norm != "none":
+            raise ValueError(f"unknown output_norm {self.output_norm!r}")
         if self.residual:
             base = x
             base_low = None  # the unsharp base's blur, when blurred with the high-pass's
@@ -285,6 +298,7 @@ class UNetConfig:
     width: int = 64
     residual: bool = False
     input_norm: str = "imagenet"
+    output_norm: str = "none"
     residual_base: str = "input"
     unsharp_sigma: float = 8.0
     unsharp_amount: float = 1.0
@@ -501,7 +515,8 @@ def from_torch_state_dict(state_dict: dict) -> tuple[dict, dict]:
     Returns:
       (params, config): params for `CINUNet`, and the constructor arguments that reproduce the
       authors' forward pass (width and material count read from the weights,
-      input_norm="imagenet", residual=False).
+      input_norm="imagenet", residual=False) with its ImageNet-normalized output de-normalized
+      to the RGB form in [0, 1] (output_norm="imagenet").
     """
     sd = {k.removeprefix("module."): v for k, v in state_dict.items()}
     params: dict = {}
@@ -526,7 +541,7 @@ def from_torch_state_dict(state_dict: dict) -> tuple[dict, dict]:
     num_materials = params["cin1"]["scale"].shape[0]
     params = jax.tree_util.tree_map(lambda a: jnp.asarray(np.ascontiguousarray(a)), params)
     config = dict(num_materials=int(num_materials), width=width, input_norm="imagenet",
-                  residual=False)
+                  residual=False, output_norm="imagenet")
     return params, config
 
 

@@ -508,3 +508,20 @@ def test_bake_never_writes_into_a_folder_with_user_files(root, tmp_path, capsys)
     assert _run(root, tmp_path, ["--texel-size", "0.004", "--frames", "1"],
                 command="bake")[0] == 0  # a previous bake is replaced, not merged into
     assert sorted(p.name for p in out.iterdir()) == ["normal_map_00001.png", "report.json"]
+
+
+def test_choose_material_reports_where_the_material_came_from(tmp_path, monkeypatch):
+    from wrinkle_jax import MATERIALS, classifier
+
+    choose = validate.choose_material
+    assert choose(None, "knit_terry", MATERIALS, "s.npz") == ("knit_terry", "stored")
+    assert choose("wool_melton", "knit_terry", MATERIALS, "s.npz") == ("wool_melton", "flag")
+    with pytest.raises(validate.UsageError, match="s.npz stores the unknown material 'tweed'"):
+        choose(None, "tweed", MATERIALS, "s.npz")
+    with pytest.raises(validate.UsageError, match="s.npz stores no material.*--material NAME"):
+        choose(None, None, MATERIALS, "s.npz")
+    monkeypatch.setattr(classifier, "DEFAULT_PATH", tmp_path / "none.npz")
+    with pytest.raises(validate.UsageError, match="no material classifier is available"):
+        choose("auto", "knit_terry", MATERIALS, "s.npz")
+    (tmp_path / "none.npz").write_bytes(b"")  # a classifier file exists: classify
+    assert choose("auto", "knit_terry", MATERIALS, "s.npz") == ("auto", "classified")

@@ -22,7 +22,8 @@ NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.i
 
 def test_the_notebooks_exist():
     names = [p.name for p in NOTEBOOKS]
-    assert "01_quickstart.ipynb" in names and "02_differentiable_lifting.ipynb" in names
+    assert {"01_quickstart.ipynb", "02_differentiable_lifting.ipynb",
+            "03_end_to_end_gradients.ipynb"} <= set(names)
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)

@@ -34,3 +34,35 @@ def test_readme_python_example_runs(tmp_path, monkeypatch):
 
     back, mask = normalmap.load_normal_map_png(tmp_path / "frame0.png")
     assert (mask[..., 0] > 0).sum() == inside.sum()
+
+
+def test_readme_layout_names_every_module_and_only_existing_files():
+    """The layout section is the newcomer's map: every library module, subpackage, benchmark
+    and experiment script is in it, and every file it names exists."""
+    text = (ROOT / "README.md").read_text()
+    section = text[text.index("## Layout"):]
+    block = re.search(r"```\n(.*?)```", section, re.S).group(1)
+    words = set(re.findall(r"[A-Za-z_][\w/]*(?:\.py|\.npz|\.md|/)?", block))
+    package = ROOT / "wrinkle_jax"
+    for path in package.glob("*.py"):
+        if path.name != "__init__.py":
+            assert path.name in words, f"{path.name} is not in the README layout"
+    for path in package.iterdir():
+        if path.is_dir() and (path / "__init__.py").is_file():
+            assert any(w.startswith(f"{path.name}/") for w in words), (
+                f"{path.name}/ is not in the README layout")
+    for folder in ("benchmarks", "experiments"):
+        for path in (ROOT / folder).glob("*.py"):
+            if path.name != "__init__.py":
+                assert path.stem in words, f"{folder}/{path.name} is not in the README layout"
+    library = {p.name for p in package.rglob("*") if p.is_file()}
+    for word in words:
+        if word.endswith((".py", ".npz", ".md")):
+            found = ((package / word).is_file() if "/" in word else
+                     word in library or (ROOT / "tests" / word).is_file()
+                     or (ROOT / "experiments" / "results" / word).is_file())
+        elif word.endswith("/"):
+            found = any((base / word).is_dir() for base in (package, ROOT, ROOT / "experiments"))
+        else:
+            continue
+        assert found, f"the README layout names {word}, which does not exist"

@@ -3,6 +3,8 @@ independent NumPy implementation of the authors' forward pass."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -153,17 +155,27 @@ def _random_state_dict(width=4, materials=2, seed=0):
     return {k: v.astype(np.float32) for k, v in sd.items()}
 
 
+def _denormalized(ref):
+    """The authors' ImageNet-normalized output as the RGB form: ref * std + mean."""
+    return ref * np.array(unet.IMAGENET_STD) + np.array(unet.IMAGENET_MEAN)
+
+
 def test_torch_state_dict_reproduces_reference_forward():
     sd = _random_state_dict(width=4, materials=2)
     params, kwargs = unet.from_torch_state_dict(sd)
-    assert kwargs == dict(num_materials=2, config=unet.UNetConfig(width=4, input_norm="imagenet",
-                                                                  residual=False))
+    assert kwargs == dict(num_materials=2, config=unet.UNetConfig(
+        width=4, input_norm="imagenet", residual=False, output_norm="imagenet"))
     model = unet.CINUNet(**kwargs)
+    raw = unet.CINUNet(num_materials=2, config=dataclasses.replace(kwargs["config"],
+                                                                   output_norm="none"))
     x = np.random.default_rng(1).uniform(size=(2, 32, 48, 3)).astype(np.float32)
     y = np.asarray(jax.jit(model.apply)({"params": params}, x, jnp.array([0, 1])))
+    y_raw = np.asarray(jax.jit(raw.apply)({"params": params}, x, jnp.array([0, 1])))
     for n, k in ((0, 0), (1, 1)):
         ref = _np_forward({kk: v.astype(np.float64) for kk, v in sd.items()}, x[n], k)
-        np.testing.assert_allclose(y[n], ref, rtol=1e-4, atol=1e-4)
+        # The raw network is the authors' forward pass; the converted one de-normalizes it once.
+        np.testing.assert_allclose(y_raw[n], ref, rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(y[n], _denormalized(ref), rtol=1e-4, atol=1e-4)
 
 
 def test_state_dict_errors():
@@ -182,7 +194,7 @@ def test_load_torch_checkpoint(tmp_path):
     x = np.random.default_rng(2).uniform(size=(1, 32, 32, 3)).astype(np.float32)
     y = np.asarray(model.apply({"params": params}, x, jnp.array([4])))
     ref = _np_forward({k: v.astype(np.float64) for k, v in sd.items()}, x[0], 4)
-    np.testing.assert_allclose(y[0], ref, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(y[0], _denormalized(ref), rtol=1e-4, atol=1e-4)
 
 
 def _tilted_wrinkles(n=2, size=32, seed=0):
@@ -331,7 +343,8 @@ def test_unet_config_builds_the_module_it_describes():
     own = {f.name for f in dataclasses.fields(unet.CINUNet)}
     assert not own & set(names)
     assert unet.CINUNet().config == unet.UNetConfig()
-    changed = {"width": 8, "residual": True, "input_norm": "none", "residual_base": "unsharp",
+    changed = {"width": 8, "residual": True, "input_norm": "none", "output_norm": "imagenet",
+               "residual_base": "unsharp",
                "unsharp_sigma": 3.0, "unsharp_amount": 0.5, "residual_highpass": 5.0,
                "blur_order": 0, "detail_sigma": 4.0, "noise_channels": 2, "noise_scale": 3,
                "upsample": "bilinear"}
@@ -355,3 +368,86 @@ def test_unet_config_builds_the_module_it_describes():
     net, rest = unet.UNetConfig.split_json({"width": 8, "steps": 3}, unet.RECIPE_UNET)
     assert rest == {"steps": 3}
     assert net == dataclasses.replace(unet.RECIPE_UNET, width=8, blur_order=0)
+
+
+# ---------------------------------------------------------------- converted checkpoints in the
+# pipeline: the authors' output is ImageNet-normalized; the converted model de-normalizes it
+# exactly once, wherever it runs (its own forward pass, recorded in its config).
+
+
+def _sheet_pipeline(enh, **config):
+    from wrinkle_jax import pipeline, primitives
+
+    g = primitives.grid_sheet(4, 4, size=(0.1, 0.1))
+    return pipeline.make_pipeline(g, enh, pipeline.PipelineConfig(lift=False, **config),
+                                  compile=False), g
+
+
+def test_converted_checkpoint_runs_in_the_pipeline_like_the_reference(tmp_path):
+    from wrinkle_jax import enhancer, patches, stages
+
+    sd = _random_state_dict(width=4, materials=5, seed=5)
+    path = tmp_path / "authors.pth"
+    save_state_dict(path, sd, wrap_key="model")
+    enh = enhancer.from_torch_checkpoint(path, patch_size=32, texel_size=0.004,
+                                         conv_impl="im2col_f32")
+    assert enh.config.unet.output_norm == "imagenet" and enh.config.unet.input_norm == "imagenet"
+    assert enh.config.materials == enhancer.MATERIALS
+    # The setting survives a model file, so a loaded model de-normalizes too (and only once).
+    saved = enhancer.save_enhancer(tmp_path / "converted.npz", enh.params, enh.config,
+                                   dtype=np.float32)
+    loaded = enhancer.load_enhancer(saved, conv_impl="im2col_f32")
+    assert loaded.config == enh.config
+    pipe, g = _sheet_pipeline(loaded, batch_size=3)
+    padded_mask = jnp.asarray(patches.pad_to_patch(pipe.mask, 32)[0])
+    _, rgb = stages.bake_stage(pipe.plan, jnp.asarray(g.vertices), padded_mask,
+                               padded_shape=pipe.padded_shape)
+    tiles = stages.tile_stage(rgb, jnp.asarray(pipe.origins), size=32)
+    out = np.asarray(stages.network_stage(enhancer.make_apply(loaded), loaded.params, tiles, 2,
+                                          batch_size=3))
+    assert pipe.num_patches >= 4 and pipe.num_patches % 3  # a zero-padded last batch
+    ref_sd = {k: v.astype(np.float64) for k, v in sd.items()}
+    for n in range(pipe.num_patches):
+        ref = np.clip(_denormalized(_np_forward(ref_sd, np.asarray(tiles[n], np.float64), 2)),
+                      0, 1)
+        np.testing.assert_allclose(out[n], ref, atol=2e-4)
+
+
+def test_converted_checkpoint_denormalizes_to_the_exact_normal(tmp_path):
+    # An analytic case: output conv weights 0 and bias (rgb - mean) / std, the ImageNet-
+    # normalized RGB form of one tilted normal n. The converted model must output exactly that
+    # RGB form on every texel, so the pipeline's N* is n on every garment texel. Without the
+    # de-normalization (or with it applied twice) N* would be another direction.
+    from wrinkle_jax import enhancer, pipeline
+
+    n = np.array([0.3, -0.2, 0.9])
+    n /= np.linalg.norm(n)
+    rgb = (n + 1) / 2
+    sd = _random_state_dict(width=4, materials=5, seed=6)
+    sd["out_Conv2d.weight"] = np.zeros_like(sd["out_Conv2d.weight"])
+    sd["out_Conv2d.bias"] = ((rgb - np.array(unet.IMAGENET_MEAN)) /
+                             np.array(unet.IMAGENET_STD)).astype(np.float32)
+    assert np.abs(sd["out_Conv2d.bias"] - rgb).max() > 0.5  # normalized != RGB form
+    path = tmp_path / "authors.pth"
+    save_state_dict(path, sd, wrap_key=None)  # a bare state dict
+    enh = enhancer.from_torch_checkpoint(path, patch_size=32, texel_size=0.004,
+                                         conv_impl="im2col_f32")
+    pipe, g = _sheet_pipeline(enh)
+    res = pipeline.frame_fn(pipe)(enh.params, jnp.asarray(g.vertices), 1)
+    inside = np.asarray(res.mask)[..., 0] > 0
+    assert inside.sum() > 100
+    np.testing.assert_allclose(np.asarray(res.normal_map)[inside], np.broadcast_to(
+        n, (inside.sum(), 3)), atol=1e-5)
+
+
+def test_converted_checkpoint_material_names(tmp_path):
+    from wrinkle_jax import enhancer
+
+    path = tmp_path / "authors.pth"
+    save_state_dict(path, _random_state_dict(width=4, materials=3), wrap_key="model")
+    with pytest.raises(enhancer.EnhancerError, match="3 materials"):
+        enhancer.from_torch_checkpoint(path)
+    enh = enhancer.from_torch_checkpoint(path, ("cotton", "leather", "silk"), patch_size=32)
+    assert enh.config.material_id("leather") == 1
+    with pytest.raises(enhancer.EnhancerError, match="2 material names"):
+        enhancer.from_torch_checkpoint(path, ("cotton", "leather"))

@@ -36,8 +36,8 @@ import numpy as np
 from wrinkle_jax import MATERIALS, modelfile, normalmap
 from wrinkle_jax.nn import unet
 
-__all__ = ["DEFAULT_PATH", "Enhancer", "EnhancerConfig", "EnhancerError", "init_enhancer",
-           "load_enhancer", "make_apply", "save_enhancer"]
+__all__ = ["DEFAULT_PATH", "Enhancer", "EnhancerConfig", "EnhancerError", "from_torch_checkpoint",
+           "init_enhancer", "load_enhancer", "make_apply", "save_enhancer"]
 
 DEFAULT_PATH = Path(__file__).resolve().parent / "assets" / "enhancer.npz"
 _FORMAT = "wrinkle-jax-enhancer/1"
@@ -157,6 +157,50 @@ def load_enhancer(path: str | os.PathLike | None = None,
         raise EnhancerError(f"{path}: parameters do not match the config (width "
                             f"{config.unet.width}); missing {missing}, wrong shape {wrong}")
     return Enhancer(model, params, config, meta)
+
+
+def from_torch_checkpoint(path: str | os.PathLike, materials: tuple[str, ...] | None = None, *,
+                          patch_size: int = 128,
+                          texel_size: float = normalmap.DEFAULT_TEXEL_SIZE,
+                          conv_impl: str = "im2col_bf16") -> Enhancer:
+    """The authors' PyTorch U-Net checkpoint as a pipeline-ready enhancer (no torch needed).
+
+    The weights are converted by `unet.load_torch_checkpoint` (the allow-listed reader). Their
+    network takes ImageNet-normalized RGB and outputs ImageNet-normalized RGB; the config
+    records both (`UNetConfig(input_norm="imagenet", output_norm="imagenet", residual=False)`),
+    so the model normalizes its input and de-normalizes its output to the RGB form in [0, 1]
+    inside its own forward pass -- exactly once, wherever it is applied (`make_apply`, the
+    pipeline, a model file written by `save_enhancer` and read back).
+
+    Args:
+      path: the `torch.save` file (a dict with a "model" state dict, or a bare state dict).
+      materials: names of the checkpoint's CIN rows, in order; None means `MATERIALS` and
+        needs a checkpoint with exactly that many rows.
+      patch_size: patch side (texels) to tile with; any multiple of 16 runs.
+      texel_size: meters of cloth per texel of the maps it is given (the checkpoint does not
+        record the scale it was trained at; the default is this package's).
+      conv_impl: the convolution form (see `load_enhancer`).
+    Raises:
+      unet.StateDictError: naming the file, if the weights are not the authors' U-Net.
+      EnhancerError: the number of materials does not match the checkpoint's CIN tables.
+      io.torch_pickle.CheckpointError: the file is not a readable PyTorch checkpoint
+        (`UnsafeCheckpointError`, a subclass: it names a global outside the allow-list).
+    """
+    net, params = unet.load_torch_checkpoint(path)
+    if materials is None:
+        materials = MATERIALS
+        if net.num_materials != len(MATERIALS):
+            raise EnhancerError(f"{path}: the checkpoint has {net.num_materials} materials, "
+                                f"this package {len(MATERIALS)}; pass their names as "
+                                "`materials`")
+    materials = tuple(materials)
+    if len(materials) != net.num_materials:
+        raise EnhancerError(f"{path}: {len(materials)} material names for a checkpoint with "
+                            f"{net.num_materials} materials")
+    config = EnhancerConfig(unet=net.config, materials=materials, patch_size=int(patch_size),
+                            texel_size=float(texel_size))
+    meta = {"source": f"converted from the PyTorch checkpoint {Path(path).name}"}
+    return Enhancer(config.model(conv_impl), params, config, meta)
 
 
 def make_apply(enhancer: Enhancer, clip: bool = True):

@@ -10,7 +10,8 @@ Architecture (paper, "Network architecture", and the authors' published network)
       (the post-ReLU, pre-pool activations are the skips s1..s4)
     decoder, 4 x: 4x4 stride-2 transposed conv -> add skip -> CIN(material) -> ReLU
       channels 8w, 4w, 2w, w (skips s4, s3, s2, s1); sizes 8 -> 16 -> 32 -> 64 -> 128
-    3x3 conv to 3 channels  [+ base, with `residual=True`: the input itself, or with
+    3x3 conv to 3 channels  [-> output_norm="imagenet": de-normalized, out * std + mean]
+                            [+ base, with `residual=True`: the input itself, or with
                              residual_base="unsharp" the unsharp-masked input with a learnable
                              per-material gain (`wrinkle_jax.sharpen`)]
 
@@ -55,8 +56,11 @@ Interop: `from_torch_state_dict` converts the authors' PyTorch state dict (modul
 `E1_Conv2d`..`E4_Conv2d`, `D1_Deconv2d`..`D4_Deconv2d`, `D{1..4}_CIN.inns.{k}.weight|bias`,
 `out_Conv2d`) into our parameters; `load_torch_checkpoint` reads their `torch.save` file through
 the safe, torch-free reader. Their network normalizes its input with the ImageNet statistics
-and has no global residual: use `UNetConfig(input_norm="imagenet", residual=False)`
-(`from_torch_state_dict` returns it).
+and has no global residual, and its output is in the same ImageNet-normalized units as its
+input (nothing in it undoes the input normalization): `from_torch_state_dict`'s config sets
+`input_norm="imagenet", residual=False, output_norm="imagenet"`, so the converted network
+outputs the RGB form in [0, 1] like ours (`enhancer.from_torch_checkpoint` makes a
+pipeline-ready model of it).
 """
 
 from __future__ import annotations
@@ -126,6 +130,9 @@ class UNetConfig:
       width: channels of the first level (w); the levels use w, 2w, 4w, 8w.
       residual: return base + network output (a global residual) instead of the output.
       input_norm: "imagenet" (normalize RGB by ImageNet mean/std, as the authors do) or "none".
+      output_norm: "none", or "imagenet": the output conv computes ImageNet-normalized RGB (the
+        authors' network) and is de-normalized (out * std + mean) to the RGB form before
+        anything else uses it, so the module always returns the RGB form.
       residual_base: "input" (base = the input) or "unsharp" (base = the unsharp-masked input,
         `sharpen.unsharp_rgb` with `unsharp_sigma` texels and a per-material gain, parameter
         ``unsharp_amount`` (num_materials,), initialized to `unsharp_amount`). With a
@@ -160,6 +167,7 @@ class UNetConfig:
     width: int = 64
     residual: bool = False
     input_norm: str = "imagenet"
+    output_norm: str = "none"
     residual_base: str = "input"
     unsharp_sigma: float = 8.0
     unsharp_amount: float = 1.0
@@ -293,6 +301,10 @@ class CINUNet(nn.Module):
         if compute is not None:  # 1% of the FLOPs: keep the output's last rounding float32
             conv = functools.partial(conv, compute_dtype=jnp.float32)
         out = conv(3, name="out")(h).astype(jnp.float32)
+        if cfg.output_norm == "imagenet":
+            out = out * jnp.asarray(IMAGENET_STD) + jnp.asarray(IMAGENET_MEAN)
+        elif cfg.output_norm != "none":
+            raise ValueError(f"unknown output_norm {cfg.output_norm!r}")
         if cfg.residual:
             base = x
             base_low = None  # the unsharp base's blur, when blurred with the high-pass's
@@ -498,7 +510,8 @@ def from_torch_state_dict(state_dict: dict) -> tuple[dict, dict]:
     Returns:
       (params, kwargs): params for `CINUNet`, and the constructor arguments that reproduce the
       authors' forward pass, ``CINUNet(**kwargs)``: `num_materials` and a `config` (UNetConfig)
-      with the width read from the weights, input_norm="imagenet", residual=False.
+      with the width read from the weights, input_norm="imagenet", residual=False, and
+      output_norm="imagenet" (its ImageNet-normalized output de-normalized to the RGB form).
     """
     sd = {k.removeprefix("module."): v for k, v in state_dict.items()}
     params: dict = {}
@@ -522,7 +535,8 @@ def from_torch_state_dict(state_dict: dict) -> tuple[dict, dict]:
                      "bias": _get(sd, "out_Conv2d.bias", 1)}
     num_materials = params["cin1"]["scale"].shape[0]
     params = jax.tree_util.tree_map(lambda a: jnp.asarray(np.ascontiguousarray(a)), params)
-    config = UNetConfig(width=width, input_norm="imagenet", residual=False)
+    config = UNetConfig(width=width, input_norm="imagenet", residual=False,
+                        output_norm="imagenet")
     return params, dict(num_materials=int(num_materials), config=config)
 
 

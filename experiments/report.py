@@ -72,6 +72,8 @@ FIDELITY_METHODS = {
     "detail_bilinear": "candidate, session 7: + bilinear decoder, 4-texel noise (not shipped)",
     "detail_logratio": "candidate, session 9: per-material unsharp base, log-ratio style loss "
                        "(not shipped)",
+    "detail_logratio_s3272": "candidate, session 10: the session-9 run resumed to 3,272 steps "
+                             "(not shipped)",
 }
 
 

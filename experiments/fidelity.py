@@ -150,7 +150,7 @@ def val_models(args, vgg_params) -> dict:
     model - unsharp_material (95 % bootstrap). This is what checkpoint and recipe choices
     read; the held-out scenes are never touched here. Texel-noise models get fixed
     pseudo-random patch origins (the val patches carry none)."""
-    ds = data.PatchDataset(args.data, "val")
+    ds = data.PatchDataset(args.data, args.split)
     settings = material_settings()
     models = {}
     for spec in args.model:
@@ -161,6 +161,7 @@ def val_models(args, vgg_params) -> dict:
     scores = {k: [] for k in ["unsharp_material", *models,
                               *(TRANSPLANTS if args.transplant else ())]}
     mats = []
+    bands: dict = {}  # method -> band -> per-patch RMS of the detail (and the 2-texel checker)
     picks = {}
     for mid in range(len(MATERIALS)):
         rows = np.flatnonzero(ds.materials == mid)
@@ -185,12 +186,19 @@ def val_models(args, vgg_params) -> dict:
             ps.input, (ps.target, *outs.values()), ps.mask, SIGMA))
         losses = gram.method_losses(vgg_params, d_in, d_tgt, ps.mask,
                                   dict(zip(outs, d_outs, strict=True)))
+        for k, d_k, img in (("target", d_tgt, ps.target),
+                            *zip(outs, d_outs, outs.values(), strict=True)):
+            b = evaluation.band_rms(d_k, ps.mask)
+            bands.setdefault(k, {"lt16mm": [], "16_64mm": [], "checker": []})
+            bands[k]["lt16mm"].append(np.asarray(b["lt16mm"]))
+            bands[k]["16_64mm"].append(np.asarray(b["16_64mm"]))
+            bands[k]["checker"].append(np.asarray(evaluation.checker_rms(img, ps.mask)))
         for k in outs:
             sc = evaluation.scores_from_losses(losses["input"], losses[k])
             scores[k].append(np.where(sc["valid"], sc["improvement_signed"], np.nan))
         mats += [mat] * len(pick)
     mats = np.asarray(mats)
-    got = {"split": "val", "patches_per_material": int(args.sweep_patches),
+    got = {"split": args.split, "patches_per_material": int(args.sweep_patches),
            "detail_sigma": SIGMA, "models": {k: suite.portable_path(p.split("=", 1)[1])
                                              for k, p in zip(models, args.model, strict=True)},
            "methods": {}}
@@ -200,13 +208,20 @@ def val_models(args, vgg_params) -> dict:
         entry = {"median": float(np.median(sc[v])), "mean": float(np.mean(sc[v])),
                  "material_medians": {m: float(np.nanmedian(sc[mats == m]))
                                       for m in dict.fromkeys(mats)}}
+        fine = {b: float(np.mean(np.concatenate(v))) for b, v in bands["target"].items()}
+        if k in bands:  # mean band energy relative to the fine target's (as `summarize`)
+            entry["band_ratio_to_fine"] = {
+                b: float(np.mean(np.concatenate(v))) / max(fine[b], 1e-12)
+                for b, v in bands[k].items()}
         if k != "unsharp_material":
             base = cat["unsharp_material"]
             entry["vs_unsharp_material"] = evaluation.paired_difference(
                 np.nan_to_num(sc), np.nan_to_num(base), v & np.isfinite(base))
         got["methods"][k] = entry
-        print(f"{k}: val median {entry['median']:+.1f} (mean {entry['mean']:+.1f}) "
-              + ", ".join(f"{m} {x:+.1f}" for m, x in entry["material_medians"].items()),
+        print(f"{k}: {args.split} median {entry['median']:+.1f} (mean {entry['mean']:+.1f}) "
+              + ", ".join(f"{m} {x:+.1f}" for m, x in entry["material_medians"].items())
+              + "; bands/fine " + ", ".join(f"{b} {x:.2f}" for b, x in
+                                             entry.get("band_ratio_to_fine", {}).items()),
               flush=True)
     return got
 
@@ -463,6 +478,9 @@ def main(argv=None) -> int:
     ap.add_argument("--patches", type=int, default=8)
     ap.add_argument("--ceilings", type=int, default=1)
     ap.add_argument("--val-out", default=None, help="val: write the JSON here")
+    ap.add_argument("--split", default="val", choices=("val", "valgarment"),
+                    help="val: the pair data's split (val = last frames of the training scenes; "
+                         "valgarment = the validation-only garment, a proxy for unseen ones)")
     ap.add_argument("--transplant", type=int, default=0,
                     help="val: also score the coarse input carrying fine detail from its own "
                          "target / other patches (`transplants`)")

@@ -1,7 +1,7 @@
 """Real coarse-input / fine-target patch pairs of the TRAINING scenes (resumable).
 
-    python -m experiments.make_sequences --only sheet_balls_wind,skirt_dance,pleated_skirt_dance2 \
-        --train-frames 300                                      # fine, seed 0
+    python -m experiments.make_sequences --only sheet_balls_wind,skirt_dance,pleated_skirt_dance2,\
+shawl_dance2,apron_dance,tabard_dance2 --train-frames 300   # fine (+ coarse val scene), seed 0
     python -m experiments.make_coarse_training_sequences --frames 300   # coarse, seed 0
     python -m experiments.make_pair_dataset [--sequences data/sequences] [--out data/pairs]
 
@@ -10,8 +10,11 @@ of the same motion are baked on one grid (`wrinkle_jax.evaluation.patchsets`) an
 same random origins (`data.build_pair_sequence`): input = the real coarse map, target = the fine
 map. The last `--val-fraction` of each sequence's frames form the "val" split, which the trainer
 evaluates on and recipe choices read; the held-out garments and motions are not in this data
-set at all. No dihedral augmentation: flipping the pixel grid of an object-space normal map
-makes a field no surface has, and the detail loss compares the statistics of real maps.
+set at all. The validation-only scenes (`scenes.VAL_SCENES`: a garment outside both training
+and the held-out sets) are written whole as the "valgarment" split, which checkpoint choices
+read as a proxy for unseen garments. No dihedral augmentation: flipping the pixel grid of an
+object-space normal map makes a field no surface has, and the detail loss compares the
+statistics of real maps.
 Progress goes to `<out>/make_pair_dataset.log`.
 """
 
@@ -47,11 +50,11 @@ def main(argv=None) -> int:
             print(msg, flush=True)
 
         missing = 0
-        for scene in scenes.TRAINING_SCENES:
+        for scene in scenes.TRAINING_SCENES + scenes.VAL_SCENES:
             for mat in MATERIALS:
                 name = f"{scene}__{mat}"
                 want = [out / "index" / f"{name}.json"]
-                if args.val_fraction > 0:
+                if args.val_fraction > 0 and scene in scenes.TRAINING_SCENES:
                     want.append(out / "index" / f"{name}__val.json")
                 if all(p.exists() for p in want):
                     continue

@@ -8,8 +8,10 @@ Writes `<out>/<scene>/<material>_<resolution>_s<seed>.npz` (`scenes.save_simulat
 (T, V, 3) m, UVs in meters, metadata with material / PD / scene config JSON, pin and collider
 tracks) for:
 
-  * training scenes (sheet_balls_wind, skirt_dance, pleated_skirt_dance2): all five materials,
-    fine (PD 10 mm), seed 0 (the same motion for every material, as in the paper);
+  * training scenes (sheet_balls_wind, skirt_dance, pleated_skirt_dance2, shawl_dance2,
+    apron_dance): all five materials, fine (PD 10 mm), seed 0 (the same motion for every
+    material, as in the paper);
+  * validation-only scenes (tabard_dance2): all five materials, fine AND coarse, seed 0;
   * test-only scenes (dress_dance, cape_walk, skirt_walk): all five materials, fine AND coarse
     (PD 30 mm), seed 1.
 
@@ -39,16 +41,22 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # Measured ms/frame (fine, coarse) used for the ETA only.
 EST_MS = {"sheet_balls_wind": (125, 8), "skirt_dance": (210, 15), "pleated_skirt_dance2": (130, 10),
+          "shawl_dance2": (100, 8), "apron_dance": (60, 6), "tabard_dance2": (70, 6),
           "dress_dance": (135, 8), "cape_walk": (131, 8), "skirt_walk": (235, 15)}
 
 
-def plan(train_frames: int, test_frames: int) -> list[dict]:
+def plan(train_frames: int, test_frames: int, val_frames: int = 150) -> list[dict]:
     """The jobs: one per (scene, resolution, material), grouped by scene and resolution."""
     jobs = []
     for name in scenes.TRAINING_SCENES:
         for mat in MATERIALS:
             jobs.append({"scene": name, "resolution": "fine", "material": mat, "seed": 0,
                          "frames": train_frames})
+    for name in scenes.VAL_SCENES:
+        for res in ("fine", "coarse"):
+            for mat in MATERIALS:
+                jobs.append({"scene": name, "resolution": res, "material": mat, "seed": 0,
+                             "frames": val_frames})
     for name in scenes.TEST_SCENES:
         for res in ("fine", "coarse"):
             for mat in MATERIALS:
@@ -150,6 +158,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(ROOT / "data" / "sequences"))
     ap.add_argument("--train-frames", type=int, default=600)
     ap.add_argument("--test-frames", type=int, default=300)
+    ap.add_argument("--val-frames", type=int, default=150)
     ap.add_argument("--tiny", action="store_true", help="3 frames each, coarse only (smoke test)")
     ap.add_argument("--only", default=None,
                     help="comma-separated scene names (e.g. the sheet and the test scenes first, "
@@ -164,7 +173,7 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     log_path = out / "make_sequences.log"
-    jobs = plan(args.train_frames, args.test_frames)
+    jobs = plan(args.train_frames, args.test_frames, args.val_frames)
     if args.tiny:
         tiny = {}
         for j in jobs:

@@ -60,8 +60,9 @@ def main(argv=None) -> None:
     ap.add_argument("--warm-start", action="store_true")
     ap.add_argument("--export-only", action="store_true")
     ap.add_argument("--eval-split", default="heldout",
-                    help="split of the periodic evaluation: heldout, or val (pair data: frames "
-                         "of the training scenes, so no held-out data guides the recipe)")
+                    help="split of the periodic evaluation: heldout, val (pair data: frames "
+                         "of the training scenes) or valgarment (pair data: the validation-only "
+                         "garment), so no held-out data guides the recipe")
     ap.add_argument("--train-scenes", default=None,
                     help="train on these scenes only (comma-separated; e.g. sheet_balls_wind "
                          "for the sheet-only ablation, paper Fig. 8)")

@@ -214,6 +214,14 @@ def test_pair_dataset_holds_real_coarse_inputs_and_a_val_split(tmp_path):
         {"garment": "dress", "motion": "wind", "test_only": True})})
     e = data.build_pair_sequence(held, coarse, "dress_x", tmp_path / "h", cfg, val_fraction=0.4)
     assert [x["split"] for x in e] == ["heldout"]
+    # The validation-only garment goes whole to "valgarment", never to train or val.
+    vg = dataclasses.replace(fine, metadata={**fine.metadata, "scene_config": json.dumps(
+        {"garment": "tabard", "motion": "dance2", "test_only": False, "val_only": True})})
+    e = data.build_pair_sequence(vg, coarse, "tabard_x", tmp_path / "v", cfg, val_fraction=0.4)
+    assert [x["split"] for x in e] == ["valgarment"]
+    assert sorted({f for s in e[0]["shards"] for f in s["frames"]}) == [0, 1, 2, 3, 4]
+    assert len(data.PatchDataset(tmp_path / "v", "valgarment")) == 5 * cfg.crops_per_frame
+    assert len(data.PatchDataset(tmp_path / "v", "train")) == 0
 
 
 def test_batch_iterator_origins_are_seeded_by_position(built):

@@ -32,7 +32,7 @@ def test_quality_and_coverage(meshes):
 def test_uvs_are_meters_for_isometric_drapes(meshes):
     # Sheet, flared skirt (exact cone), pleated skirt (generalized cylinder), cape (flat):
     # 3D area equals UV area.
-    for name in ("sheet", "flared_skirt", "pleated_skirt", "cape"):
+    for name in ("sheet", "flared_skirt", "pleated_skirt", "cape", "shawl", "apron", "tabard"):
         _, m = meshes[name]
         g = m.garment
         a3 = float(np.sum(np.asarray(face_areas(g.vertices, g.faces))))
@@ -69,6 +69,21 @@ def test_skirt_normals_point_outward(meshes):
         n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
         radial = v[f].mean(1) * [1, 1, 0]
         assert np.mean(np.sum(n * radial, 1) > 0) > 0.95, name
+
+
+def test_hanging_panels_face_outward_and_hang_from_their_top_edge(meshes):
+    # shawl behind the back faces -y; apron and tabard in front face +y; the pinned "top"
+    # landmark is the panel's highest row, at the pattern's top height, clear of the body.
+    for name, sign, top in (("shawl", -1, P.SHOULDER_Z), ("apron", 1, P.WAIST_Z),
+                            ("tabard", 1, P.SHOULDER_Z)):
+        pat, m = meshes[name]
+        v = np.asarray(m.garment.vertices, np.float64)
+        f = np.asarray(m.garment.faces)
+        n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        assert (np.sign(n[:, 1]) == sign).all(), name
+        tops = m.landmark_vertices(pat, "top")
+        np.testing.assert_allclose(v[tops, 2], top, atol=1e-9)
+        assert v[:, 2].max() == pytest.approx(top) and sign * v[0, 1] > 0.15, name
 
 
 def test_deterministic_and_irregular():

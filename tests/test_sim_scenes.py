@@ -48,11 +48,22 @@ def test_metadata_tracks_and_roundtrip(tmp_path):
 
 def test_scene_registry_and_errors():
     assert set(scenes.TRAINING_SCENES) == {"sheet_balls_wind", "skirt_dance",
-                                           "pleated_skirt_dance2"}
+                                           "pleated_skirt_dance2", "shawl_dance2", "apron_dance"}
     assert {"dress_dance", "cape_walk"} <= set(scenes.TEST_SCENES)
+    assert scenes.VAL_SCENES == ("tabard_dance2",)
+    held = {scenes.get_scene(n).garment for n in scenes.TEST_SCENES + scenes.VAL_SCENES}
     for name in scenes.TRAINING_SCENES:
         s = scenes.get_scene(name)
-        assert s.garment not in ("dress", "cape") and s.motion not in mannequin.TEST_MOTIONS
+        assert s.garment not in held - {"flared_skirt"}  # skirt_walk holds out a motion only
+        assert s.motion not in mannequin.TEST_MOTIONS
+    for name in scenes.VAL_SCENES:  # the validation garment is neither trained nor held out
+        s = scenes.get_scene(name)
+        assert s.val_only and not s.test_only and s.motion not in mannequin.TEST_MOTIONS
+        assert s.garment not in {scenes.get_scene(n).garment
+                                 for n in scenes.TRAINING_SCENES + scenes.TEST_SCENES}
+    # Older scenes' JSON is unchanged by the val_only field (stored simulations still match).
+    assert "val_only" not in json.loads(scenes.get_scene("dress_dance").to_json())
+    assert json.loads(scenes.get_scene("tabard_dance2").to_json())["val_only"] is True
     with pytest.raises(scenes.SceneError, match="unknown scene"):
         scenes.get_scene("ballroom")
     with pytest.raises(ValueError, match="unknown material"):

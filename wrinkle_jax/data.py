@@ -18,8 +18,10 @@ sequences are.
 
 Splits are by garment and by motion: a sequence whose garment is in `heldout_garments`, whose
 motion is in `heldout_motions` (the simulator's test scenes: dress, cape, walk), or whose metadata
-marks it `test_only` is "heldout"; everything else is "train". Held-out garments and motions
-never reach training.
+marks it `test_only` is "heldout"; a validation-only scene (metadata `val_only`: a garment
+neither training nor the held-out sets contain, read by checkpoint and recipe choices) is
+"valgarment"; everything else is "train". Held-out and validation garments and motions never
+reach training.
 """
 
 from __future__ import annotations
@@ -109,16 +111,21 @@ def sequence_info(seq: GarmentSequence, name: str) -> dict:
     garment = meta.get("garment", scene_cfg.get("garment", scene))
     motion = meta.get("motion", scene_cfg.get("motion", scene))
     test_only = bool(meta.get("test_only", scene_cfg.get("test_only", False)))
-    return {"material": material, "scene": scene, "garment": garment,
+    info = {"material": material, "scene": scene, "garment": garment,
             "motion": str(motion), "test_only": test_only}
+    if meta.get("val_only", scene_cfg.get("val_only", False)):
+        info["val_only"] = True
+    return info
 
 
 def split_of(info: dict, config: PatchDataConfig) -> str:
     """'heldout' if the garment or the motion is held out or the sequence is marked test-only,
-    else 'train'."""
+    'valgarment' if it is marked validation-only, else 'train'."""
     if (info["garment"] in config.heldout_garments or info["motion"] in config.heldout_motions
             or info.get("test_only", False)):
         return "heldout"
+    if info.get("val_only", False):
+        return "valgarment"
     return "train"
 
 

@@ -474,8 +474,9 @@ def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.P
         run, e.g. the shipped model's; ignored when resuming from a checkpoint.
       train_scenes: train on these scenes' patches only (e.g. the sheet-only ablation); the
         held-out evaluation keeps every held-out scene.
-      eval_split: the split the periodic evaluation reads ("heldout", or "val": frames of the
-        training scenes set aside, so that recipe choices never see held-out data).
+      eval_split: the split the periodic evaluation reads ("heldout"; "val": frames of the
+        training scenes set aside; or "valgarment": the validation-only garment, so that
+        recipe and checkpoint choices never see held-out data).
     """
     from tqdm import tqdm
 

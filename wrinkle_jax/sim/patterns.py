@@ -26,7 +26,9 @@ Contract:
 Garments (`GARMENTS`): `sheet` (1 m square, hanging), `flared_skirt` (4 gores, half-circle
 flare), `pleated_skirt` (2 panels, 16 pleats pressed into the waist), and test-only `dress`
 (front/back with side and shoulder seams) and `cape` (a 252-degree circular cape fastened at
-the neck). Coordinates: z up, the mannequin faces +y.
+the neck); hanging panels pinned along their top edge: `shawl` (down the back from the
+shoulders) and `apron` (in front of the legs from the waist), and validation-only `tabard`
+(in front, from the shoulders). Coordinates: z up, the mannequin faces +y.
 """
 
 from __future__ import annotations
@@ -422,6 +424,41 @@ def sheet_pattern(width: float = 1.0, height: float = 1.0, top: float = 1.6) -> 
                    {"top": (("sheet", 2),), "bottom": (("sheet", 0),)})
 
 
+def panel_pattern(name: str, width: float, height: float, top: float, y: float,
+                  facing: float) -> Pattern:
+    """A rectangular panel hanging in an x-z plane at depth `y` (meters), its top edge (the
+    "top" landmark, pinned by the scenes) at height `top`; `facing` = +1 puts the panel's
+    front (outward) side towards +y, -1 towards -y."""
+
+    def drape(_, p):
+        x = facing * (width / 2 - p[:, 0])
+        return np.stack([x, np.full(len(p), y), top - height + p[:, 1]], 1)
+
+    return Pattern(name, (Panel(name, _rect(width, height)),), (), drape,
+                   {"top": ((name, 2),), "bottom": ((name, 0),)})
+
+
+# Mannequin landmarks the panels hang from (mannequin.HIP_HEIGHT + chest offsets): the
+# shoulder line and the depth just outside the chest and pelvis capsules.
+SHOULDER_Z = 1.44
+
+
+def shawl_pattern() -> Pattern:
+    """A shawl hanging down the back from the shoulder line (0.8 x 0.85 m, training)."""
+    return panel_pattern("shawl", 0.8, 0.85, SHOULDER_Z, -0.17, -1.0)
+
+
+def apron_pattern() -> Pattern:
+    """An apron hanging in front of the legs from the waist (0.55 x 0.6 m, training)."""
+    return panel_pattern("apron", 0.55, 0.6, WAIST_Z, 0.16, 1.0)
+
+
+def tabard_pattern() -> Pattern:
+    """VALIDATION-ONLY: a narrow front panel hanging from the shoulder line to the knees
+    (0.45 x 0.9 m); checkpoint choices read it, training never sees it."""
+    return panel_pattern("tabard", 0.45, 0.9, SHOULDER_Z, 0.17, 1.0)
+
+
 def _sector(r_in: float, r_out: float, angle: float, n: int = 96) -> tuple:
     """Annular sector centred on -v: sides 0 outer arc, 1 right edge, 2 inner arc, 3 left."""
     h = angle / 2
@@ -609,8 +646,12 @@ GARMENTS = {
     "pleated_skirt": pleated_skirt_pattern,
     "dress": dress_pattern,
     "cape": cape_pattern,
+    "shawl": shawl_pattern,
+    "apron": apron_pattern,
+    "tabard": tabard_pattern,
 }
 TEST_ONLY_GARMENTS = ("dress", "cape")
+VAL_ONLY_GARMENTS = ("tabard",)
 
 
 def make_pattern(name: str) -> Pattern:

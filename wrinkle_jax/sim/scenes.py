@@ -7,6 +7,11 @@ Scenes (`SCENES`; z up, the mannequin faces +y; 30 fps):
                           gusty wind (the paper's base data)
     skirt_dance           long flared 4-gore skirt on the mannequin dancing (samba-like)
     pleated_skirt_dance2  pleated skirt, a second dance (spins, kicks, jumps)
+    shawl_dance2          rectangular shawl hanging down the back from the shoulders, dance 2
+    apron_dance           apron hanging in front of the legs from the waist, dance
+  validation only (a garment neither training nor the held-out sets contain; checkpoint and
+  recipe choices read it)
+    tabard_dance2         narrow front panel hanging from the shoulders, dance 2
   test only (unseen garments and an unseen motion)
     dress_dance           sleeveless A-line dress (front/back, side + shoulder seams), dance
     cape_walk             circular cape fastened at the neck, walking (unseen motion)
@@ -71,7 +76,9 @@ class SceneConfig:
       preroll_damping: extra velocity damping during the pre-roll, 1/s.
       substeps: solver substeps per frame (30 fps). stretch_sweeps: stretch sweeps per substep.
       frames: default number of returned frames.
-      test_only: never used for training.
+      test_only: never used for training (held-out evaluation).
+      val_only: never used for training; the validation garment that checkpoint and recipe
+        choices read (so held-out scenes need not).
     """
 
     name: str
@@ -88,10 +95,14 @@ class SceneConfig:
     stretch_sweeps: int = 2
     frames: int = 300
     test_only: bool = False
+    val_only: bool = False
     description: str = ""
 
     def to_json(self) -> str:
-        return json.dumps(dataclasses.asdict(self), sort_keys=True)
+        d = dataclasses.asdict(self)
+        if not d["val_only"]:  # keeps the JSON (and stored simulations' match) of older scenes
+            del d["val_only"]
+        return json.dumps(d, sort_keys=True)
 
 
 SCENES = {s.name: s for s in (
@@ -102,6 +113,13 @@ SCENES = {s.name: s for s in (
                 description="long flared 4-gore skirt, samba-like dance"),
     SceneConfig("pleated_skirt_dance2", "pleated_skirt", "dance2", "waist", "pelvis",
                 description="pleated skirt (16 pleats), modern dance with spins and kicks"),
+    SceneConfig("shawl_dance2", "shawl", "dance2", "top", "chest",
+                description="shawl hanging down the back from the shoulders, dance 2"),
+    SceneConfig("apron_dance", "apron", "dance", "top", "pelvis",
+                description="apron hanging in front of the legs from the waist, dance"),
+    SceneConfig("tabard_dance2", "tabard", "dance2", "top", "chest", val_only=True,
+                description="VAL: narrow front panel from the shoulders (unseen garment), "
+                            "dance 2"),
     SceneConfig("dress_dance", "dress", "dance", "shoulders", "chest", test_only=True,
                 description="TEST: sleeveless A-line dress (unseen garment), dance"),
     SceneConfig("cape_walk", "cape", "walk", "neck", "chest", preroll_s=2.0, test_only=True,
@@ -109,7 +127,8 @@ SCENES = {s.name: s for s in (
     SceneConfig("skirt_walk", "flared_skirt", "walk", "waist", "pelvis", test_only=True,
                 description="TEST: flared skirt, walk (unseen motion)"),
 )}
-TRAINING_SCENES = tuple(n for n, s in SCENES.items() if not s.test_only)
+TRAINING_SCENES = tuple(n for n, s in SCENES.items() if not (s.test_only or s.val_only))
+VAL_SCENES = tuple(n for n, s in SCENES.items() if s.val_only)
 TEST_SCENES = tuple(n for n, s in SCENES.items() if s.test_only)
 
 
@@ -207,7 +226,7 @@ def _pins(scene: SceneConfig, pattern, mesh, frames, n_pre: int, attach_frames: 
     elif scene.garment == "cape":
         xy = patterns.cape_neck_targets(p0[:, :2])
         target = np.concatenate([xy, np.full((len(p0), 1), patterns.CAPE_NECK_Z)], 1)
-    else:  # dress shoulders: stay where the pattern put them
+    else:  # dress shoulders, panel tops: stay where the pattern put them
         target = p0
     body_frames = frames[scene.attach_to]
     local = to_local(target, body_frames[0])

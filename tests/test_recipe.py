@@ -55,15 +55,17 @@ def test_a_command_line_sets_every_flag_to_its_setting():
             "--w-c 0.5 --steps 123 --lr 3e-4 --w-s 7.5 --relative-floor 50 --relative-log 1 "
             "--residual-base input --unsharp-sigma 4 --unsharp-amount 0.75 "
             "--residual-highpass 6 --blur-order 0 --detail-sigma 2 --noise-channels 3 "
-            "--noise-scale 2 --upsample nearest --batch-size 4").split()
+            "--noise-scale 2 --upsample nearest --batch-size 4 --keep-checkpoints 9 "
+            "--eval-batches 5").split()
     got = _parse(argv)
     assert got.unet == unet.UNetConfig(
         width=24, residual=False, input_norm=unet.RECIPE_UNET.input_norm, residual_base="input",
         unsharp_sigma=4.0, unsharp_amount=0.75, residual_highpass=6.0, blur_order=0,
         detail_sigma=2.0, noise_channels=3, noise_scale=2, upsample="nearest")
     assert (got.style_layers, got.normalize_channels, got.w_c, got.steps, got.learning_rate,
-            got.w_s, got.relative_floor, got.relative_log, got.batch_size) == (
-        ("relu2_2", "relu3_1"), True, 0.5, 123, 3e-4, 7.5, 50.0, True, 4)
+            got.w_s, got.relative_floor, got.relative_log, got.batch_size, got.keep_checkpoints,
+            got.eval_batches) == (
+        ("relu2_2", "relu3_1"), True, 0.5, 123, 3e-4, 7.5, 50.0, True, 4, 9, 5)
     # Settings without a flag stay the recipe's.
     assert dataclasses.replace(got, unet=train.RECIPE.unet, style_layers=train.RECIPE.style_layers,
                                normalize_channels=train.RECIPE.normalize_channels,
@@ -71,7 +73,9 @@ def test_a_command_line_sets_every_flag_to_its_setting():
                                learning_rate=train.RECIPE.learning_rate, w_s=train.RECIPE.w_s,
                                relative_floor=train.RECIPE.relative_floor,
                                relative_log=train.RECIPE.relative_log,
-                               batch_size=train.RECIPE.batch_size) == train.RECIPE
+                               batch_size=train.RECIPE.batch_size,
+                               keep_checkpoints=train.RECIPE.keep_checkpoints,
+                               eval_batches=train.RECIPE.eval_batches) == train.RECIPE
     with pytest.raises(SystemExit):  # argparse rejects a value outside the choices
         _parse(["--upsample", "cubic"])
 

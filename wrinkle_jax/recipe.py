@@ -69,6 +69,11 @@ def add_recipe_args(ap: argparse.ArgumentParser) -> None:
                     choices=("transpose", "nearest", "bilinear"),
                     help="decoder up-sampling (UNetConfig.upsample; bilinear: no checkerboard)")
     ap.add_argument("--batch-size", type=int, default=r.batch_size)
+    ap.add_argument("--keep-checkpoints", type=int, default=r.keep_checkpoints,
+                    help="checkpoints kept (every checkpoint_every steps), so a later "
+                         "checkpoint choice on validation data has candidates")
+    ap.add_argument("--eval-batches", type=int, default=r.eval_batches,
+                    help="batches of the periodic evaluation (evenly spaced over its split)")
 
 
 def config_from_args(args: argparse.Namespace) -> train.TrainConfig:
@@ -86,7 +91,8 @@ def config_from_args(args: argparse.Namespace) -> train.TrainConfig:
         normalize_channels=bool(args.normalize_channels),
         relative_floor=args.relative_floor if args.relative_floor > 0 else None,
         relative_log=bool(args.relative_log),
-        batch_size=args.batch_size)
+        batch_size=args.batch_size, keep_checkpoints=args.keep_checkpoints,
+        eval_batches=args.eval_batches)
 
 
 def material_gains(spec: str, sigma: float,

@@ -91,11 +91,11 @@ def estimate_s(job: dict) -> float:
 
 
 def make_previews(out: Path, data: Path, frame: int = 90, material: str = "silk_charmeuse",
-                  texel: float = 0.004) -> list[str]:
+                  only: str | None = None, texel: float = 0.004) -> list[str]:
     """Fine-vs-coarse preview PNGs per scene (3D views and baked normal maps at frame `frame`).
 
     Uses the generated fine/coarse files when present (same seed and frame), otherwise runs a
-    short simulation of `frame + 1` frames.
+    short simulation of `frame + 1` frames. `only`: comma-separated scene names (default all).
     """
     import jax.numpy as jnp
     import numpy as np
@@ -104,7 +104,10 @@ def make_previews(out: Path, data: Path, frame: int = 90, material: str = "silk_
     from wrinkle_jax.sim import preview
 
     paths = []
+    keep = set(only.split(",")) if only else set(scenes.SCENES)
     for name, sc in scenes.SCENES.items():
+        if name not in keep:
+            continue
         seed = 1 if sc.test_only else 0
         seqs = {}
         for res in ("fine", "coarse"):
@@ -167,7 +170,7 @@ def main(argv=None) -> int:
                     help="only write fine-vs-coarse preview PNGs into DIR (from --out data)")
     args = ap.parse_args(argv)
     if args.previews:
-        for p in make_previews(Path(args.previews), Path(args.out)):
+        for p in make_previews(Path(args.previews), Path(args.out), only=args.only):
             print(p)
         return 0
     out = Path(args.out)

@@ -38,11 +38,6 @@ from wrinkle_jax.nn import vgg
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def export(run: Path, out: Path, data_root: Path, wall_s: float | None = None,
-           train_scenes: tuple[str, ...] | None = None) -> Path:
-    return train.export_run(run, out, data_root, wall_s, train_scenes)
-
-
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=str(ROOT / "data" / "patches"))
@@ -59,6 +54,9 @@ def main(argv=None) -> None:
     ap.add_argument("--minutes", type=float, default=40.0)
     ap.add_argument("--warm-start", action="store_true")
     ap.add_argument("--export-only", action="store_true")
+    ap.add_argument("--export-steps", default=None,
+                    help="export these checkpoints (comma-separated steps), their parameters "
+                         "averaged (train.averaged_params); default the last checkpoint")
     ap.add_argument("--eval-split", default="heldout",
                     help="split of the periodic evaluation: heldout, val (pair data: frames "
                          "of the training scenes) or valgarment (pair data: the validation-only "
@@ -98,7 +96,9 @@ def main(argv=None) -> None:
         train.train(cfg, data_root, run, resume=True, vgg_params=vgg.load_vgg19(),
                     progress=False, time_limit_s=60 * args.minutes, init_params=init,
                     train_scenes=scenes, eval_split=args.eval_split)
-    path = export(run, Path(args.out), data_root, round(time.time() - t0, 1), scenes)
+    steps = [int(x) for x in args.export_steps.split(",")] if args.export_steps else None
+    path = train.export_run(run, Path(args.out), data_root, round(time.time() - t0, 1), scenes,
+                            steps)
     size = path.stat().st_size
     print(json.dumps({"exported": str(path), "bytes": size,
                       "params": int(sum(np.size(x) for x in jax.tree.leaves(

@@ -26,6 +26,7 @@ import dataclasses
 import json
 import os
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -308,9 +309,33 @@ def restore_run(run_dir: str | os.PathLike, step: int | None = None
         raise FileNotFoundError(f"{run}: no training run here (no config.json), so no checkpoint")
     cfg = TrainConfig.from_json(json.loads((run / "config.json").read_text()))
     manager = _manager(run / "checkpoints", cfg)
-    template = create_train_state(cfg, jax.random.key(0, impl="rbg"))
+    # Only the shapes are needed: tracing the init is far cheaper than running it at 128 px.
+    template = jax.eval_shape(lambda: create_train_state(cfg, jax.random.key(0, impl="rbg")))
     state, _ = restore_checkpoint(manager, template, cfg, step)
     return cfg, state
+
+
+def checkpoint_steps(run_dir: str | os.PathLike) -> list[int]:
+    """The steps of a run folder's kept checkpoints, ascending."""
+    run = Path(run_dir)
+    cfg = TrainConfig.from_json(json.loads((run / "config.json").read_text()))
+    return sorted(int(s) for s in _manager(run / "checkpoints", cfg).all_steps())
+
+
+def averaged_params(run_dir: str | os.PathLike, steps: Sequence[int]):
+    """(config, the parameter mean over the run's checkpoints at `steps`) (float32 leaves).
+
+    Weight averaging of checkpoints along one run (they share an architecture and lie in one
+    basin, so the mean is a network too): it smooths the last steps' noise, a common
+    regulariser for generalisation to unseen inputs. One step returns that checkpoint."""
+    if not steps:
+        raise ValueError("averaged_params needs at least one step")
+    states = [restore_run(run_dir, int(s)) for s in steps]
+    cfg = states[0][0]
+    params = jax.tree_util.tree_map(
+        lambda *x: np.mean(np.stack([np.asarray(v, np.float32) for v in x]), 0),
+        *[st.params for _, st in states])
+    return cfg, params
 
 
 def _data_facts(ds: PatchDataset) -> dict:
@@ -324,7 +349,8 @@ def _data_facts(ds: PatchDataset) -> dict:
 
 def export_run(run_dir: str | os.PathLike, out_path: str | os.PathLike,
                data_root: str | os.PathLike | None = None, wall_s: float | None = None,
-               train_scenes: tuple[str, ...] | None = None) -> Path:
+               train_scenes: tuple[str, ...] | None = None,
+               steps: Sequence[int] | None = None) -> Path:
     """Write a run's last checkpoint as an enhancer model file (`enhancer.save_enhancer`,
     float16, loadable by `wrinkle_jax.load_enhancer`) with the training facts in its metadata;
     returns `out_path`.
@@ -334,6 +360,9 @@ def export_run(run_dir: str | os.PathLike, out_path: str | os.PathLike,
         or the patch data set the run trained on, read again (needed for runs from before
         ``data.json`` existed), restricted to `train_scenes` if given.
       wall_s: seconds of wall time to record (``meta["wall_seconds_this_call"]``).
+      steps: None: the last checkpoint; else the checkpoints at these steps, their parameters
+        averaged (`averaged_params`; one step = that checkpoint), recorded in
+        ``meta["checkpoint_steps"]``.
 
     Raises:
       FileNotFoundError: naming the folder, if it holds no run, no checkpoint, or (without
@@ -343,6 +372,9 @@ def export_run(run_dir: str | os.PathLike, out_path: str | os.PathLike,
 
     run = Path(run_dir)
     cfg, state = restore_run(run)
+    params = state.params
+    if steps is not None:
+        cfg, params = averaged_params(run, steps)
     if data_root is not None:
         facts = _data_facts(PatchDataset(data_root, "train", scenes=train_scenes))
     elif (run / "data.json").is_file():
@@ -356,12 +388,14 @@ def export_run(run_dir: str | os.PathLike, out_path: str | os.PathLike,
     rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if x]
     train_s = float(sum(r.get("step_s", 0.0) for r in rows if r["kind"] == "train"))
     evals = [r for r in rows if r["kind"] == "eval"]
-    meta = {"train_config": cfg.to_json(), "steps": int(state.step),
+    meta = {"train_config": cfg.to_json(),
+            "steps": int(state.step) if steps is None else int(max(steps)),
+            "checkpoint_steps": None if steps is None else [int(x) for x in steps],
             "train_step_seconds": round(train_s, 1), "wall_seconds_this_call": wall_s,
             "train_patches": facts["train_patches"], "train_sequences": facts["train_sequences"],
             "train_scenes": facts["train_scenes"], "last_eval": evals[-1] if evals else None,
             "exported": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())}
-    return enhancer.save_enhancer(out_path, jax.device_get(state.params), econf, meta)
+    return enhancer.save_enhancer(out_path, jax.device_get(params), econf, meta)
 
 
 def enhance_batch(config: TrainConfig, params, batch: dict, batch_size: int = 16) -> np.ndarray:

@@ -57,14 +57,15 @@ def pytest_unconfigure(config):
 # The longest files first: pytest-xdist (with --dist loadfile --no-loadscope-reorder, as in the
 # Makefile) hands files to the workers in collection order as they free up, so a long file
 # collected last would run alone at the end. (Without --no-loadscope-reorder xdist orders files
-# by their number of tests instead.) The order within a file is kept. Ranked by the sum of each
-# file's phases among the 80 slowest of a 2-worker run on a quiet 2-core machine (test_unet.py,
-# test_sim_*.py would otherwise start last, in alphabetical order).
-SLOW_FILES_FIRST = ("test_train.py", "test_sim_textile.py", "test_patchgan.py",
-                    "test_sim_selfcollision.py",
+# by their number of tests instead.) The order within a file is kept. Ranked by single-process
+# user CPU where measured in session 11 (test_train 116 s, test_sim_selfcollision 76 s,
+# test_patchgan 75 s, test_sim_textile 17 s), otherwise by the sum of each file's phases among
+# the 80 slowest of a 2-worker run (session 10).
+SLOW_FILES_FIRST = ("test_train.py", "test_sim_selfcollision.py", "test_patchgan.py",
                     "test_sharpen.py", "test_fastconv.py", "test_unet.py", "test_sim_xpbd.py",
-                    "test_lift.py", "test_eval_experiments.py", "test_notebooks.py",
-                    "test_sim_detail.py", "test_cli_train.py")
+                    "test_lift.py", "test_sim_detail.py", "test_notebooks.py",
+                    "test_cli_train.py", "test_eval_experiments.py", "test_frame_fn.py",
+                    "test_detail.py", "test_sim_colliders.py", "test_sim_textile.py")
 
 
 def pytest_collection_modifyitems(config, items):

@@ -15,6 +15,12 @@ from wrinkle_jax.nn import patchgan, unet, vgg
 
 SIZE = 32
 TINY = patchgan.GANConfig(unet.UNetConfig(width=4, residual=True), disc_width=4, batch_size=4)
+# Most of this file's time is compiling the GAN step: every test that steps uses this one
+# configuration on batches of 4 (32 px), so the step is compiled once for the file (a learning
+# rate is a constant of the compiled program).
+FAST = dataclasses.replace(TINY, learning_rate=2e-3)
+# G's forward as one program (op-by-op dispatch compiles each primitive on its own).
+_generate = jax.jit(patchgan.generate, static_argnums=0)
 
 
 def _key(seed=0):
@@ -71,14 +77,14 @@ def test_losses_hand_values_and_background_cells_do_not_count():
 
 
 def test_fresh_generator_is_its_base_and_the_state_is_deterministic():
-    b = _batch(2)
-    s1 = patchgan.create_gan_state(TINY, _key(3), SIZE)
-    s2 = patchgan.create_gan_state(TINY, _key(3), SIZE)
+    b = _batch(4)
+    s1 = patchgan.create_gan_state(FAST, _key(3), SIZE)
+    s2 = patchgan.create_gan_state(FAST, _key(3), SIZE)
     for a, c in zip(jax.tree.leaves(s1), jax.tree.leaves(s2), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(c))
-    out = patchgan.generate(TINY, s1.g_params, b["input"], b["mask"])
+    out = _generate(FAST, s1.g_params, b["input"], b["mask"])
     np.testing.assert_allclose(np.asarray(out), np.asarray(b["input"]), atol=1e-6)
-    step = patchgan.make_gan_step(TINY)
+    step = patchgan.make_gan_step(FAST)
     (s1, m1), (s2, m2) = step(s1, b), step(s2, b)
     assert m1 == m2 or all(float(m1[k]) == float(m2[k]) for k in m1)
 
@@ -86,7 +92,7 @@ def test_fresh_generator_is_its_base_and_the_state_is_deterministic():
 def test_gan_training_fits_the_data_term():
     """On a fixed batch whose detail is predictable from the input, the L1 term falls."""
     b = _batch(4, seed=1)
-    config = dataclasses.replace(TINY, learning_rate=2e-3)
+    config = FAST
     state = patchgan.create_gan_state(config, _key(1), SIZE)
     step = patchgan.make_gan_step(config)
     history = []
@@ -101,7 +107,7 @@ def test_gan_training_fits_the_data_term():
 def test_discriminator_learns_to_tell_real_pairs_from_a_frozen_generator():
     """G held at its base (no stripes): D's real and fake probabilities separate."""
     b = _batch(4, seed=2)
-    config = dataclasses.replace(TINY, learning_rate=2e-3)
+    config = FAST
     state = patchgan.create_gan_state(config, _key(2), SIZE)
     g0, g_opt0 = state.g_params, state.g_opt
     frozen = (jax.tree.map(jnp.copy, g0), jax.tree.map(jnp.copy, g_opt0))
@@ -115,7 +121,7 @@ def test_discriminator_learns_to_tell_real_pairs_from_a_frozen_generator():
 
 
 def test_generator_exports_as_an_enhancer_that_reproduces_it(tmp_path):
-    b = _batch(2)
+    b = _batch(4)
     state = patchgan.create_gan_state(TINY, _key(5), SIZE)
     leaves, tree = jax.tree_util.tree_flatten(state.g_params)
     keys = jax.random.split(_key(6), len(leaves))
@@ -126,8 +132,8 @@ def test_generator_exports_as_an_enhancer_that_reproduces_it(tmp_path):
     path = enhancer.save_enhancer(tmp_path / "gan.npz", g, cfg, dtype=np.float32)
     enh = enhancer.load_enhancer(path)
     apply = enhancer.make_apply(enh, clip=False)
-    got = np.asarray(apply(enh.params, b["input"], jnp.zeros((2,), jnp.int32))) * b["mask"]
-    want = np.asarray(patchgan.generate(TINY, g, b["input"], b["mask"]))
+    got = np.asarray(apply(enh.params, b["input"], jnp.zeros((4,), jnp.int32))) * b["mask"]
+    want = np.asarray(_generate(FAST, g, b["input"], b["mask"]))
     np.testing.assert_allclose(got, want, atol=1e-5)
     assert patchgan.GANConfig.from_json(TINY.to_json()) == TINY
 
@@ -149,7 +155,7 @@ def test_receptive_layers_set_the_logit_grid(layers):
 def test_training_resumes_exactly(tmp_path, tiny_patch_root):
     from experiments import patchgan as script
 
-    config = dataclasses.replace(TINY, learning_rate=1e-3)
+    config = FAST  # the file's step program (batches of 4 input/target/mask, 32 px)
     full = script.train(config, tiny_patch_root, tmp_path / "full", 60.0, max_steps=4,
                         checkpoint_every=2, log=lambda s: None)
     script.train(config, tiny_patch_root, tmp_path / "split", 60.0, max_steps=2,

@@ -24,6 +24,12 @@ from wrinkle_jax.sim import xpbd as X
 # with none). The bounds leave no overflow on these scenes.
 CFG = S.SelfCollisionConfig(thickness=0.006, margin=0.006, max_raw=256, max_contacts=16)
 
+# The candidate search, projection and distance as one program each, as the solver runs them
+# (called op by op, every primitive of the search compiles on its own).
+_build_candidates = jax.jit(S.build_candidates, static_argnums=3)
+_project_self = jax.jit(S.project_self, static_argnums=5)
+_closest_point_triangle = jax.jit(S.closest_point_triangle)
+
 
 def _run(scene, config):
     params = X.fabric_params(M.fabric("silk_charmeuse"))
@@ -61,12 +67,12 @@ def test_candidates_find_every_close_pair():
     x[:, 2] += 0.004 * np.sin(17 * x[:, 0]) * np.cos(11 * x[:, 1])  # not exactly flat
     faces = np.asarray(scene.model.faces)
     cfg = S.SelfCollisionConfig(thickness=0.004, margin=0.02, max_raw=256, max_contacts=32)
-    cand = S.build_candidates(jnp.asarray(x, jnp.float32), scene.model.faces,
-                              scene.model.self_topo, cfg)
+    cand = _build_candidates(jnp.asarray(x, jnp.float32), scene.model.faces,
+                             scene.model.self_topo, cfg)
     assert np.asarray(cand.overflow).tolist() == [0, 0]
     tri = x[faces]
-    _, d2, _ = S.closest_point_triangle(jnp.asarray(x[:, None]), *(jnp.asarray(tri[None, :, k])
-                                                                    for k in range(3)))
+    _, d2, _ = _closest_point_triangle(jnp.asarray(x[:, None]),
+                                       *(jnp.asarray(tri[None, :, k]) for k in range(3)))
     d = np.sqrt(np.asarray(d2))
     reach = cfg.thickness + cfg.margin
     close = (d < 0.99 * reach) & ~(faces[None] == np.arange(len(x))[:, None, None]).any(-1)
@@ -89,9 +95,9 @@ def test_projection_restores_thickness_on_start_side():
     cfg = S.SelfCollisionConfig(thickness=0.004, margin=0.01)
     topo = S.SelfTopology(jnp.zeros((4, 2)), jnp.asarray([0, 0, 0, 1]), jnp.zeros((1, 3, 2)),
                           jnp.asarray([0]))
-    cand = S.build_candidates(x, faces, topo, cfg)
+    cand = _build_candidates(x, faces, topo, cfg)
     assert bool(cand.valid[3, 0]) and not bool(cand.valid[0].any())
-    out, active = S.project_self(p, x, w, faces, cand, cfg)
+    out, active = _project_self(p, x, w, faces, cand, cfg)
     assert int(active) == 1
     np.testing.assert_allclose(np.asarray(out[3]), [0.02, 0.02, 0.004], atol=1e-6)
     np.testing.assert_array_equal(np.asarray(out[:3]), tri)
@@ -100,8 +106,8 @@ def test_projection_restores_thickness_on_start_side():
 def test_overflow_is_counted_not_dropped():
     scene = CS.folded_sheet(pd=0.03, frames=1)
     tiny = S.SelfCollisionConfig(thickness=0.004, margin=0.02, max_raw=4, max_contacts=1)
-    cand = S.build_candidates(jnp.asarray(scene.x0), scene.model.faces, scene.model.self_topo,
-                              tiny)
+    cand = _build_candidates(jnp.asarray(scene.x0), scene.model.faces, scene.model.self_topo,
+                             tiny)
     raw, kept = np.asarray(cand.overflow)
     assert raw > 0 and kept > 0
     # Through the solver: the state carries the running count.

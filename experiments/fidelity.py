@@ -143,6 +143,14 @@ def material_settings() -> dict[int, tuple[float, float]]:
             for m, k in best.items()}
 
 
+def load_model(spec: str) -> enhancer.Enhancer:
+    """A `--model` path, optionally ``PATH@G``: the model with residual gain G
+    (`UNetConfig.residual_gain`, an inference-time amplitude chosen on validation data)."""
+    path, _, gain = spec.partition("@")
+    enh = enhancer.load_enhancer(path)
+    return enhancer.with_unet(enh, residual_gain=float(gain)) if gain else enh
+
+
 def val_models(args, vgg_params) -> dict:
     """Models against the per-material unsharp base ON THE VAL SPLIT (the training scenes'
     last frames): per material, `--sweep-patches` evenly spaced val patches, detail-only
@@ -155,7 +163,7 @@ def val_models(args, vgg_params) -> dict:
     models = {}
     for spec in args.model:
         name, path = spec.split("=", 1)
-        models[name] = method_lib.enhancer_method(enhancer.load_enhancer(path))
+        models[name] = method_lib.enhancer_method(load_model(path))
     rng = np.random.default_rng(0)
     donor_rng = np.random.default_rng(0)
     scores = {k: [] for k in ["unsharp_material", *models,
@@ -386,9 +394,10 @@ def build_methods(args) -> tuple[dict, dict]:
         name, path = spec.split("=", 1)
         models[name] = path
     for name, path in models.items():
-        enh = enhancer.load_enhancer(path)
+        enh = load_model(path)
         methods[name] = (lambda fn: (lambda p, e: fn(p)))(method_lib.enhancer_method(enh))
-        sources[name] = suite.file_digest(path)
+        sources[name] = suite.file_digest(path.split("@")[0]) + (
+            f"@{path.split('@')[1]}" if "@" in path else "")
     if args.ceilings:
         def oracle_detail(p, e):
             d_in, large, branch = detail.decompose(p.input * 2.0 - 1.0, p.mask, SIGMA)
@@ -466,7 +475,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sweep-patches", type=int, default=96)
     ap.add_argument("--sweep-sigmas", default="16",
                     help="sweep-material: comma-separated unsharp radii (texels)")
-    ap.add_argument("--model", action="append", default=[], metavar="NAME=PATH")
+    ap.add_argument("--model", action="append", default=[], metavar="NAME=PATH[@GAIN]",
+                    help="a model file; @GAIN scales its residual (UNetConfig.residual_gain)")
     ap.add_argument("--cells", default="unseen", choices=("unseen", "all"))
     ap.add_argument("--scenes", default=None,
                     help="comma-separated scene names to keep (e.g. dress_dance,cape_walk)")

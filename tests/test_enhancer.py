@@ -1,10 +1,11 @@
 import json
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from wrinkle_jax import enhancer
+from wrinkle_jax import enhancer, sharpen
 from wrinkle_jax.nn import unet
 
 KEY = jax.random.key(0, impl="rbg")
@@ -100,6 +101,29 @@ def test_unsharp_base_round_trips_with_its_gains(tmp_path):
                                  dtype=np.float32)
     with pytest.raises(enhancer.EnhancerError, match="do not match"):
         enhancer.load_enhancer(bad)
+
+
+def test_residual_gain_scales_the_residual_and_round_trips(tmp_path):
+    """base + g * residual: gain 0 is the model's own unsharp base, 0.5 the midpoint of base
+    and full output (before the detail representation, here off, and the clip)."""
+    conf = enhancer.EnhancerConfig(unet.UNetConfig(width=4, residual=True,
+                                                   residual_base="unsharp", unsharp_sigma=2.0,
+                                                   residual_highpass=2.0), patch_size=32)
+    enh = enhancer.init_enhancer(KEY, conf, conv_impl="im2col_f32")
+    params = jax.tree.map(lambda x: x + 0.05, enh.params)  # a non-zero residual
+    x = jnp.asarray(np.random.default_rng(0).uniform(0.2, 0.8, (2, 32, 32, 3)), jnp.float32)
+    m = jnp.array([0, 3])
+    out = {g: np.asarray(enhancer.with_unet(enh, residual_gain=g).model.apply(
+        {"params": params}, x, m)) for g in (0.0, 0.5, 1.0)}
+    base = np.asarray(sharpen.unsharp_rgb(x, 2.0, params["unsharp_amount"][m],
+                                          jnp.ones((2, 32, 32, 1)), 1))
+    np.testing.assert_allclose(out[0.0], base, atol=1e-5)
+    np.testing.assert_allclose(out[0.5], (out[0.0] + out[1.0]) / 2, atol=1e-5)
+    assert np.abs(out[1.0] - out[0.0]).max() > 1e-2
+    half = enhancer.with_unet(enh, residual_gain=0.5)
+    assert half.model.conv_impl == "im2col_f32" and enh.config.unet.residual_gain == 1.0
+    path = enhancer.save_enhancer(tmp_path / "g.npz", params, half.config, dtype=np.float32)
+    assert enhancer.load_enhancer(path).config.unet.residual_gain == 0.5
 
 
 def test_files_without_blur_order_keep_the_order0_blur():

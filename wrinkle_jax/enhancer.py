@@ -108,6 +108,14 @@ def init_enhancer(key, config: EnhancerConfig = EnhancerConfig(), conv_impl: str
     return Enhancer(model, params, config, dict(meta or {}))
 
 
+def with_unet(enh: Enhancer, **changes) -> Enhancer:
+    """`enh` with U-Net settings changed that keep its parameters valid (e.g.
+    ``residual_gain=0.5``: the same network adding half its residual); same conv form."""
+    config = dataclasses.replace(enh.config,
+                                 unet=dataclasses.replace(enh.config.unet, **changes))
+    return Enhancer(config.model(enh.model.conv_impl), enh.params, config, enh.meta)
+
+
 def save_enhancer(path: str | os.PathLike, params, config: EnhancerConfig,
                   meta: dict | None = None, dtype=np.float16) -> Path:
     """Write `params` (a CINUNet pytree), `config` and `meta` to `path` atomically.

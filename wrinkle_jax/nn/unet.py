@@ -156,6 +156,10 @@ class UNetConfig:
       noise_scale: lattice spacing of that noise in texels (1: white per-texel noise; s > 1:
         value noise on an s-texel lattice, bilinearly interpolated, so its energy sits at
         wavelengths >= 2s texels instead of at the texel scale).
+      residual_gain: the residual's scale at the output (base + gain * residual; 1 in
+        training): an inference-time amplitude knob chosen on validation data, since a
+        network trained on some garments may over-add detail on others. Files without it
+        read 1.
       upsample: the decoder's 2x up-sampling: "transpose" (4x4 stride-2 transposed conv, the
         authors' layers), or a fixed resize then a 3x3 conv (Odena et al. 2016), "nearest" or
         "bilinear" (`upsample2`): every output texel sees the same kernel, so no learned
@@ -177,6 +181,7 @@ class UNetConfig:
     noise_channels: int = 0
     noise_scale: int = 1
     upsample: str = "transpose"
+    residual_gain: float = 1.0
 
     def module(self, num_materials: int, conv_impl: str = "xla") -> CINUNet:
         """The `CINUNet` with these settings for `num_materials` materials."""
@@ -326,7 +331,7 @@ class CINUNet(nn.Module):
                                           cfg.blur_order, blurred=base_low)
             elif cfg.residual_base != "input":
                 raise ValueError(f"unknown residual_base {cfg.residual_base!r}")
-            out = base + out
+            out = base + (out if cfg.residual_gain == 1.0 else cfg.residual_gain * out)
         if cfg.detail_sigma > 0:
             out = detail.from_detail_rgb(out, large, branch, mask)
         return out

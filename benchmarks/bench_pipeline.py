@@ -11,8 +11,9 @@ Reported:
     unsharp base and the high-pass as the dense banded matmuls `sharpen.masked_blur` runs),
     and the achieved GFLOP/s of the network stage (wall and process-CPU time);
   * patches/s of the jitted enhancer (`enhancer.make_apply`) against the batch size, each batch
-    size compiled first, then timed over the same number of patches (median of `--reps`
-    repetitions, wall time and process CPU time); skipped with --quick.
+    size compiled first, then timed over the same number of patches, the batch sizes
+    alternating (`wrinkle_jax.timing.alternate`; median of `--reps` rounds, wall time and
+    process CPU time); skipped with --quick.
 
 The model is the shipped one (`wrinkle_jax/assets/enhancer.npz`) when present, else a random
 width-32 enhancer of the default configuration (128-texel patches, 2 mm texels); the JSON
@@ -28,7 +29,6 @@ import argparse
 import json
 import os
 import platform
-import statistics
 import tempfile
 import time
 from collections.abc import Mapping
@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax import enhancer, meshio, normalmap, pipeline
+from wrinkle_jax import enhancer, meshio, normalmap, pipeline, timing
 from wrinkle_jax.cli import _demo_sequence_path
 from wrinkle_jax.nn import fastconv, unet
 
@@ -132,30 +132,30 @@ def stage_times(model, frames: int, lift: bool, batch: int, chunk: int) -> dict:
 
 
 def throughput(model, patches: int, reps: int) -> dict:
+    """Patches/s of the jitted enhancer against the batch size: each batch size compiled and
+    run once, then the repetitions alternate between the batch sizes (`timing.alternate`),
+    each running about `patches` patches."""
     apply = enhancer.make_apply(model)
     size = model.config.patch_size
     rng = np.random.default_rng(0)
-    out = {}
+    runs, compile_s, count = {}, {}, {}
     for b in BATCH_SIZES:
         x = jnp.asarray(rng.uniform(0.3, 0.7, (b, size, size, 3)).astype(np.float32))
         m = jnp.zeros((b,), jnp.int32)
         t0 = time.perf_counter()
         apply.lower(model.params, x, m).compile()
-        compile_s = time.perf_counter() - t0
-        apply(model.params, x, m).block_until_ready()  # warm-up
+        compile_s[b] = time.perf_counter() - t0
         calls = max(1, patches // b)
-        wall, cpu = [], []
-        for _ in range(reps):
-            t0, c0 = time.perf_counter(), time.process_time()
-            for _ in range(calls):
-                y = apply(model.params, x, m)
-            y.block_until_ready()
-            wall.append(time.perf_counter() - t0)
-            cpu.append(time.process_time() - c0)
-        out[str(b)] = {"patches_per_s": calls * b / statistics.median(wall),
-                       "cpu_s_per_patch": statistics.median(cpu) / (calls * b),
-                       "compile_s": compile_s}
-    return out
+        count[b] = calls * b
+
+        def run(x=x, m=m, calls=calls):
+            return [apply(model.params, x, m) for _ in range(calls)]
+        runs[str(b)] = run
+    t = timing.alternate(runs, reps)
+    return {k: {"patches_per_s": count[int(k)] / t.wall[k],
+                "cpu_s_per_patch": t.cpu[k] / count[int(k)],
+                "compile_s": compile_s[int(k)]} for k in runs} | {
+        "load_avg_1m": {"before": t.load_before, "after": t.load_after}}
 
 
 def main() -> None:

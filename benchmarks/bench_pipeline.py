@@ -104,7 +104,7 @@ def stage_times(model, frames: int, lift: bool, batch: int, chunk: int) -> dict:
     seq = meshio.load_sequence(_demo_sequence_path())
     sel = list(range(min(frames, len(seq))))
     config = pipeline.PipelineConfig(batch_size=batch, chunk_size=chunk, lift=lift,
-                                     warm_start=True)  # as the CLI
+                                     frames_per_batch=chunk, warm_start=True)  # as the CLI
     pipe = pipeline.make_pipeline(seq.garment, model, config)
     fine = None if pipe.fine_garment is None else jax.tree.map(np.asarray, pipe.fine_garment)
     cpu0 = time.process_time()

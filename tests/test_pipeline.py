@@ -297,3 +297,24 @@ def test_warm_started_lift_carries_the_previous_frame(seq, model):
                                                                    warm_start=True))
     assert res.lift_iterations == sum(warm_iters)
     np.testing.assert_array_equal(res.detailed_frames[2], warm[2])
+
+
+def test_frames_per_batch_shares_network_calls_and_keeps_the_maps(result, seq, model):
+    """Patches of several frames in one network call (the chunk's last group zero-padded to
+    whole frames) give the per-frame maps up to float rounding; the counts follow."""
+    per_frame = result.patches["per_frame"]
+    batch = next(b for b in (3, 5, 6, 7) if per_frame % b)  # per-frame batches are padded
+    one = pipeline.enhance_sequence(seq, "wool_melton", enhancer=model, config=pipeline.
+                                    PipelineConfig(batch_size=batch, chunk_size=3, lift=False))
+    shared = pipeline.enhance_sequence(seq, "wool_melton", enhancer=model, config=pipeline.
+                                       PipelineConfig(batch_size=batch, chunk_size=3,
+                                                      frames_per_batch=2, lift=False))
+    np.testing.assert_allclose(shared.normal_maps, one.normal_maps, atol=2e-6)
+    np.testing.assert_allclose(shared.normal_maps, result.normal_maps, atol=2e-6)
+    # 4 frames in chunks of 3 (+1): groups of 2, 1 (padded to 2) and 1 (padded to 2).
+    calls, per_call = 3, -(-2 * per_frame // batch)
+    assert shared.patches["batches"] == calls * per_call
+    assert shared.patches["padding"] == calls * per_call * batch - 4 * per_frame
+    assert shared.patches["network"] == one.patches["network"] == 4 * per_frame
+    with pytest.raises(ValueError, match="frames_per_batch"):
+        pipeline.PipelineConfig(frames_per_batch=0)

@@ -8,10 +8,11 @@ on NHWC). The shipped model has an order-1 unsharp base (sigma 16) and an order-
 residual (sigma 8): two blurs per patch. Also timed: the network without any blur (a lower
 bound), and each blur on its own.
 
-Timing: every variant compiled first, run once, then the repetitions alternate between the
-variants (A B C A B C ...) so that the load on this shared machine hits all alike; medians of
-process CPU time (all threads; the steadier number under load) and of wall time. The 1-minute
-load average is recorded before and after. Ratios are new / reference (lower is faster).
+Timing (`wrinkle_jax.timing.alternate`): every variant compiled first, run once, then the
+repetitions alternate between the variants (A B C A B C ...) so that the load on this shared
+machine hits all alike; medians of process CPU time (all threads; the steadier number under
+load) and of wall time. The 1-minute load average is recorded before and after. Ratios are
+new / reference (lower is faster), the median of the per-round ratios.
 
 Usage: python benchmarks/bench_blur.py [--reps R] [--batch B]
 """
@@ -21,14 +22,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax import enhancer, meshio, normalmap, patches, sharpen, stages
+from wrinkle_jax import enhancer, meshio, normalmap, patches, sharpen, stages, timing
 from wrinkle_jax.cli import _demo_sequence_path
 
 
@@ -60,22 +59,6 @@ def compiled_stage(enh, blur, tiles, batch: int):
         sharpen.masked_blur = saved
 
 
-def alternate(runs: dict, reps: int) -> dict:
-    """{name: zero-argument callable} -> {name: (median CPU s, median wall s)}; one untimed call
-    each, then `reps` rounds alternating between the names."""
-    for fn in runs.values():
-        jax.block_until_ready(fn())
-    cpu = {k: [] for k in runs}
-    wall = {k: [] for k in runs}
-    for _ in range(reps):
-        for k, fn in runs.items():
-            c0, t0 = time.process_time(), time.perf_counter()
-            jax.block_until_ready(fn())
-            cpu[k].append(time.process_time() - c0)
-            wall[k].append(time.perf_counter() - t0)
-    return {k: (statistics.median(cpu[k]), statistics.median(wall[k])) for k in runs}
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reps", type=int, default=5, help="alternating rounds")
@@ -92,7 +75,9 @@ def main() -> None:
     params, mat = enh.params, jnp.int32(0)
     out = {k: s(params, tiles, mat) for k, s in stage.items()}
     err = float(jnp.abs(out["shared"] - out["reference"]).max())
-    t = alternate({k: (lambda s=s: s(params, tiles, mat)) for k, s in stage.items()}, args.reps)
+    tt = timing.alternate({k: (lambda s=s: s(params, tiles, mat)) for k, s in stage.items()},
+                          args.reps)
+    t = {k: (tt.cpu[k], tt.wall[k]) for k in stage}
 
     # Each blur on its own, on one batch of the frame's patches (values in [-1, 1]).
     x = tiles[: args.batch] * 2.0 - 1.0
@@ -103,7 +88,7 @@ def main() -> None:
                         ("reference", sharpen.masked_blur_reference)):
             jf = jax.jit(lambda v, m, f=f, s=sigma: f(v, m, s, cfg.blur_order))
             blur_runs[f"{name}_sigma{sigma:g}"] = lambda jf=jf: jf(x, mask)
-    tb = alternate(blur_runs, args.reps)
+    tb = timing.alternate(blur_runs, args.reps)
 
     def ms(sec, count):
         return round(1e3 * sec / count, 3)
@@ -116,13 +101,12 @@ def main() -> None:
         "network_stage_ms_per_frame": {k: {"cpu": ms(c, 1), "wall": ms(w, 1)}
                                        for k, (c, w) in t.items()},
         "network_stage_ratio_shared_over_reference": {
-            "cpu": round(t["shared"][0] / t["reference"][0], 3),
-            "wall": round(t["shared"][1] / t["reference"][1], 3)},
+            c: round(tt.ratio("shared", "reference", c), 3) for c in ("cpu", "wall")},
         "blur_share_of_stage_cpu": {
             k: round(1 - t["no_blur"][0] / t[k][0], 3) for k in ("shared", "reference")},
         "max_abs_output_difference": err,
-        "blur_alone_ms_per_patch": {k: {"cpu": ms(c, args.batch), "wall": ms(w, args.batch)}
-                                    for k, (c, w) in tb.items()},
+        "blur_alone_ms_per_patch": {k: {"cpu": ms(tb.cpu[k], args.batch),
+                                        "wall": ms(tb.wall[k], args.batch)} for k in tb.wall},
         "reps": args.reps,
         "load_avg_1m": {"before": round(load_before, 2), "after": round(os.getloadavg()[0], 2)},
         "cpus": os.cpu_count(),

@@ -22,7 +22,11 @@ Then a speed-against-error curve at 10k (cumulative time, energy and angle error
 iteration, from the (init, step) API jitted once), and a memory estimate (bytes of the largest
 arrays, per vertex, against the dense V x V Laplacian).
 
-    python benchmarks/bench_lift.py [--quick]
+Then, with --sequence (alone): the pipeline's lift on the demo skirt's first 8 enhanced frames,
+cold and warm-started from the previous frame, for Gauss-Newton budgets (iterations,
+tolerance): ms/frame against the distance to a converged solve (`sequence_pareto`).
+
+    python benchmarks/bench_lift.py [--quick] | [--sequence [--frames N]]
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ import os
 import platform
 import re
 import statistics
+import sys
 import time
 
 import jax
@@ -209,6 +214,101 @@ def bench_size(cells: int, reps: int, ref_tol: float, ref_patience: int, gn_prob
     return out, (v0, top, nrm, faces)
 
 
+# ---------------------------------------------------------------------------------------------
+# The demo sequence: warm start and solver budget (the pipeline's lift stage, per frame)
+
+SEQUENCE_SOLVERS = {  # name -> SolverConfig: iteration budgets and the default
+    "gn_it2": L.SolverConfig(max_iters=2),
+    "gn_it4": L.SolverConfig(max_iters=4),
+    "gn_default": L.SolverConfig(),
+}
+SEQUENCE_REFERENCE = L.SolverConfig(max_iters=40, tol=1e-7, cg_tol=1e-4, cg_max_iters=100)
+
+
+def sequence_pareto(frames: int) -> dict:
+    """Lift the demo skirt's enhanced maps frame by frame, cold and warm-started, for every
+    solver budget of `SEQUENCE_SOLVERS`: ms/frame, iterations, and the error against a
+    tightly converged solve of each frame (RMS and max vertex distance, mm; energy excess,
+    relative) and against the targets (mean normal angle, degrees).
+
+    The configurations alternate frame by frame (frame t for every configuration, then
+    t + 1), so the load of this shared machine hits all alike; each carries its own warm
+    state. The first frame of a warm run is a cold start and is included.
+    """
+    from wrinkle_jax import enhancer, meshio, pipeline, stages, timing
+    from wrinkle_jax.cli import _demo_sequence_path
+
+    seq = meshio.load_sequence(_demo_sequence_path())
+    model = enhancer.load_enhancer()
+    sel = list(range(min(frames, len(seq))))
+    material = seq.metadata.get("material") or "silk_charmeuse"
+    maps = pipeline.enhance_sequence(seq, material, enhancer=model, lift=False,
+                                     frames=sel).normal_maps
+    pipe = pipeline.make_pipeline(seq.garment, model, pipeline.PipelineConfig(), compile=False)
+    static = dict(layout=pipe.plan.layout, weights=pipe.config.weights,
+                  resolve=pipe.config.resolve, phi=float(pipe.config.phi))
+    nv = pipe.fine_garment.num_vertices
+    faces = pipe.fine_garment.faces
+
+    def lift(t, local, solver):
+        return stages._lift_frame_warm(jnp.asarray(seq.frames[t]), jnp.asarray(maps[t]), local,
+                                       pipe.subdivision, pipe.fine_garment, pipe.topology,
+                                       None, solver=solver, **static)
+
+    zeros = jnp.zeros((nv, 3), jnp.float32)
+    ref = [lift(t, zeros, SEQUENCE_REFERENCE) for t in sel]
+    print("reference solves done", file=sys.stderr, flush=True)
+    targets = [L.sample_target_normals(jnp.asarray(m), pipe.fine_garment, pipe.plan.layout)
+               for m in maps]
+    runs = [(name, warm) for name in SEQUENCE_SOLVERS for warm in (False, True)]
+    carried = {r: zeros for r in runs}
+    rows = {r: {"ms": [], "iterations": [], "rms_mm": [], "max_mm": [], "energy_excess": [],
+                "angle_deg": []} for r in runs}
+    for r in runs:  # compile and run once (frame 0, cold) before anything is timed
+        jax.block_until_ready(lift(0, zeros, SEQUENCE_SOLVERS[r[0]]))
+    load_before = timing.load_average()
+    for t in sel:
+        print(f"frame {t}", file=sys.stderr, flush=True)
+        for r in runs:
+            t0 = time.perf_counter()
+            p, local, info = jax.block_until_ready(lift(t, carried[r], SEQUENCE_SOLVERS[r[0]]))
+            ms = 1e3 * (time.perf_counter() - t0)
+            if r[1]:
+                carried[r] = local
+            d = np.linalg.norm(np.asarray(p) - np.asarray(ref[t][0]), axis=1) * 1e3
+            e_ref = float(ref[t][2].energy)
+            row = rows[r]
+            row["ms"].append(ms)
+            row["iterations"].append(int(info.iterations))
+            row["rms_mm"].append(float(np.sqrt(np.mean(d * d))))
+            row["max_mm"].append(float(d.max()))
+            row["energy_excess"].append((float(info.energy) - e_ref) / max(abs(e_ref), 1e-30))
+            row["angle_deg"].append(float(L.normal_angle_error(p, faces, targets[t])))
+    out = {}
+    for (name, warm), row in rows.items():
+        cfg = SEQUENCE_SOLVERS[name]
+        out[f"{name}_{'warm' if warm else 'cold'}"] = {
+            "max_iters": cfg.max_iters, "tol": cfg.tol, "warm_start": warm,
+            "ms_per_frame_median": round(statistics.median(row["ms"]), 1),
+            "ms_per_frame_mean": round(float(np.mean(row["ms"])), 1),
+            "iterations_mean": round(float(np.mean(row["iterations"])), 2),
+            "rms_to_converged_mm_mean": round(float(np.mean(row["rms_mm"])), 4),
+            "max_to_converged_mm_max": round(float(np.max(row["max_mm"])), 3),
+            "energy_excess_mean": float(f"{np.mean(row['energy_excess']):.3g}"),
+            "angle_error_deg_mean": round(float(np.mean(row["angle_deg"])), 3),
+        }
+    return {"garment": "demo_skirt", "frames": len(sel), "fine_vertices": nv,
+            "reference": {"max_iters": SEQUENCE_REFERENCE.max_iters,
+                          "tol": SEQUENCE_REFERENCE.tol,
+                          "iterations_mean": float(np.mean([int(r[2].iterations)
+                                                            for r in ref])),
+                          "angle_error_deg_mean": round(float(np.mean(
+                              [L.normal_angle_error(r[0], faces, n)
+                               for r, n in zip(ref, targets, strict=True)])), 3)},
+            "load_avg_1m": {"before": load_before, "after": timing.load_average()},
+            "runs": out}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="2k and 10k only, fewer repeats")
@@ -216,7 +316,14 @@ def main() -> None:
                     help="relative improvement the reference Adam's early stop waits for")
     ap.add_argument("--ref-patience", type=int, default=3,
                     help="iterations without that improvement before the reference stops")
+    ap.add_argument("--sequence", action="store_true",
+                    help="only the demo sequence: warm start and solver budget per frame")
+    ap.add_argument("--frames", type=int, default=8, help="demo frames (--sequence)")
     args = ap.parse_args()
+    if args.sequence:
+        print(json.dumps({"benchmark": "lift_sequence", **sequence_pareto(args.frames)},
+                         indent=1))
+        return
     reps = 3 if args.quick else 5
     sizes = (45, 100) if args.quick else (45, 100, 200)
     results, case10k = {}, None

@@ -11,14 +11,20 @@ Reported:
     unsharp base and the high-pass as the dense banded matmuls `sharpen.masked_blur` runs),
     and the achieved GFLOP/s of the network stage (wall and process-CPU time);
   * patches/s of the jitted enhancer (`enhancer.make_apply`) against the batch size, each batch
-    size compiled first, then timed over the same number of patches (median of `--reps`
-    repetitions, wall time and process CPU time); skipped with --quick.
+    size compiled first, then timed over the same number of patches, the batch sizes
+    alternating (`wrinkle_jax.timing.alternate`; median of `--reps` rounds, wall time and
+    process CPU time); skipped with --quick.
 
 The model is the shipped one (`wrinkle_jax/assets/enhancer.npz`) when present, else a random
 width-32 enhancer of the default configuration (128-texel patches, 2 mm texels); the JSON
 says which. The machine is shared: the 1-minute load average is recorded before and after.
 
+With --network-sweep (alone): the network stage on one chunk of demo frames for batch
+sizes 4, 8, 16 x 1 or 4 frames per network call (`PipelineConfig.frames_per_batch`),
+alternating in one run (`wrinkle_jax.timing.alternate`), ms/frame and ratios.
+
 Usage: python benchmarks/bench_pipeline.py [--quick] [--frames N] [--no-lift] [--reps R]
+       python benchmarks/bench_pipeline.py --network-sweep [--reps R] [--stride S]
   --quick: 4 frames (one chunk), no batch-size sweep (< 2 min on a quiet 2-core machine).
 """
 
@@ -28,7 +34,6 @@ import argparse
 import json
 import os
 import platform
-import statistics
 import tempfile
 import time
 from collections.abc import Mapping
@@ -38,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax import enhancer, meshio, normalmap, pipeline
+from wrinkle_jax import enhancer, meshio, normalmap, pipeline, timing
 from wrinkle_jax.cli import _demo_sequence_path
 from wrinkle_jax.nn import fastconv, unet
 
@@ -98,7 +103,8 @@ def frame_writer(folder: Path, pipe_mask, fine):
 def stage_times(model, frames: int, lift: bool, batch: int, chunk: int) -> dict:
     seq = meshio.load_sequence(_demo_sequence_path())
     sel = list(range(min(frames, len(seq))))
-    config = pipeline.PipelineConfig(batch_size=batch, chunk_size=chunk, lift=lift)
+    config = pipeline.PipelineConfig(batch_size=batch, chunk_size=chunk, lift=lift,
+                                     frames_per_batch=chunk, warm_start=True)  # as the CLI
     pipe = pipeline.make_pipeline(seq.garment, model, config)
     fine = None if pipe.fine_garment is None else jax.tree.map(np.asarray, pipe.fine_garment)
     cpu0 = time.process_time()
@@ -132,30 +138,73 @@ def stage_times(model, frames: int, lift: bool, batch: int, chunk: int) -> dict:
 
 
 def throughput(model, patches: int, reps: int) -> dict:
+    """Patches/s of the jitted enhancer against the batch size: each batch size compiled and
+    run once, then the repetitions alternate between the batch sizes (`timing.alternate`),
+    each running about `patches` patches."""
     apply = enhancer.make_apply(model)
     size = model.config.patch_size
     rng = np.random.default_rng(0)
-    out = {}
+    runs, compile_s, count = {}, {}, {}
     for b in BATCH_SIZES:
         x = jnp.asarray(rng.uniform(0.3, 0.7, (b, size, size, 3)).astype(np.float32))
         m = jnp.zeros((b,), jnp.int32)
         t0 = time.perf_counter()
         apply.lower(model.params, x, m).compile()
-        compile_s = time.perf_counter() - t0
-        apply(model.params, x, m).block_until_ready()  # warm-up
+        compile_s[b] = time.perf_counter() - t0
         calls = max(1, patches // b)
-        wall, cpu = [], []
-        for _ in range(reps):
-            t0, c0 = time.perf_counter(), time.process_time()
-            for _ in range(calls):
-                y = apply(model.params, x, m)
-            y.block_until_ready()
-            wall.append(time.perf_counter() - t0)
-            cpu.append(time.process_time() - c0)
-        out[str(b)] = {"patches_per_s": calls * b / statistics.median(wall),
-                       "cpu_s_per_patch": statistics.median(cpu) / (calls * b),
-                       "compile_s": compile_s}
-    return out
+        count[b] = calls * b
+
+        def run(x=x, m=m, calls=calls):
+            return [apply(model.params, x, m) for _ in range(calls)]
+        runs[str(b)] = run
+    t = timing.alternate(runs, reps)
+    return {k: {"patches_per_s": count[int(k)] / t.wall[k],
+                "cpu_s_per_patch": t.cpu[k] / count[int(k)],
+                "compile_s": compile_s[int(k)]} for k in runs} | {
+        "load_avg_1m": {"before": t.load_before, "after": t.load_after}}
+
+
+def network_sweep(model, reps: int, chunk: int, batches=(4, 8, 16), frames_per_batch=(1, 4),
+                  stride: int | None = None) -> dict:
+    """The network stage of the streaming pipeline (`pipeline._run_network` on one chunk of
+    demo frames) for every batch size x frames per network call, alternating
+    (`timing.alternate`): ms/frame and the ratio to the CLI default (batch 16, one frame per
+    call), plus the padding each setting adds. Every setting is compiled first."""
+    from wrinkle_jax import stages
+
+    seq = meshio.load_sequence(_demo_sequence_path())
+    mid = model.config.material_id(seq.metadata.get("material") or "silk_charmeuse")
+    runs, padding, pipes = {}, {}, {}
+    tiles = None
+    for b in batches:
+        for f in frames_per_batch:
+            cfg = pipeline.PipelineConfig(batch_size=b, chunk_size=chunk, frames_per_batch=f,
+                                          stride=stride, lift=False)
+            pipe = pipeline.make_pipeline(seq.garment, model, cfg)
+            if tiles is None:
+                size = model.config.patch_size
+                mask = pipeline._padded_mask(pipe)
+                _, rgb = stages._bake_chunk(pipe.plan, jnp.asarray(seq.frames[:chunk]), mask,
+                                            smooth=True, padded_shape=pipe.padded_shape)
+                tiles = stages._extract_chunk(rgb, jnp.asarray(pipe.origins), size=size)
+            counts = {"network": 0, "padding": 0, "batches": 0}
+            pipeline._run_network(pipe, tiles, mid, counts)
+            name = f"b{b}_f{f}"
+            padding[name] = counts["padding"] / chunk
+            pipes[name] = pipe
+            runs[name] = (lambda pipe=pipe, tiles=tiles: pipeline._run_network(
+                pipe, tiles, mid, {"network": 0, "padding": 0, "batches": 0}))
+    t = timing.alternate(runs, reps)
+    base = f"b{max(batches)}_f1" if 1 in frames_per_batch else next(iter(runs))
+    return {"frames_per_chunk": chunk, "patches_per_frame": pipes[base].num_patches,
+            "stride": pipes[base].config.stride,
+            "ms_per_frame_wall": {k: round(1e3 * v / chunk, 1) for k, v in t.wall.items()},
+            "ms_per_frame_cpu": {k: round(1e3 * v / chunk, 1) for k, v in t.cpu.items()},
+            "ratio_to": base,
+            "ratio_wall": {k: round(v, 3) for k, v in t.ratios(base, "wall").items()},
+            "ratio_cpu": {k: round(v, 3) for k, v in t.ratios(base, "cpu").items()},
+            "padding_patches_per_frame": padding, "reps": reps,
+            "load_avg_1m": {"before": t.load_before, "after": t.load_after}}
 
 
 def main() -> None:
@@ -168,7 +217,16 @@ def main() -> None:
     ap.add_argument("--chunk", type=int, default=4, help="pipeline frames per chunk")
     ap.add_argument("--patches", type=int, default=32, help="patches per timed repetition")
     ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--network-sweep", action="store_true",
+                    help="only the network stage: batch size x frames per call, alternating")
+    ap.add_argument("--stride", type=int, default=None, help="patch stride (--network-sweep)")
     args = ap.parse_args()
+    if args.network_sweep:
+        model, which = load_model()
+        print(json.dumps({"benchmark": "pipeline_network_sweep", "model": which,
+                          **network_sweep(model, args.reps, args.chunk, stride=args.stride)},
+                         indent=2))
+        return
     frames = min(args.frames, args.chunk) if args.quick else args.frames
     load_before = os.getloadavg()[0]
     model, which = load_model()

@@ -46,7 +46,6 @@ import glob
 import json
 import os
 import platform
-import statistics
 import time
 
 PYTORCH_INFER_PATCHES_PER_S = 16.0  # authors' network, width 64, fp32, 2 threads: 15-17
@@ -84,7 +83,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from wrinkle_jax import train  # noqa: E402
+from wrinkle_jax import timing, train  # noqa: E402
 from wrinkle_jax.nn import fastconv, unet, vgg  # noqa: E402
 
 # ---------------------------------------------------------------------------------------------
@@ -165,18 +164,9 @@ def synthetic_normal_maps(rng, batch, size=PATCH):
 
 def timed(runs: dict, reps: int) -> dict:
     """{key: zero-argument callable} -> {key: (median wall s, median process-CPU s)}, after one
-    untimed call each; repetitions cycle through the keys."""
-    for fn in runs.values():
-        jax.block_until_ready(fn())
-    wall = {k: [] for k in runs}
-    cpu = {k: [] for k in runs}
-    for _ in range(reps):
-        for k, fn in runs.items():
-            c0, t0 = time.process_time(), time.perf_counter()
-            jax.block_until_ready(fn())
-            wall[k].append(time.perf_counter() - t0)
-            cpu[k].append(time.process_time() - c0)
-    return {k: (statistics.median(wall[k]), statistics.median(cpu[k])) for k in runs}
+    untimed call each; repetitions cycle through the keys (`wrinkle_jax.timing.alternate`)."""
+    t = timing.alternate(runs, reps)
+    return {k: (t.wall[k], t.cpu[k]) for k in runs}
 
 
 def compile_timed(jitted, *args):
@@ -186,7 +176,7 @@ def compile_timed(jitted, *args):
 
 
 def load1():
-    return round(os.getloadavg()[0], 2)
+    return timing.load_average()
 
 
 def matmul_rates(reps):
@@ -211,13 +201,11 @@ def matmul_rates(reps):
 _XLA_VGG_CONV = vgg._conv3x3
 
 
-def _fast_vgg_conv(x, layer, padding, dtype):
-    """The proposed `vgg._conv3x3` for `conv_impl="im2col_bf16"`; the first conv (the raw RGB
-    image, 3 channels: bfloat16 would round its detail to 8 bits) computes in float32."""
-    del dtype
-    compute = jnp.float32 if x.shape[-1] <= 4 else jnp.bfloat16
-    return fastconv.conv3x3(x, layer["kernel"], layer["bias"], padding=padding,
-                            compute_dtype=compute)
+def _fast_vgg_conv(x, layer, padding, dtype, conv_impl=FAST):
+    """`vgg._conv3x3` forced to `conv_impl="im2col_bf16"` (vgg's own fast form: the first
+    conv, on the raw RGB image, stays float32)."""
+    del conv_impl
+    return _XLA_VGG_CONV(x, layer, padding, dtype, FAST)
 
 
 @contextlib.contextmanager

@@ -262,3 +262,59 @@ def test_a_given_layout_bakes_onto_its_pixels_and_must_match_the_texel_size(seq,
     with pytest.raises(pipeline.PipelineError, match="texel size"):
         pipeline.make_pipeline(seq.garment, ident, pipeline.PipelineConfig(lift=False),
                                layout=wrong)
+
+
+def test_warm_started_lift_carries_the_previous_frame(seq, model):
+    """With `warm_start`, a repeated frame starts from its own previous solution (carried
+    through the local frames), so the lift keeps descending the same energy across frames
+    instead of repeating the same solve. (On this random network's map the solver does not
+    converge in its 20 iterations: every cold start stops at the same unconverged mesh.)"""
+    frames = np.repeat(seq.frames[1:2], 3, axis=0)
+    runs = {}
+    for warm in (False, True):
+        pipe = pipeline.make_pipeline(
+            seq.garment, model, pipeline.PipelineConfig(batch_size=BATCH, warm_start=warm),
+            compile=False)
+        counts, iters, meshes = {}, [], []
+        for frame in pipeline.iter_enhance(pipe, frames, model.config.material_id("wool_melton"),
+                                           counts=counts):
+            iters.append(counts["lift_iterations"] - sum(iters))
+            meshes.append(frame.detailed)
+        runs[warm] = (iters, meshes, frame.normal_map)
+    (cold_iters, cold, nmap), (warm_iters, warm, _) = runs[False], runs[True]
+    assert cold_iters == [0, 0, 0]  # counted with warm starts only
+    assert warm_iters[0] == 20 and min(warm_iters[1:]) >= 1  # the first frame: a cold start
+    np.testing.assert_array_equal(cold[2], cold[0])
+    # The energy of the one problem all frames share goes down frame after frame.
+    p0 = pipe.subdivision.apply(jnp.asarray(frames[0]))
+    targets = lift.sample_target_normals(jnp.asarray(nmap), pipe.fine_garment, pipe.plan.layout)
+    prob = lift.make_problem(p0, pipe.topology, targets)
+    e = [float(lift.energy(jnp.asarray(m), prob)) for m in warm]
+    assert e[1] < e[0] * (1 - 1e-4) and e[2] <= e[1], e
+    repeated = meshio.make_sequence(frames, seq.garment)
+    res = pipeline.enhance_sequence(repeated, "wool_melton", enhancer=model,
+                                    config=pipeline.PipelineConfig(batch_size=BATCH,
+                                                                   warm_start=True))
+    assert res.lift_iterations == sum(warm_iters)
+    np.testing.assert_array_equal(res.detailed_frames[2], warm[2])
+
+
+def test_frames_per_batch_shares_network_calls_and_keeps_the_maps(result, seq, model):
+    """Patches of several frames in one network call (the chunk's last group zero-padded to
+    whole frames) give the per-frame maps up to float rounding; the counts follow."""
+    per_frame = result.patches["per_frame"]
+    batch = next(b for b in (3, 5, 6, 7) if per_frame % b)  # per-frame batches are padded
+    one = pipeline.enhance_sequence(seq, "wool_melton", enhancer=model, config=pipeline.
+                                    PipelineConfig(batch_size=batch, chunk_size=3, lift=False))
+    shared = pipeline.enhance_sequence(seq, "wool_melton", enhancer=model, config=pipeline.
+                                       PipelineConfig(batch_size=batch, chunk_size=3,
+                                                      frames_per_batch=2, lift=False))
+    np.testing.assert_allclose(shared.normal_maps, one.normal_maps, atol=2e-6)
+    np.testing.assert_allclose(shared.normal_maps, result.normal_maps, atol=2e-6)
+    # 4 frames in chunks of 3 (+1): groups of 2, 1 (padded to 2) and 1 (padded to 2).
+    calls, per_call = 3, -(-2 * per_frame // batch)
+    assert shared.patches["batches"] == calls * per_call
+    assert shared.patches["padding"] == calls * per_call * batch - 4 * per_frame
+    assert shared.patches["network"] == one.patches["network"] == 4 * per_frame
+    with pytest.raises(ValueError, match="frames_per_batch"):
+        pipeline.PipelineConfig(frames_per_batch=0)

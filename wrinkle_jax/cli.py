@@ -207,8 +207,13 @@ def _run_enhance(input_path: Path, out: Path, args, model: Path | None = None,
             args.material, seq.metadata.get("material"), enh.config.materials,
             display_path(input_path))
         body = _load_body(Path(args.body)) if getattr(args, "body", None) else None
+        # Warm-started lift: the same error as cold starts on the demo at ~0.6x the lift time
+        # (benchmarks/bench_lift.py --sequence); frames are streamed in order. A chunk's
+        # patches share network calls: ~0.9x the network's CPU time per frame at batch 16
+        # (benchmarks/bench_pipeline.py --network-sweep).
         config = pipeline.PipelineConfig(batch_size=args.batch, chunk_size=args.chunk,
-                                         stride=args.stride, lift=not args.no_lift)
+                                         frames_per_batch=args.chunk, stride=args.stride,
+                                         lift=not args.no_lift, warm_start=True)
     except _UsageError as e:
         print(f"wrinkle-jax {cmd}: error: {e}", file=sys.stderr)
         return 2

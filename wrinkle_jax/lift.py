@@ -496,15 +496,26 @@ def _info(state, prob: LiftProblem) -> LiftInfo:
 # --------------------------------------------------------------------------------------------
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(3, 4))
-def _solve(vertices0, topology, target_normals, weights, solver):
+def _start_point(prob: LiftProblem, start):
+    """The iterate to start from: `start` (a warm start, e.g. the previous frame's solution
+    carried onto this frame) when its energy is below p0's, else p0, so a poor guess (a cut
+    in the sequence) never starts the solver worse off than a cold start."""
+    if start is None:
+        return prob.vertices0
+    start = jnp.asarray(start, prob.vertices0.dtype)
+    better = energy(start, prob) < energy(prob.vertices0, prob)
+    return jnp.where(better, start, prob.vertices0)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(4, 5))
+def _solve(vertices0, topology, target_normals, start, weights, solver):
     prob = make_problem(vertices0, topology, target_normals, weights)
-    state = solvers.run(make_solver(solver), prob, prob.vertices0, solver.max_iters)
+    state = solvers.run(make_solver(solver), prob, _start_point(prob, start), solver.max_iters)
     return state.vertices, _info(state, prob)
 
 
-def _solve_fwd(vertices0, topology, target_normals, weights, solver):
-    out = _solve(vertices0, topology, target_normals, weights, solver)
+def _solve_fwd(vertices0, topology, target_normals, start, weights, solver):
+    out = _solve(vertices0, topology, target_normals, start, weights, solver)
     return out, (out[0], vertices0, topology, target_normals)
 
 
@@ -521,7 +532,8 @@ def _solve_bwd(weights, solver, res, cotangents):
     lam = solvers.pcg(hvp, g_p, precond, solver.adjoint_tol, solver.adjoint_max_iters).x
     _, vjp = jax.vjp(lambda v0, n: grad_at(p, v0, n), vertices0, target_normals)
     ct_v0, ct_n = vjp(-lam)
-    return ct_v0, None, ct_n
+    # The minimizer does not depend on where the solver started (implicit function theorem).
+    return ct_v0, None, ct_n, None
 
 
 _solve.defvjp(_solve_fwd, _solve_bwd)
@@ -529,21 +541,29 @@ _solve.defvjp(_solve_fwd, _solve_bwd)
 
 @functools.partial(jax.jit, static_argnames=("weights", "solver"))
 def lift_with_info(vertices0, topology: LiftTopology, target_normals,
-                   weights: LiftWeights = LiftWeights(), solver: SolverConfig = SolverConfig()):  # noqa: B008
-    """`lift` that also returns a `LiftInfo` (iterations, energy, convergence)."""
-    return _solve(jnp.asarray(vertices0), topology, jnp.asarray(target_normals), weights, solver)
+                   weights: LiftWeights = LiftWeights(), solver: SolverConfig = SolverConfig(),  # noqa: B008
+                   start=None):
+    """`lift` that also returns a `LiftInfo` (iterations, energy, convergence); `start`: see
+    `lift`."""
+    return _solve(jnp.asarray(vertices0), topology, jnp.asarray(target_normals), start,
+                  weights, solver)
 
 
 @functools.partial(jax.jit, static_argnames=("weights", "solver"))
 def lift(vertices0, topology: LiftTopology, target_normals,
-         weights: LiftWeights = LiftWeights(), solver: SolverConfig = SolverConfig()):  # noqa: B008
+         weights: LiftWeights = LiftWeights(), solver: SolverConfig = SolverConfig(),  # noqa: B008
+         start=None):
     """Deform the upsampled coarse mesh so its edges follow the target normals.
 
     Args:
-      vertices0: (V, 3) float meters, the upsampled coarse frame p0 (also the start point).
+      vertices0: (V, 3) float meters, the upsampled coarse frame p0.
       topology: `lift_topology(faces, V)`, built once per mesh.
       target_normals: (V, 3) target normals (renormalized; zero rows have no normal term).
       weights: LiftWeights (static). solver: SolverConfig (static).
+      start: None (start at p0), or (V, 3) meters, a warm start (e.g. the previous frame's
+        solution carried onto this one); used only when its energy is below p0's. The
+        minimizer, and so the gradient, does not depend on it; the iterate the solver stops
+        at does, within its tolerance.
     Returns:
       (V, 3) lifted vertices, meters. Differentiable with respect to vertices0 and
       target_normals through the implicit function theorem (custom VJP; reverse mode only).
@@ -554,25 +574,30 @@ def lift(vertices0, topology: LiftTopology, target_normals,
       >>> top = lift_topology(g.faces, g.num_vertices)
       >>> p = lift(g.vertices, top, mesh.vertex_normals(g.vertices, g.faces))
     """
-    return lift_with_info(vertices0, topology, target_normals, weights, solver)[0]
+    return lift_with_info(vertices0, topology, target_normals, weights, solver, start)[0]
 
 
 def lift_from_normal_map(coarse_vertices, subdivision: mesh.Subdivision,
                          fine_garment: mesh.Garment, topology: LiftTopology, normal_map,
                          layout: normalmap.UVLayout, weights: LiftWeights = LiftWeights(),
-                         solver: SolverConfig = SolverConfig()):  # noqa: B008
+                         solver: SolverConfig = SolverConfig(),  # noqa: B008
+                         start=None, with_info: bool = False):
     """One frame end to end: upsample the coarse frame, sample N*, lift (jittable with
     weights/solver/layout static; differentiable in coarse_vertices and normal_map).
 
     Args:
       coarse_vertices: (Vc, 3) meters. subdivision, fine_garment: from `upsample`.
       normal_map: (H, W, 3) enhanced map N*. layout: its UVLayout.
+      start: None, or a callable p0 (V, 3) -> (V, 3) warm start (see `lift`; a callable
+        because a warm start is usually built on this frame's p0).
+      with_info: also return the `LiftInfo` and p0.
     Returns:
-      (V, 3) lifted fine vertices, meters.
+      (V, 3) lifted fine vertices, meters; with `with_info`, (vertices, LiftInfo, p0).
     """
     p0 = subdivision.apply(coarse_vertices)
     n = sample_target_normals(normal_map, fine_garment, layout)
-    return _solve(p0, topology, n, weights, solver)[0]
+    p, info = _solve(p0, topology, n, None if start is None else start(p0), weights, solver)
+    return (p, info, p0) if with_info else p
 
 
 # --------------------------------------------------------------------------------------------

@@ -18,7 +18,10 @@ Contract:
     `enhance_sequence` hands each to a `writer` callback (the CLI writes files as they come)
     and, with ``keep=True``, also stacks them into arrays (a convenience for short sequences).
   * Results do not depend on the chunk size or on the batch padding (each network batch
-    holds the patches of one frame only, always at the same positions).
+    holds the patches of one frame only, always at the same positions). With
+    `PipelineConfig.warm_start` (the CLI's setting; off by default) each frame's lift starts
+    from the previous streamed frame's solution, so a lifted frame depends on the frames
+    before it.
   * The stages are public pure functions of one frame (`bake_stage`, `tile_stage`,
     `network_stage`, `merge_stage`, `lift_stage`, from `wrinkle_jax.stages`); the streaming
     runs their jitted, frame-vmapped forms, and `frame_fn(pipe)` composes them into one
@@ -64,6 +67,7 @@ from wrinkle_jax.stages import (
     _frame,
     _FrameStatic,
     _lift_frame,
+    _lift_frame_warm,
     _merge_chunk,
     _network_apply,
     _network_frame,
@@ -97,6 +101,11 @@ class PipelineConfig:
         (benchmarks/bench_pipeline.py).
       chunk_size: frames baked, enhanced and merged per step (bounds memory: one chunk holds
         chunk_size * P patches of S^2 * 3 float32 twice).
+      frames_per_batch: frames whose patches share one network call (their F * P patches
+        cut into batches of `batch_size`; a chunk's last group is zero-padded to F frames).
+        1 (default): each frame's batches hold only its own patches, so a frame's maps are
+        bit-identical whatever the chunking; > 1 saves the per-frame batch padding (results
+        equal up to float rounding: the network treats each patch on its own).
       stride: patch stride in texels; None for half the patch (each texel in ~4 patches).
       window: merge weights, "hann" (seam-free, default) or "uniform" (the paper's average).
       smooth: bake interpolated vertex normals (True) or flat face normals.
@@ -105,11 +114,19 @@ class PipelineConfig:
         calibrated at 10 mm).
       subdivision_scheme: "midpoint" or "loop" upsampling of the coarse mesh before lifting.
       weights, solver: the lift's energy weights and solver settings (see `lift.lift`).
+      warm_start: start each frame's lift from the previous streamed frame's solution,
+        carried in the coarse surface's local frames (`stages._lift_warm`): fewer solver
+        iterations on an animation (the CLI turns it on; benchmarks/bench_lift.py
+        --sequence). A lifted frame then depends on the frames streamed before it: within
+        the solver's tolerance on a smooth animation, but on an erratic map (e.g. a random
+        network's) the lift can settle in another local minimum. False (default): every
+        frame starts at its upsampled coarse mesh, independent of the others.
       resolve, phi: body-penetration settings (used only when a body is given).
     """
 
     batch_size: int = 8
     chunk_size: int = 4
+    frames_per_batch: int = 1
     stride: int | None = None
     window: str = "hann"
     smooth: bool = True
@@ -118,13 +135,14 @@ class PipelineConfig:
     subdivision_scheme: str = "midpoint"
     weights: lift_lib.LiftWeights = lift_lib.LiftWeights()
     solver: lift_lib.SolverConfig = lift_lib.SolverConfig()
+    warm_start: bool = False
     resolve: lift_lib.ResolveConfig = lift_lib.ResolveConfig()
     phi: float = 5e3
 
     def __post_init__(self):
-        if self.batch_size < 1 or self.chunk_size < 1:
-            raise ValueError(f"batch_size and chunk_size must be >= 1, got {self.batch_size}, "
-                             f"{self.chunk_size}")
+        if self.batch_size < 1 or self.chunk_size < 1 or self.frames_per_batch < 1:
+            raise ValueError(f"batch_size, chunk_size and frames_per_batch must be >= 1, got "
+                             f"{self.batch_size}, {self.chunk_size}, {self.frames_per_batch}")
         if self.window not in patches.WINDOWS:
             raise ValueError(f"unknown window {self.window!r}; expected one of "
                              f"{', '.join(patches.WINDOWS)}")
@@ -188,8 +206,17 @@ class Pipeline:
         return int(self.origins.shape[0])
 
     @property
+    def frames_per_call(self) -> int:
+        """Frames whose patches go through one network call (at most a chunk)."""
+        return min(self.config.frames_per_batch, self.config.chunk_size)
+
+    @property
     def batches_per_frame(self) -> int:
         return -(-self.num_patches // self.config.batch_size)
+
+    @property
+    def batches_per_call(self) -> int:
+        return -(-self.frames_per_call * self.num_patches // self.config.batch_size)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -210,6 +237,8 @@ class EnhanceResult:
       timings: seconds per stage (`STAGES`) and "total", the wall time of the call (setup and
         compile are part of it only when the call built its pipeline).
       peak_buffered_frames: most frames held by the pipeline at once (at most chunk_size).
+      lift_iterations: the lift's solver iterations summed over the frames (counted with
+        `PipelineConfig.warm_start` only; else 0).
     """
 
     material: str
@@ -223,6 +252,7 @@ class EnhanceResult:
     patches: dict
     timings: dict
     peak_buffered_frames: int
+    lift_iterations: int = 0
 
 
 # --------------------------------------------------------------------------------------------
@@ -295,26 +325,40 @@ def _compile(pipe: Pipeline) -> float:
                       _padded_mask(pipe), smooth=cfg.smooth,
                       padded_shape=pipe.padded_shape).compile()
     _extract_chunk.lower(spec((c, hp, wp, 3), f32), pipe.origins, size=size).compile()
-    _network_frame.lower(_network_apply(enh), enh.params, spec((p, size, size, 3), f32),
+    _network_frame.lower(_network_apply(enh), enh.params,
+                         spec((pipe.frames_per_call * p, size, size, 3), f32),
                          spec((), jnp.int32), batch_size=cfg.batch_size,
                          origins=_noise_origins(pipe)).compile()
     _merge_chunk.lower(spec((c, p, size, size, 3), f32), pipe.origins, _padded_mask(pipe),
                        spec((c, hp, wp, 3), f32), window=cfg.window, shape=pipe.shape).compile()
     if cfg.lift:
         body = _body_for(pipe.body, 0)
-        _lift_frame.lower(spec((pipe.garment.num_vertices, 3), f32),
-                          spec((*pipe.shape, 3), f32), pipe.subdivision, pipe.fine_garment,
-                          pipe.topology, body, **_lift_static(pipe)).compile()
+        coarse, nmap = spec((pipe.garment.num_vertices, 3), f32), spec((*pipe.shape, 3), f32)
+        if cfg.warm_start:
+            _lift_frame_warm.lower(coarse, nmap, _no_offsets(pipe), pipe.subdivision,
+                                   pipe.fine_garment, pipe.topology, body,
+                                   **_lift_static(pipe)).compile()
+        else:
+            _lift_frame.lower(coarse, nmap, pipe.subdivision, pipe.fine_garment, pipe.topology,
+                              body, **_lift_static(pipe)).compile()
     return time.perf_counter() - t0
 
 
 def _noise_origins(pipe: Pipeline):
-    """The patch origins for models with texel noise (fixed to the cloth), else None."""
-    return jnp.asarray(pipe.origins) if pipe.enhancer.config.unet.noise_channels else None
+    """The patch origins of one network call (`frames_per_call` frames) for models with
+    texel noise (fixed to the cloth), else None."""
+    if not pipe.enhancer.config.unet.noise_channels:
+        return None
+    return jnp.asarray(np.tile(pipe.origins, (pipe.frames_per_call, 1)))
 
 
 def _padded_mask(pipe: Pipeline):
     return jnp.asarray(patches.pad_to_patch(pipe.mask, pipe.enhancer.config.patch_size)[0])
+
+
+def _no_offsets(pipe: Pipeline):
+    """Zero carried lift offsets (V', 3): a cold start."""
+    return jnp.zeros((pipe.fine_garment.num_vertices, 3), jnp.float32)
 
 
 def _lift_static(pipe: Pipeline) -> dict:
@@ -337,23 +381,32 @@ def _add(timings: dict, stage: str, t0: float) -> float:
 def _run_network(pipe: Pipeline, inputs, material_id: int, counts: dict):
     """U-Net over the patches of n frames, (n, P, S, S, 3) -> same shape, RGB form.
 
-    One `network_stage` call per frame: every batch holds patches of a single frame at fixed
-    positions (a frame's last batch is zero-padded), so a patch's result never depends on its
-    neighbours in the chunk. Models with texel noise get each patch's origin, so the noise is
-    fixed to the cloth.
+    One `network_stage` call per group of `frames_per_call` frames (their patches
+    concatenated, then cut into fixed-size batches; the last group zero-padded to whole
+    frames, so the call compiles once). With one frame per call every batch holds patches of
+    a single frame at fixed positions, so a patch's result never depends on its neighbours in
+    the chunk. Models with texel noise get each patch's origin, so the noise is fixed to the
+    cloth.
     """
     apply = _network_apply(pipe.enhancer)
-    b, p = pipe.config.batch_size, pipe.num_patches
-    nb = pipe.batches_per_frame
+    b, p, f = pipe.config.batch_size, pipe.num_patches, pipe.frames_per_call
     n = inputs.shape[0]
     material = jnp.asarray(material_id, jnp.int32)
     origins = _noise_origins(pipe)
-    out = jnp.stack([_network_frame(apply, pipe.enhancer.params, inputs[i], material,
-                                    batch_size=b, origins=origins) for i in range(n)])
+    outs = []
+    for g in range(0, n, f):
+        group = inputs[g:g + f]
+        k = group.shape[0]
+        if k < f:  # whole frames of zeros: the compiled shape
+            group = jnp.pad(group, ((0, f - k),) + ((0, 0),) * 4)
+        out = _network_frame(apply, pipe.enhancer.params, group.reshape(f * p, *group.shape[2:]),
+                             material, batch_size=b, origins=origins)
+        outs.append(out.reshape(group.shape)[:k])
+    calls = -(-n // f)
     counts["network"] += n * p
-    counts["padding"] += n * (nb * b - p)
-    counts["batches"] += n * nb
-    return out
+    counts["padding"] += calls * pipe.batches_per_call * b - n * p
+    counts["batches"] += calls * pipe.batches_per_call
+    return outs[0] if len(outs) == 1 else jnp.concatenate(outs)
 
 
 def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int] | None = None,
@@ -368,12 +421,13 @@ def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int
       material_id: index into `pipe.enhancer.config.materials`.
       indices: frame indices to enhance (default all), in the order given.
       timings: dict accumulating seconds per stage (bake, tile, network, merge, lift).
-      counts: dict accumulating patch counts (network, padding, batches) and the most frames
-        alive at once (peak_buffered_frames).
+      counts: dict accumulating patch counts (network, padding, batches), the most frames
+        alive at once (peak_buffered_frames) and the lift's solver iterations
+        (lift_iterations; counted with warm_start only).
     """
     timings = {} if timings is None else timings
     counts = {} if counts is None else counts
-    for k in ("network", "padding", "batches", "peak_buffered_frames"):
+    for k in ("network", "padding", "batches", "peak_buffered_frames", "lift_iterations"):
         counts.setdefault(k, 0)
     cfg = pipe.config
     indices = list(range(len(frames)) if indices is None else indices)
@@ -381,6 +435,8 @@ def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int
     origins = jnp.asarray(pipe.origins)
     size = pipe.enhancer.config.patch_size
     lift_static = _lift_static(pipe)
+    # The lift's warm start: the previous frame's offsets in its local frames (zeros: cold).
+    carried = _no_offsets(pipe) if cfg.lift and cfg.warm_start else None
     for start in range(0, len(indices), cfg.chunk_size):
         idx = indices[start:start + cfg.chunk_size]
         n = len(idx)
@@ -414,9 +470,19 @@ def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int
             detailed = None
             if cfg.lift:
                 t0 = time.perf_counter()
-                detailed = np.array(_lift_frame(
-                    jnp.asarray(coarse[j]), jnp.asarray(enhanced[j]), pipe.subdivision,
-                    pipe.fine_garment, pipe.topology, _body_for(pipe.body, t), **lift_static))
+                args = (pipe.subdivision, pipe.fine_garment, pipe.topology,
+                        _body_for(pipe.body, t))
+                if cfg.warm_start:
+                    detailed, carried, info = _lift_frame_warm(
+                        jnp.asarray(coarse[j]), jnp.asarray(enhanced[j]), carried, *args,
+                        **lift_static)
+                    counts["lift_iterations"] += int(info.iterations)
+                else:
+                    # The very computation `frame_fn` runs (bit for bit: a lift that stops
+                    # short of convergence amplifies rounding differences).
+                    detailed = _lift_frame(jnp.asarray(coarse[j]), jnp.asarray(enhanced[j]),
+                                           *args, **lift_static)
+                detailed = np.array(detailed)
                 _add(timings, "lift", t0)
             yield EnhancedFrame(int(t), coarse[j], enhanced[j], detailed)
 
@@ -629,7 +695,8 @@ def enhance_sequence(sequence: GarmentSequence, material: str = "auto", *, lift:
                      padding=counts["padding"], batches=counts["batches"],
                      batch_size=pipeline.config.batch_size, stride=pipeline.config.stride,
                      patch_size=enh.config.patch_size),
-        timings=timings, peak_buffered_frames=counts["peak_buffered_frames"])
+        timings=timings, peak_buffered_frames=counts["peak_buffered_frames"],
+        lift_iterations=counts["lift_iterations"])
 
 
 def enhance_frame(vertices, garment: Garment, material: str, **kwargs) -> EnhancedFrame:

@@ -32,7 +32,8 @@ import jax.numpy as jnp
 
 from wrinkle_jax import enhancer as enhancer_lib
 from wrinkle_jax import lift as lift_lib
-from wrinkle_jax import normalmap, patches
+from wrinkle_jax import mesh, normalmap, patches
+from wrinkle_jax.numerics import normalize
 
 __all__ = ["FrameResult", "bake_stage", "lift_stage", "merge_stage", "network_stage", "tile_stage"]
 
@@ -243,6 +244,68 @@ def _merge_chunk(outputs, origins, mask, coarse, window: str, shape: tuple[int, 
 
 _lift_frame = jax.jit(lift_stage, static_argnames=("layout", "weights", "solver", "resolve",
                                                    "phi"))
+
+
+# --------------------------------------------------------------------------------------------
+# Warm-started lifting of a stream of frames
+# --------------------------------------------------------------------------------------------
+
+
+def local_frames(vertices, topology: lift_lib.LiftTopology):
+    """(V, 3, 3) orthonormal frames, rows (tangent, bitangent, normal), at every vertex.
+
+    The normal is the area-weighted vertex normal; the tangent is the edge to the first
+    one-ring neighbour projected onto the tangent plane, so the frame turns with the surface
+    and is a function of the mesh alone (a vertex without neighbours gets a zero tangent
+    plane: its offsets keep only their normal part).
+    """
+    n = mesh.vertex_normals(vertices, topology.faces)
+    e = vertices[topology.neighbors[:, 0]] - vertices
+    t = normalize(e - jnp.sum(e * n, -1, keepdims=True) * n)
+    return jnp.stack([t, jnp.cross(n, t), n], -2)
+
+
+def to_local(offsets, frames):
+    """(V, 3) world offsets -> (V, 3) components in `frames` ((V, 3, 3), `local_frames`)."""
+    return jnp.einsum("vij,vj->vi", frames, offsets)
+
+
+def from_local(local, frames):
+    """Inverse of `to_local`: (V, 3) frame components -> (V, 3) world offsets."""
+    return jnp.einsum("vij,vi->vj", frames, local)
+
+
+def _lift_warm(coarse_vertices, normal_map, local, subdivision, fine_garment, topology,
+               body=None, *, layout, weights, solver, resolve, phi):
+    """`lift_stage` started from the previous frame's solution, carried in local coordinates.
+
+    The lifted detail of consecutive frames is nearly the same *relative to the coarse
+    surface*, not in world space (the garment moves), so the carried state is the previous
+    frame's offsets p - p0 expressed in p0's `local_frames`; this frame starts at
+    p0 + those offsets in its own frames (`lift.lift` falls back to p0 when that guess has the
+    higher energy). Zero offsets are a cold start.
+
+    Args:
+      local: (V', 3) the previous frame's offsets in its local frames, meters (zeros: none).
+      the rest: as `lift_stage`.
+    Returns:
+      (detailed (V', 3) meters, this frame's local offsets (V', 3) meters, LiftInfo); the
+      offsets are those of the lift itself, before any body push-out.
+    """
+    def start(p0):
+        return p0 + from_local(local, local_frames(p0, topology))
+
+    p, info, p0 = lift_lib.lift_from_normal_map(coarse_vertices, subdivision, fine_garment,
+                                                topology, normal_map, layout, weights, solver,
+                                                start=start, with_info=True)
+    carried = to_local(p - p0, local_frames(p0, topology))
+    if body is not None:
+        p = lift_lib.resolve_penetration(p, topology, body, phi, resolve)
+    return p, carried, info
+
+
+_lift_frame_warm = jax.jit(_lift_warm, static_argnames=("layout", "weights", "solver",
+                                                        "resolve", "phi"))
 
 _APPLY_CACHE: dict = {}
 

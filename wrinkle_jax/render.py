@@ -467,7 +467,12 @@ def pixel_normals(fragments: Fragments, vertices, faces, camera: Camera, *, smoo
             np.asarray(mask, np.float32).reshape(nm.shape[0], nm.shape[1], 1))
         # Normalized convolution: background texels do not bleed into the garment's normals.
         both = jnp.asarray(np.concatenate([nm * m, m], axis=-1))
-        s = np.asarray(normalmap.sample(both, jnp.asarray(uv), layout, renormalize=False))
+        # The pixel count changes every frame, and every new shape recompiles each of the
+        # sampler's ops (seconds per frame): pad it to a power of two so shapes repeat.
+        padded = np.zeros((1 << max(int(len(uv)) - 1, 1).bit_length(), 2), np.float32)
+        padded[:len(uv)] = uv
+        s = np.asarray(normalmap.sample(both, jnp.asarray(padded), layout,
+                                        renormalize=False))[:len(uv)]
         mapped = _unit_rows(s[:, :3])
         use = (s[:, 3] > 1e-3) & (np.abs(mapped).sum(1) > 0)
         # The map is aligned with the front side: flip it with the face.

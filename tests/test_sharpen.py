@@ -251,15 +251,19 @@ def test_unet_blurs_match_the_reference_formula(monkeypatch, highpass, unsharp_s
     mat = jnp.array([0, 1, 1])
     wts = jnp.asarray(rng.normal(size=x.shape), jnp.float32)
 
-    def run(p):
-        out = model.apply({"params": p}, x, mat)
-        return out, jnp.sum(wts * out)
+    def compiled():
+        # One jitted program for forward and gradient (op-by-op dispatch of a U-Net and its
+        # backward pass costs far more CPU than compiling it). A fresh closure per blur form:
+        # jit caches traces per function, and the blur is looked up only while tracing.
+        def loss(p):
+            out = model.apply({"params": p}, x, mat)
+            return jnp.sum(wts * out), out
 
-    got, _ = run(params)
-    g_got = jax.grad(lambda p: run(p)[1])(params)
+        return jax.jit(jax.value_and_grad(loss, has_aux=True))
+
+    (_, got), g_got = compiled()(params)
     monkeypatch.setattr(sharpen, "masked_blur", sharpen.masked_blur_reference)
-    want, _ = run(params)
-    g_want = jax.grad(lambda p: run(p)[1])(params)
+    (_, want), g_want = compiled()(params)
     assert float(jnp.abs(got - x).max()) > 1e-2  # the residual is not trivial
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=2e-6)
     # Tolerance on the whole gradient's scale: biases feeding instance normalization have a

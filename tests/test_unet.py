@@ -347,7 +347,7 @@ def test_unet_config_builds_the_module_it_describes():
                "residual_base": "unsharp",
                "unsharp_sigma": 3.0, "unsharp_amount": 0.5, "residual_highpass": 5.0,
                "blur_order": 0, "detail_sigma": 4.0, "noise_channels": 2, "noise_scale": 3,
-               "upsample": "bilinear"}
+               "upsample": "bilinear", "residual_gain": 0.5}
     assert sorted(changed) == sorted(names)
     assert all(getattr(unet.UNetConfig(), n) != v for n, v in changed.items())
     cfg = unet.UNetConfig(**changed)

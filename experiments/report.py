@@ -74,6 +74,8 @@ FIDELITY_METHODS = {
                        "(not shipped)",
     "detail_logratio_s3272": "candidate, session 10: the session-9 run resumed to 3,272 steps "
                              "(not shipped)",
+    "detail_garments_s2397": "candidate, session 11: session 10's run warm-started on five "
+                             "training garments, chosen on the validation garment (not shipped)",
 }
 
 

@@ -580,24 +580,19 @@ def lift(vertices0, topology: LiftTopology, target_normals,
 def lift_from_normal_map(coarse_vertices, subdivision: mesh.Subdivision,
                          fine_garment: mesh.Garment, topology: LiftTopology, normal_map,
                          layout: normalmap.UVLayout, weights: LiftWeights = LiftWeights(),
-                         solver: SolverConfig = SolverConfig(),  # noqa: B008
-                         start=None, with_info: bool = False):
+                         solver: SolverConfig = SolverConfig()):  # noqa: B008
     """One frame end to end: upsample the coarse frame, sample N*, lift (jittable with
     weights/solver/layout static; differentiable in coarse_vertices and normal_map).
 
     Args:
       coarse_vertices: (Vc, 3) meters. subdivision, fine_garment: from `upsample`.
       normal_map: (H, W, 3) enhanced map N*. layout: its UVLayout.
-      start: None, or a callable p0 (V, 3) -> (V, 3) warm start (see `lift`; a callable
-        because a warm start is usually built on this frame's p0).
-      with_info: also return the `LiftInfo` and p0.
     Returns:
-      (V, 3) lifted fine vertices, meters; with `with_info`, (vertices, LiftInfo, p0).
+      (V, 3) lifted fine vertices, meters.
     """
     p0 = subdivision.apply(coarse_vertices)
     n = sample_target_normals(normal_map, fine_garment, layout)
-    p, info = _solve(p0, topology, n, None if start is None else start(p0), weights, solver)
-    return (p, info, p0) if with_info else p
+    return _solve(p0, topology, n, None, weights, solver)[0]
 
 
 # --------------------------------------------------------------------------------------------

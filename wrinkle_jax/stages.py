@@ -292,13 +292,12 @@ def _lift_warm(coarse_vertices, normal_map, local, subdivision, fine_garment, to
       (detailed (V', 3) meters, this frame's local offsets (V', 3) meters, LiftInfo); the
       offsets are those of the lift itself, before any body push-out.
     """
-    def start(p0):
-        return p0 + from_local(local, local_frames(p0, topology))
-
-    p, info, p0 = lift_lib.lift_from_normal_map(coarse_vertices, subdivision, fine_garment,
-                                                topology, normal_map, layout, weights, solver,
-                                                start=start, with_info=True)
-    carried = to_local(p - p0, local_frames(p0, topology))
+    p0 = subdivision.apply(coarse_vertices)
+    n = lift_lib.sample_target_normals(normal_map, fine_garment, layout)
+    frames = local_frames(p0, topology)  # this frame's: they place the start and carry p - p0
+    p, info = lift_lib.lift_with_info(p0, topology, n, weights, solver,
+                                      start=p0 + from_local(local, frames))
+    carried = to_local(p - p0, frames)
     if body is not None:
         p = lift_lib.resolve_penetration(p, topology, body, phi, resolve)
     return p, carried, info

@@ -300,26 +300,35 @@ def restore_checkpoint(manager, template: TrainState, config: TrainConfig, step=
     return got["state"], IteratorState(**got["meta"]["iterator"])
 
 
-def restore_run(run_dir: str | os.PathLike, step: int | None = None
-                ) -> tuple[TrainConfig, TrainState]:
-    """The config and the train state of a run folder written by `train` (its
-    ``config.json`` and ``checkpoints/``), at its last checkpoint or at `step`."""
+def _open_run(run_dir: str | os.PathLike):
+    """(config, checkpoint manager) of a run folder written by `train`."""
     run = Path(run_dir)
     if not (run / "config.json").is_file():
         raise FileNotFoundError(f"{run}: no training run here (no config.json), so no checkpoint")
     cfg = TrainConfig.from_json(json.loads((run / "config.json").read_text()))
-    manager = _manager(run / "checkpoints", cfg)
+    return cfg, _manager(run / "checkpoints", cfg)
+
+
+def _restore_states(run_dir: str | os.PathLike, steps: Sequence[int | None]):
+    """(config, [train state at each of `steps`]) (None: the last checkpoint); the run's
+    config, manager and state template are built once."""
+    cfg, manager = _open_run(run_dir)
     # Only the shapes are needed: tracing the init is far cheaper than running it at 128 px.
     template = jax.eval_shape(lambda: create_train_state(cfg, jax.random.key(0, impl="rbg")))
-    state, _ = restore_checkpoint(manager, template, cfg, step)
+    return cfg, [restore_checkpoint(manager, template, cfg, s)[0] for s in steps]
+
+
+def restore_run(run_dir: str | os.PathLike, step: int | None = None
+                ) -> tuple[TrainConfig, TrainState]:
+    """The config and the train state of a run folder written by `train` (its
+    ``config.json`` and ``checkpoints/``), at its last checkpoint or at `step`."""
+    cfg, (state,) = _restore_states(run_dir, [step])
     return cfg, state
 
 
 def checkpoint_steps(run_dir: str | os.PathLike) -> list[int]:
     """The steps of a run folder's kept checkpoints, ascending."""
-    run = Path(run_dir)
-    cfg = TrainConfig.from_json(json.loads((run / "config.json").read_text()))
-    return sorted(int(s) for s in _manager(run / "checkpoints", cfg).all_steps())
+    return sorted(int(s) for s in _open_run(run_dir)[1].all_steps())
 
 
 def averaged_params(run_dir: str | os.PathLike, steps: Sequence[int]):
@@ -330,11 +339,10 @@ def averaged_params(run_dir: str | os.PathLike, steps: Sequence[int]):
     regulariser for generalisation to unseen inputs. One step returns that checkpoint."""
     if not steps:
         raise ValueError("averaged_params needs at least one step")
-    states = [restore_run(run_dir, int(s)) for s in steps]
-    cfg = states[0][0]
+    cfg, states = _restore_states(run_dir, [int(s) for s in steps])
     params = jax.tree_util.tree_map(
         lambda *x: np.mean(np.stack([np.asarray(v, np.float32) for v in x]), 0),
-        *[st.params for _, st in states])
+        *[st.params for st in states])
     return cfg, params
 
 
@@ -371,10 +379,11 @@ def export_run(run_dir: str | os.PathLike, out_path: str | os.PathLike,
     from wrinkle_jax import MATERIALS, enhancer
 
     run = Path(run_dir)
-    cfg, state = restore_run(run)
-    params = state.params
-    if steps is not None:
-        cfg, params = averaged_params(run, steps)
+    if steps is None:
+        cfg, state = restore_run(run)
+        params, last_step = state.params, int(state.step)
+    else:
+        (cfg, params), last_step = averaged_params(run, steps), int(max(steps))
     if data_root is not None:
         facts = _data_facts(PatchDataset(data_root, "train", scenes=train_scenes))
     elif (run / "data.json").is_file():
@@ -389,7 +398,7 @@ def export_run(run_dir: str | os.PathLike, out_path: str | os.PathLike,
     train_s = float(sum(r.get("step_s", 0.0) for r in rows if r["kind"] == "train"))
     evals = [r for r in rows if r["kind"] == "eval"]
     meta = {"train_config": cfg.to_json(),
-            "steps": int(state.step) if steps is None else int(max(steps)),
+            "steps": last_step,
             "checkpoint_steps": None if steps is None else [int(x) for x in steps],
             "train_step_seconds": round(train_s, 1), "wall_seconds_this_call": wall_s,
             "train_patches": facts["train_patches"], "train_sequences": facts["train_sequences"],

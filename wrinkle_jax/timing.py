@@ -48,19 +48,26 @@ class Timing:
     """What `alternate` measured.
 
     Attributes:
-      wall, cpu: name -> median seconds per call (wall clock; process CPU time of all
-        threads, the steadier number under load).
-      wall_rounds, cpu_rounds: name -> the per-round seconds, in round order.
+      wall_rounds, cpu_rounds: name -> the per-round seconds, in round order (wall clock;
+        process CPU time of all threads, the steadier number under load).
       reps: timed rounds. load_before, load_after: 1-minute load average around the run.
     """
 
-    wall: dict
-    cpu: dict
     wall_rounds: dict
     cpu_rounds: dict
     reps: int
     load_before: float | None
     load_after: float | None
+
+    @property
+    def wall(self) -> dict:
+        """name -> median wall seconds per call."""
+        return {k: statistics.median(v) for k, v in self.wall_rounds.items()}
+
+    @property
+    def cpu(self) -> dict:
+        """name -> median CPU seconds per call."""
+        return {k: statistics.median(v) for k, v in self.cpu_rounds.items()}
 
     def ratio(self, a: str, b: str, clock: str = "wall") -> float:
         """Median over rounds of time(a) / time(b) (`clock` "wall" or "cpu"); inf when b took
@@ -122,7 +129,5 @@ def alternate(runs: Mapping[str, Callable[[], Any]], reps: int = 5, *, warmup: i
             block(fn())
             wall[k].append(wall_clock() - t0)
             cpu[k].append(cpu_clock() - c0)
-    return Timing(wall={k: statistics.median(v) for k, v in wall.items()},
-                  cpu={k: statistics.median(v) for k, v in cpu.items()},
-                  wall_rounds=wall, cpu_rounds=cpu, reps=reps, load_before=load_before,
+    return Timing(wall_rounds=wall, cpu_rounds=cpu, reps=reps, load_before=load_before,
                   load_after=loadavg())

@@ -211,12 +211,12 @@ def val_models(args, vgg_params) -> dict:
                                              for k, p in zip(models, args.model, strict=True)},
            "methods": {}}
     cat = {k: np.concatenate(v) for k, v in scores.items()}
+    fine = {b: float(np.mean(np.concatenate(v))) for b, v in bands["target"].items()}
     for k, sc in cat.items():
         v = np.isfinite(sc)
         entry = {"median": float(np.median(sc[v])), "mean": float(np.mean(sc[v])),
                  "material_medians": {m: float(np.nanmedian(sc[mats == m]))
                                       for m in dict.fromkeys(mats)}}
-        fine = {b: float(np.mean(np.concatenate(v))) for b, v in bands["target"].items()}
         if k in bands:  # mean band energy relative to the fine target's (as `summarize`)
             entry["band_ratio_to_fine"] = {
                 b: float(np.mean(np.concatenate(v))) / max(fine[b], 1e-12)
@@ -396,8 +396,8 @@ def build_methods(args) -> tuple[dict, dict]:
     for name, path in models.items():
         enh = load_model(path)
         methods[name] = (lambda fn: (lambda p, e: fn(p)))(method_lib.enhancer_method(enh))
-        sources[name] = suite.file_digest(path.split("@")[0]) + (
-            f"@{path.split('@')[1]}" if "@" in path else "")
+        file, _, gain = path.partition("@")
+        sources[name] = suite.file_digest(file) + (f"@{gain}" if gain else "")
     if args.ceilings:
         def oracle_detail(p, e):
             d_in, large, branch = detail.decompose(p.input * 2.0 - 1.0, p.mask, SIGMA)

@@ -331,7 +331,7 @@ class CINUNet(nn.Module):
                                           cfg.blur_order, blurred=base_low)
             elif cfg.residual_base != "input":
                 raise ValueError(f"unknown residual_base {cfg.residual_base!r}")
-            out = base + (out if cfg.residual_gain == 1.0 else cfg.residual_gain * out)
+            out = base + cfg.residual_gain * out  # exact at gain 1
         if cfg.detail_sigma > 0:
             out = detail.from_detail_rgb(out, large, branch, mask)
         return out

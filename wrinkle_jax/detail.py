@@ -35,18 +35,27 @@ Example:
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 from wrinkle_jax import sharpen
 
-__all__ = ["DEFAULT_SIGMA", "branch_of", "decompose", "from_detail", "from_detail_rgb",
-           "large_scale", "on_reference_branch_rgb", "to_detail", "to_detail_rgb",
-           "transplant_rgb"]
+__all__ = ["BAND_SIGMAS", "DEFAULT_SIGMA", "band_rms", "branch_of", "decompose", "from_detail",
+           "from_detail_rgb", "large_scale", "on_reference_branch_rgb", "to_detail",
+           "to_detail_rgb", "transplant_rgb"]
 
 # Low-pass radius in texels (2 mm texels: 16 mm): the wrinkle band (16-64 mm) stays in the
 # detail, the coarse/fine large-scale divergence (>= 30 mm) leaves it. Chosen by measurement
 # (experiments/results/fidelity/).
 DEFAULT_SIGMA = 8.0
+
+# Band edges of the detail spectrum (2 mm texels): wavelengths below 16 mm (fine creases and
+# facet ripples) and 16-64 mm (the wrinkle band). A Gaussian of radius s texels halves the
+# power at wavelength pi s / sqrt(ln(2) / 2) ~ 5.3 s texels, hence radii 1.5 and 6.
+BAND_SIGMAS = {"lt16mm": (0.0, 1.5), "16_64mm": (1.5, 6.0)}
+
+# Band-passes are unreliable near the mask's border: only texels this far inside count.
+_BAND_INSET = 6
 
 # 1 + cos(angle to the pole) below which the rotation is regularized (within ~2.6 degrees of
 # the pole; `branch_of` keeps real patches far from it).
@@ -179,3 +188,36 @@ def transplant_rgb(x, donor, mask, donor_mask, sigma: float = DEFAULT_SIGMA):
     flat = jnp.asarray([0.5, 0.5, 1.0], x.dtype)
     d = jnp.where(jnp.asarray(donor_mask) > 0, d, flat)
     return from_detail_rgb(d, large, branch, mask)
+
+
+def band_rms(detail_rgb, mask, bands=BAND_SIGMAS, eps: float = 0.0):
+    """Per-patch RMS of the tangential detail (x, y of the detail normals) in each band.
+
+    The jittable, differentiable form of `evaluation.bands.band_rms` (its NumPy/OpenCV
+    reference; same masked Gaussians, same border inset), for losses.
+
+    Args:
+      detail_rgb: (N, H, W, 3) RGB-form detail maps; mask: (N, H, W, 1) in {0, 1}.
+      bands: name -> (inner, outer) Gaussian radii in texels; the band is
+        G_inner(d) - G_outer(d) (masked normalized convolution; inner 0 = d itself).
+      eps: added to the mean square before the root (> 0 keeps the gradient finite for a
+        patch with no energy in a band).
+    Returns:
+      name -> (N,) RMS over texels at least 6 texels inside the mask (0 if there are none).
+    """
+    x = jnp.asarray(detail_rgb)[..., :2] * 2.0 - 1.0
+    m = jnp.asarray(mask, x.dtype)
+    # Erosion by a (2 inset + 1)^2 square; outside the image counts as inside (as OpenCV's
+    # default border for erode).
+    w = 2 * _BAND_INSET + 1
+    inner = jax.lax.reduce_window(m, jnp.inf, jax.lax.min, (1, w, w, 1), (1, 1, 1, 1),
+                                  "SAME") > 0
+    count = jnp.sum(inner, axis=(1, 2, 3))
+    radii = sorted({r for pair in bands.values() for r in pair if r > 0})
+    blurred = {0.0: x, **{r: sharpen.masked_blur(x, m, r, order=0) for r in radii}}
+    out = {}
+    for name, (a, b) in bands.items():
+        sq = jnp.sum(jnp.square(blurred[a] - blurred[b]), axis=-1, keepdims=True)
+        ms = jnp.sum(sq * inner, axis=(1, 2, 3)) / jnp.maximum(count, 1)
+        out[name] = jnp.sqrt(ms + eps) * (count > 0)
+    return out

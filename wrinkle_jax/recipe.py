@@ -48,6 +48,8 @@ def add_recipe_args(ap: argparse.ArgumentParser) -> None:
                     help="per-patch relative style loss floor; <= 0 for the paper's absolute loss")
     ap.add_argument("--relative-log", type=int, default=int(r.relative_log),
                     help="1: the log of the per-patch relative style loss (median-seeking)")
+    ap.add_argument("--band-weight", type=float, default=r.band_weight,
+                    help="weight of the detail band-energy term (train.TrainConfig.band_weight)")
     ap.add_argument("--residual-base", default=u.residual_base, choices=("input", "unsharp"))
     ap.add_argument("--unsharp-sigma", type=float, default=u.unsharp_sigma,
                     help="texels; the best sigma of the unsharp-mask sweep on training patches")
@@ -90,7 +92,7 @@ def config_from_args(args: argparse.Namespace) -> train.TrainConfig:
         steps=args.steps, learning_rate=args.lr, w_s=args.w_s, w_c=args.w_c,
         normalize_channels=bool(args.normalize_channels),
         relative_floor=args.relative_floor if args.relative_floor > 0 else None,
-        relative_log=bool(args.relative_log),
+        relative_log=bool(args.relative_log), band_weight=args.band_weight,
         batch_size=args.batch_size, keep_checkpoints=args.keep_checkpoints,
         eval_batches=args.eval_batches)
 

@@ -42,6 +42,7 @@ from wrinkle_jax import metrics as metrics_lib
 from wrinkle_jax.data import BatchIterator, IteratorState, PatchDataset
 from wrinkle_jax.fileio import atomic_write_text
 from wrinkle_jax.nn import losses, unet
+from wrinkle_jax.numerics import safe_div
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,6 +68,9 @@ class TrainConfig:
         relative style loss (`nn.losses.enhancer_loss`); the "style" metric is then a ratio.
       relative_log: the log of that ratio instead (the median-seeking form; "style" is then
         a log ratio, 0 = as far from the target as the input).
+      band_weight: weight of the band-energy term (`nn.losses.band_loss`: log band RMS of the
+        output's detail against the target's, < 16 mm and 16-64 mm); 0 leaves it out. Needs
+        ``unet.detail_sigma`` > 0 (the bands are those of detail maps).
       zero_init_output: with a residual U-Net, start the output conv at zero so the untrained
         network is the identity (improvement 0) instead of input + random noise, whose style
         loss starts ~40x above the input's.
@@ -93,6 +97,7 @@ class TrainConfig:
     zero_init_output: bool = True
     relative_floor: float | None = None
     relative_log: bool = False
+    band_weight: float = 0.0
     seed: int = 0
     eval_every: int = 50
     eval_batches: int = 4
@@ -172,14 +177,20 @@ def loss_images(config: TrainConfig, batch: dict, out):
 
 
 def loss_fn(params, batch, vgg_params, config: TrainConfig):
-    """Scalar objective and per-sample parts (content, style, total)."""
+    """Scalar objective and per-sample parts (content, style, total; band with
+    `band_weight`)."""
     inp, out, target = loss_images(config, batch, _forward(config, params, batch))
-    return losses.enhancer_loss(
+    total, parts = losses.enhancer_loss(
         vgg_params, out, inp, target, batch["mask"],
         style_layers=config.style_layers, content_layer=config.content_layer,
         w_c=config.w_c, w_s=config.w_s, pool=config.pool,
         normalize_channels=config.normalize_channels, conv_impl=config.vgg_conv_impl,
         relative_floor=config.relative_floor, relative_log=config.relative_log)
+    if config.band_weight > 0:
+        band = losses.band_loss(out, target, batch["mask"])
+        parts = {**parts, "band": band, "total": parts["total"] + config.band_weight * band}
+        total = jnp.mean(parts["total"])
+    return total, parts
 
 
 def data_mesh(devices=None) -> jax.sharding.Mesh:
@@ -208,7 +219,8 @@ def make_train_step(config: TrainConfig, vgg_params, mesh: jax.sharding.Mesh | N
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         out = {"loss": loss, "content": jnp.mean(parts["content"]),
-               "style": jnp.mean(parts["style"]), "grad_norm": optax.tree.norm(grads)}
+               "style": jnp.mean(parts["style"]), "grad_norm": optax.tree.norm(grads),
+               **({"band": jnp.mean(parts["band"])} if "band" in parts else {})}
         return TrainState(state.step + 1, params, opt_state), out
 
     batch_sharding = NamedSharding(mesh, P("data"))
@@ -217,7 +229,8 @@ def make_train_step(config: TrainConfig, vgg_params, mesh: jax.sharding.Mesh | N
 
 
 def make_eval_step(config: TrainConfig, vgg_params):
-    """Jitted `(params, batch) -> per-sample content, style, improvement score, valid`.
+    """Jitted `(params, batch) -> per-sample content, style, improvement score, valid` and,
+    for detail models, the output's band RMS relative to the target's (`band_<name>`).
 
     The improvement score uses the training style loss (same layers and normalization):
     100 |L(input) - L(output)| / L(input), with L the style loss against the target.
@@ -245,9 +258,13 @@ def make_eval_step(config: TrainConfig, vgg_params):
         eps = 1e-6 * jnp.maximum(jnp.max(loss_in), 1e-30)
         score = metrics_lib.improvement_score_from_losses(loss_in, loss_out, eps=eps)
         content = losses.content_loss(f_out, f_in, mask, config.content_layer)
+        bands = {}
+        if config.unet.detail_sigma > 0:
+            rms = detail.band_rms(jnp.concatenate([out, target]), jnp.concatenate([mask, mask]))
+            bands = {f"band_{k}": safe_div(v[:n], v[n:]) for k, v in rms.items()}
         return {"content": content, "style": loss_out, "input_style": loss_in,
                 "improvement": score.score, "improvement_signed": score.signed_score,
-                "valid": score.valid}
+                "valid": score.valid, **bands}
 
     return jax.jit(eval_fn)
 
@@ -450,7 +467,10 @@ def evaluate(eval_step, params, batches: list[dict]) -> dict:
             "heldout_improvement_signed_median":
                 float(np.median(cat["improvement_signed"][valid])) if valid.any()
                 else float("nan"),
-            "heldout_improvement_valid": float(valid.mean())}
+            "heldout_improvement_valid": float(valid.mean()),
+            # Output band energy / the target's (median over patches; 1 = the fine level).
+            **{f"heldout_{k}_median": float(np.median(v[valid])) if valid.any()
+               else float("nan") for k, v in cat.items() if k.startswith("band_")}}
 
 
 def plot_curves(metrics_path: Path, out_png: Path) -> None:

@@ -8,12 +8,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["BAND_SIGMAS", "band_rms", "checker_rms"]
+from wrinkle_jax.detail import BAND_SIGMAS
 
-# Band edges of the detail spectrum (2 mm texels): wavelengths below 16 mm (fine creases and
-# facet ripples) and 16-64 mm (the wrinkle band). A Gaussian of radius s texels halves the
-# power at wavelength pi s / sqrt(ln(2) / 2) ~ 5.3 s texels, hence radii 1.5 and 6.
-BAND_SIGMAS = {"lt16mm": (0.0, 1.5), "16_64mm": (1.5, 6.0)}
+__all__ = ["BAND_SIGMAS", "band_rms", "checker_rms"]
 
 
 def _masked_gauss(x, m, sigma):
@@ -26,7 +23,8 @@ def _masked_gauss(x, m, sigma):
 
 
 def band_rms(detail_rgb, mask, bands=BAND_SIGMAS) -> dict[str, np.ndarray]:
-    """Per-patch RMS of the tangential detail (x, y of the detail normals) in each band.
+    """Per-patch RMS of the tangential detail (x, y of the detail normals) in each band
+    (the NumPy reference of the jittable `detail.band_rms`).
 
     Args:
       detail_rgb: (N, S, S, 3) RGB-form detail maps (`detail_triplet`); mask (N, S, S, 1).

@@ -158,8 +158,9 @@ def load_authors(repo: str, device: str) -> dict:
 
 
 def synthetic_normal_maps(rng, batch: int, size: int = PATCH) -> np.ndarray:
-    """(batch, size, size, 3) float32 RGB form in [0, 1] of random wrinkle-like height fields
-    (sums of eight sinusoids, 2-10 mm amplitude per patch-width wavelength units)."""
+    """(batch, size, size, 3) float32 RGB form in [0, 1] of the normals of random height
+    fields: sums of eight sinusoids, amplitudes 0.002-0.01 patch widths, wave numbers drawn
+    from N(0, 12) cycles per patch width."""
     yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size
     out = np.empty((batch, size, size, 3), np.float32)
     for i in range(batch):

@@ -1,0 +1,501 @@
+"""Side by side with the authors' PyTorch code, in one process run: their CIN U-Net and their
+normal-to-geometry lifting loop against ours, timed alternately; prints one JSON object.
+
+The authors' code ("Deep Detail Enhancement for Any Garment", public on GitHub) is imported
+from a checkout given on the command line, never copied into this project; nothing of theirs
+is edited. Fetch it anywhere outside the project, e.g.
+
+    git clone https://github.com/MengZephyr/Deep-Detail-Enhancement-for-Any-Garment /tmp/dde
+
+and install PyTorch (CPU wheels) beside this package in a separate environment (torch is an
+optional extra, never a dependency of the package or of `make test`):
+
+    python3.11 -m venv /tmp/refvenv
+    /tmp/refvenv/bin/pip install -e .[dev,reference] \
+        --extra-index-url https://download.pytorch.org/whl/cpu
+    /tmp/refvenv/bin/python benchmarks/bench_reference.py --authors-repo /tmp/dde [--rounds 3]
+
+What is measured (`wrinkle_jax.timing.alternate`: every round calls each variant once, back to
+back, so load drifts hit all alike; ratios are medians of the per-round ratios):
+
+  * U-Net, width 64, batch 8 of 128 x 128 patches, inference. Theirs: `models.Generator_CNNCIN
+    (3, 3, 5)` in eval mode under `torch.no_grad`, on ImageNet-normalized NCHW input (their
+    input convention; the normalization is inside the timed call, as ours is inside our
+    network). Ours: the same weights converted by `unet.from_torch_state_dict` (seeded random
+    init, with the CIN scales and shifts perturbed so that a wrong material row would show), in
+    the "xla" and "im2col_bf16" convolution forms, jitted. Reported: ms/patch, patches/s,
+    speedups (their time / ours, wall and process CPU), and the agreement on one batch in the
+    network's own output units (ImageNet-normalized): max |ours - theirs| / RMS(theirs) and the
+    relative RMS error.
+  * Lifting at ~10k vertices (a 1 m sheet, 10 mm edges: a 25 x 25-cell draped grid subdivided
+    twice; target normals from an analytic height field: the drape plus crossing wrinkle
+    trains of 3-5 mm amplitude). Theirs: `Geometry_Opt.geo_opt` (Adam, their weights, learning
+    rate and early stop) on their own inputs built from our mesh: the per-vertex opposite
+    ("cross") edges of its faces, the dense row-normalized Laplacian from their
+    `DataIO.getLaplacianMatrix`, the vertex files in their text format, and the coarse
+    vertices as their distance anchors. Ours: `lift.lift_with_info` at the default settings,
+    and with the fewest Gauss-Newton iterations (tolerance 0) whose angle error is at most
+    theirs ("ours_matched"). Reported: seconds per frame, iterations, and for every result the
+    mean angle between its vertex normals and the targets (degrees) and its RMS distance to
+    the analytic surface the targets came from (mm).
+
+CPU shim: their scripts pick "cuda" when available; `--device` (default cpu) overrides their
+module's device, and the benchmark never needs CUDA. Their `Losses` module imports their VGG
+module, which needs torchvision; when torchvision is absent a placeholder module stands in for
+it (the lifting loop uses none of its names; calling one raises). Their scripts print
+progress: it is sent to stderr, so stdout holds only the JSON.
+
+    python benchmarks/bench_reference.py --authors-repo PATH [--rounds N] [--device cpu]
+        [--skip-unet] [--skip-lift] [--malloc retain|default]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import ctypes
+import json
+import os
+import platform
+import shutil
+import sys
+import tempfile
+import time
+import types
+
+
+def _parse():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--authors-repo", required=True,
+                   help="checkout of MengZephyr/Deep-Detail-Enhancement-for-Any-Garment")
+    p.add_argument("--rounds", type=int, default=3, help="timed rounds (alternating)")
+    p.add_argument("--device", default="cpu", help="torch device for their code")
+    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--width", type=int, default=64, help="U-Net width (theirs is fixed at 64)")
+    p.add_argument("--cells", type=int, default=100,
+                   help="fine grid cells per side (100: 10,201 vertices)")
+    p.add_argument("--match-probe", type=int, default=4,
+                   help="largest GN iteration count tried for ours_matched")
+    p.add_argument("--skip-unet", action="store_true")
+    p.add_argument("--skip-lift", action="store_true")
+    p.add_argument("--malloc", choices=("retain", "default"), default="retain",
+                   help="retain: glibc keeps freed memory (XLA's per-call temporaries do not "
+                        "page-fault again); the setting bench_unet uses by default")
+    return p.parse_args()
+
+
+def retain_freed_memory() -> bool:
+    """glibc mallopt: one arena, no mmap'd blocks, no trimming (before JAX or torch start)."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return False
+    m_trim_threshold, m_mmap_max, m_arena_max = -1, -4, -8
+    return bool(libc.mallopt(m_arena_max, 1) and libc.mallopt(m_mmap_max, 0)
+                and libc.mallopt(m_trim_threshold, 2**31 - 1))
+
+
+ARGS = _parse() if __name__ == "__main__" else None
+MALLOC_RETAINED = retain_freed_memory() if ARGS is not None and ARGS.malloc == "retain" else False
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from wrinkle_jax import lift as L  # noqa: E402
+from wrinkle_jax import mesh, primitives, timing  # noqa: E402
+from wrinkle_jax.nn import unet  # noqa: E402
+
+PATCH = 128
+NUM_MATERIALS = 5
+AUTHORS_DIR = "network_train_and_run"
+
+# ---------------------------------------------------------------------------------------------
+# Their code, imported from the given checkout.
+
+
+def _vgg_placeholder() -> types.ModuleType:
+    """Stands in for their `VGG_Model` (needs torchvision) so `Losses` imports; the lifting
+    loss needs none of these names."""
+    mod = types.ModuleType("VGG_Model")
+
+    def unavailable(*_a, **_k):
+        raise RuntimeError("torchvision is not installed: their VGG is unavailable")
+
+    for name in ("VGG19", "get_Style_Mask_Model", "get_Content_Mask_Model"):
+        setattr(mod, name, unavailable)
+    mod.vgg_mean, mod.vgg_std = list(unet.IMAGENET_MEAN), list(unet.IMAGENET_STD)
+    return mod
+
+
+def load_authors(repo: str, device: str) -> dict:
+    """Import their `models`, `DataIO`, `Losses` and `Geometry_Opt` from `repo`.
+
+    Returns:
+      {"torch", "models", "DataIO", "Geometry_Opt", "vgg_placeholder": bool}.
+    """
+    import importlib
+    import importlib.util
+
+    import torch
+
+    src = os.path.join(os.path.abspath(repo), AUTHORS_DIR)
+    if not os.path.isfile(os.path.join(src, "Geometry_Opt.py")):
+        raise SystemExit(f"--authors-repo {repo}: no {AUTHORS_DIR}/Geometry_Opt.py there")
+    placeholder = importlib.util.find_spec("torchvision") is None
+    if placeholder:
+        sys.modules.setdefault("VGG_Model", _vgg_placeholder())
+    sys.path.insert(0, src)
+    with contextlib.redirect_stdout(sys.stderr):  # their modules print at import
+        mods = {name: importlib.import_module(name)
+                for name in ("models", "DataIO", "Losses", "Geometry_Opt")}
+    mods["Geometry_Opt"].device = torch.device(device)  # the CPU shim: their global device
+    return {"torch": torch, **mods, "vgg_placeholder": placeholder}
+
+
+# ---------------------------------------------------------------------------------------------
+# U-Net
+
+
+def synthetic_normal_maps(rng, batch: int, size: int = PATCH) -> np.ndarray:
+    """(batch, size, size, 3) float32 RGB form in [0, 1] of the normals of random height
+    fields: sums of eight sinusoids, amplitudes 0.002-0.01 patch widths, wave numbers drawn
+    from N(0, 12) cycles per patch width."""
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size
+    out = np.empty((batch, size, size, 3), np.float32)
+    for i in range(batch):
+        hx = np.zeros((size, size), np.float32)
+        hy = np.zeros((size, size), np.float32)
+        for _ in range(8):
+            kx, ky = rng.normal(0, 12, 2)
+            amp, phase = rng.uniform(0.002, 0.01), rng.uniform(0, 2 * np.pi)
+            c = amp * 2 * np.pi * np.cos(2 * np.pi * (kx * xx + ky * yy) + phase)
+            hx += kx * c
+            hy += ky * c
+        n = np.stack([-hx, -hy, np.ones_like(hx)], -1)
+        out[i] = (n / np.linalg.norm(n, axis=-1, keepdims=True) + 1) / 2
+    return out
+
+
+def agreement(ours: np.ndarray, theirs: np.ndarray) -> dict:
+    """Errors of `ours` against `theirs` (same shape), relative to RMS(theirs)."""
+    d = np.asarray(ours, np.float64) - np.asarray(theirs, np.float64)
+    scale = float(np.sqrt(np.mean(np.asarray(theirs, np.float64) ** 2)))
+    return {"max_abs": float(np.max(np.abs(d))),
+            "max_abs_over_output_rms": float(np.max(np.abs(d)) / scale),
+            "rel_rms": float(np.sqrt(np.mean(d**2)) / scale),
+            "output_rms": scale}
+
+
+def _block(x):
+    """Wait for JAX results; torch (CPU) and NumPy results are already computed."""
+    return jax.tree_util.tree_map(
+        lambda a: a.block_until_ready() if isinstance(a, jax.Array) else a, x)
+
+
+def bench_unet(authors: dict, args, rng) -> dict:
+    torch = authors["torch"]
+    torch.manual_seed(0)
+    net = authors["models"].Generator_CNNCIN(3, 3, NUM_MATERIALS).to(args.device).eval()
+    with torch.no_grad():  # default CIN affine is (1, 0) for every material: make rows differ
+        for name, p in net.named_parameters():
+            if "_CIN.inns." in name:
+                p.add_(0.2 * torch.randn_like(p))
+    sd = {k: v.detach().cpu().numpy() for k, v in net.state_dict().items()}
+    params, kwargs = unet.from_torch_state_dict(sd)
+    if kwargs["config"].width != args.width:
+        raise SystemExit(f"their network has width {kwargs['config'].width}, not {args.width}")
+
+    x = synthetic_normal_maps(rng, args.batch)
+    mats = rng.integers(0, NUM_MATERIALS, args.batch)
+    mean = np.asarray(unet.IMAGENET_MEAN, np.float32)
+    std = np.asarray(unet.IMAGENET_STD, np.float32)
+    x_t = torch.from_numpy(np.ascontiguousarray(x.transpose(0, 3, 1, 2))).to(args.device)
+    mean_t = torch.from_numpy(mean).view(1, 3, 1, 1).to(args.device)
+    std_t = torch.from_numpy(std).view(1, 3, 1, 1).to(args.device)
+    ids = [int(m) for m in mats]
+
+    def theirs():
+        with torch.no_grad():
+            return net((x_t - mean_t) / std_t, ids)
+
+    runs = {"authors_torch": theirs}
+    compile_s, outs = {}, {}
+    xj, mj = jnp.asarray(x), jnp.asarray(mats, jnp.int32)
+    for impl in ("xla", "im2col_bf16"):
+        model = unet.CINUNet(**kwargs, conv_impl=impl)
+        t0 = time.perf_counter()
+        compiled = jax.jit(model.apply).lower({"params": params}, xj, mj).compile()
+        compile_s[impl] = round(time.perf_counter() - t0, 2)
+        runs[f"ours_{impl}"] = lambda c=compiled: c({"params": params}, xj, mj)
+    # Agreement in the network's own (ImageNet-normalized) output units: theirs is raw, ours
+    # is de-normalized to the RGB form inside the network, so normalize it back.
+    ref = theirs().cpu().numpy().transpose(0, 2, 3, 1)
+    errors = {}
+    for impl in ("xla", "im2col_bf16"):
+        outs[impl] = (np.asarray(runs[f"ours_{impl}"]()) - mean) / std
+        errors[impl] = agreement(outs[impl], ref)
+
+    t = timing.alternate(runs, args.rounds, block=_block)
+    per_patch = {k: v / args.batch for k, v in t.wall.items()}
+    return {
+        "width": args.width, "batch": args.batch, "patch": PATCH,
+        "torch_threads": torch.get_num_threads(),
+        "ms_per_patch": {k: round(1e3 * v, 2) for k, v in per_patch.items()},
+        "patches_per_s": {k: round(1 / v, 2) for k, v in per_patch.items()},
+        "speedup_vs_authors_wall": {
+            k: round(t.ratio("authors_torch", k, "wall"), 3) for k in runs if k != "authors_torch"},
+        "speedup_vs_authors_cpu": {
+            k: round(t.ratio("authors_torch", k, "cpu"), 3) for k in runs if k != "authors_torch"},
+        "compile_s": compile_s,
+        "agreement_vs_authors": errors,
+        "agreement_note": "same weights (theirs converted by unet.from_torch_state_dict), one "
+                          "batch of synthetic normal maps, errors in ImageNet-normalized output "
+                          "units relative to RMS of their output",
+        "timing": t.to_json("authors_torch"),
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# Lifting: the problem, and their inputs built from our mesh (NumPy; no torch needed).
+
+
+def drape(x, y):
+    """The coarse shape, meters: a 3 cm drape."""
+    return 0.03 * np.sin(2 * np.pi * x / 0.8) * np.cos(2 * np.pi * y / 1.1)
+
+
+def wrinkled(x, y):
+    """The drape plus two wrinkle trains (10 and 13 cm wavelength, crossing), 3-5 mm."""
+    amp = 0.005 * (0.6 + 0.4 * np.cos(2 * np.pi * y / 0.9))
+    mix = 0.5 + 0.5 * np.sin(2 * np.pi * x / 1.3) * np.cos(2 * np.pi * y / 1.7)
+    a = np.sin(2 * np.pi / 0.10 * (x * np.cos(0.5) + y * np.sin(0.5)))
+    b = np.sin(2 * np.pi / 0.13 * (x * np.cos(2.0) + y * np.sin(2.0)) + 1.0)
+    return drape(x, y) + amp * (mix * a + (1 - mix) * b)
+
+
+def make_lift_case(cells: int) -> dict:
+    """A (cells/4)-cell draped grid subdivided twice (edges 10 mm when cells = 100, 1 m side).
+
+    Returns:
+      {"p0": (V, 3) float32 upsampled coarse vertices, "faces": (F, 3) int32,
+       "normals": (V, 3) float32 unit target normals of `wrinkled`, "ideal": (V, 3) float32
+       the wrinkled surface at the same (x, y), "num_coarse": Vc (the first Vc fine vertices
+       are the coarse ones: midpoint subdivision keeps them in front)}.
+    """
+    if cells % 4:
+        raise ValueError(f"cells must be a multiple of 4, got {cells}")
+    side = cells * 0.01
+    coarse = primitives.grid_sheet(cells // 4, cells // 4, size=(side, side), height_fn=drape)
+    fine = mesh.subdivision(coarse, 2).garment(coarse)
+    x = np.asarray(fine.vertices[:, 0], np.float64)
+    y = np.asarray(fine.vertices[:, 1], np.float64)
+    d = 1e-6  # central differences of an analytic field: ~1e-10 truncation error
+    hx = (wrinkled(x + d, y) - wrinkled(x - d, y)) / (2 * d)
+    hy = (wrinkled(x, y + d) - wrinkled(x, y - d)) / (2 * d)
+    n = np.stack([-hx, -hy, np.ones_like(hx)], 1)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return {"p0": np.asarray(fine.vertices, np.float32),
+            "faces": np.asarray(fine.faces, np.int32),
+            "normals": n.astype(np.float32),
+            "ideal": np.stack([x, y, wrinkled(x, y)], 1).astype(np.float32),
+            "num_coarse": int(coarse.num_vertices)}
+
+
+def cross_edges(faces: np.ndarray, num_vertices: int):
+    """Every vertex's opposite edges, one per incident face, grouped by vertex (the input of
+    their `Loss_NormalCrossVert`).
+
+    Returns:
+      (edge_0, edge_1, counts): (R,) int64 endpoints of the R = 3F edges, vertex 0's first,
+      and (V,) int64 edges per vertex (sum = R).
+    """
+    f = np.asarray(faces, np.int64)
+    owner = f.reshape(-1)  # corner k of face i owns the edge (corner k+1, corner k+2)
+    e0 = np.roll(f, -1, axis=1).reshape(-1)
+    e1 = np.roll(f, -2, axis=1).reshape(-1)
+    order = np.argsort(owner, kind="stable")
+    return e0[order], e1[order], np.bincount(owner, minlength=num_vertices).astype(np.int64)
+
+
+def adjacency_with_self(faces: np.ndarray, num_vertices: int) -> np.ndarray:
+    """(V, V) int dense one-ring adjacency with ones on the diagonal: what their
+    `DataIO.readAdjFile` returns for the mesh (their Laplacian is built from it)."""
+    adj = np.eye(num_vertices, dtype=np.int64)
+    e = mesh.unique_edges(faces).astype(np.int64)
+    adj[e[:, 0], e[:, 1]] = 1
+    adj[e[:, 1], e[:, 0]] = 1
+    return adj
+
+
+def write_vertex_text(path: str, array: np.ndarray):
+    """Rows of three numbers, one vertex per line (their vertex/normal text format)."""
+    np.savetxt(path, np.asarray(array, np.float64), fmt="%.9g")
+
+
+def write_flag_text(path: str, flags: np.ndarray):
+    """Their per-vertex flag format: the count, then one integer per line."""
+    with open(path, "w") as f:
+        f.write(f"{len(flags)}\n")
+        f.writelines(f"{int(v)}\n" for v in flags)
+
+
+def surface_rms_mm(p, ideal) -> float:
+    return float(1e3 * np.sqrt(np.mean(np.sum((np.asarray(p) - np.asarray(ideal)) ** 2, 1))))
+
+
+def bench_lift(authors: dict, args) -> dict:
+    torch = authors["torch"]
+    geo = authors["Geometry_Opt"]
+    case = make_lift_case(args.cells)
+    p0, faces, nrm, ideal = case["p0"], case["faces"], case["normals"], case["ideal"]
+    v = p0.shape[0]
+    edges = mesh.unique_edges(faces)
+    faces_j, nrm_j = jnp.asarray(faces), jnp.asarray(nrm)
+    err = jax.jit(L.normal_angle_error)
+
+    def scores(p) -> dict:
+        return {"angle_error_deg": round(float(err(jnp.asarray(p), faces_j, nrm_j)), 3),
+                "surface_rms_mm": round(surface_rms_mm(p, ideal), 3)}
+
+    # Their inputs (setup, untimed, as in their script: once per garment).
+    t0 = time.perf_counter()
+    e0, e1, counts = cross_edges(faces, v)
+    lap = torch.from_numpy(authors["DataIO"].getLaplacianMatrix(
+        adjacency_with_self(faces, v))).float().to(args.device)
+    setup_s = time.perf_counter() - t0
+    tmp = tempfile.mkdtemp(prefix="bench_reference_")
+    files = {k: os.path.join(tmp, f"{k}.txt") for k in ("gt", "rr", "normals", "flags")}
+    write_vertex_text(files["gt"], p0)
+    write_vertex_text(files["rr"], p0)
+    write_vertex_text(files["normals"], nrm)
+    write_flag_text(files["flags"], np.arange(v) < case["num_coarse"])
+
+    calls = {"n": 0}
+    base_loss = geo.Loss_NormalCrossVert
+
+    class CountingLoss(base_loss):  # counts their loop's iterations (one forward each)
+        def forward(self, *a, **k):
+            calls["n"] += 1
+            return super().forward(*a, **k)
+
+    geo.Loss_NormalCrossVert = CountingLoss
+    last = {}
+
+    def theirs():
+        calls["n"] = 0
+        with contextlib.redirect_stdout(sys.stderr):
+            p, _, _, loop_s = geo.geo_opt(files["gt"], files["rr"], files["normals"],
+                                          files["flags"], e0, e1, counts, v, lap, faces)
+        last["authors"] = (p.cpu().numpy(), loop_s, calls["n"])
+        return None
+
+    top = L.lift_topology(faces, v)
+    p0_j = jnp.asarray(p0)
+
+    def ours(cfg):
+        return lambda: L.lift_with_info(p0_j, top, nrm_j, solver=cfg)
+
+    default = L.SolverConfig()
+    theirs()  # once, for the error to match (their loop is deterministic from p0)
+    auth_p, _, auth_iters = last["authors"]
+    auth_scores = scores(auth_p)
+    matched = None
+    for it in range(1, args.match_probe + 1):
+        cfg = L.SolverConfig(max_iters=it, tol=0.0)
+        p, _ = ours(cfg)()
+        s = scores(p)
+        if s["angle_error_deg"] <= auth_scores["angle_error_deg"]:
+            matched = (cfg, s)
+            break
+    runs = {"authors_torch": theirs, "ours_default": ours(default)}
+    if matched is not None:
+        runs["ours_matched"] = ours(matched[0])
+    # Every variant has run once already (theirs above, ours compiled here): no warm-up call,
+    # which would cost one more of their frames.
+    p_def, info_def = _block(ours(default)())
+    t = timing.alternate(runs, args.rounds, warmup=0, block=_block)
+    shutil.rmtree(tmp, ignore_errors=True)
+    result = {
+        "vertices": v, "faces": int(faces.shape[0]),
+        "median_edge_mm": round(1e3 * float(np.median(np.linalg.norm(
+            p0[edges[:, 0]] - p0[edges[:, 1]], axis=1))), 2),  # grid edges; diagonals longer
+        "anchored_coarse_vertices": case["num_coarse"],
+        "start": scores(p0),
+        "authors_torch": {"s_per_frame": round(t.wall["authors_torch"], 3),
+                          "loop_s_last_call": round(last["authors"][1], 3),
+                          "iterations": auth_iters,
+                          "s_per_iteration": round(t.wall["authors_torch"] / auth_iters, 3),
+                          **auth_scores,
+                          "setup_s_dense_laplacian": round(setup_s, 2),
+                          "dense_laplacian_bytes": int(lap.numel() * lap.element_size())},
+        "ours_default": {"s_per_frame": round(t.wall["ours_default"], 4),
+                         "solver": {"method": default.method, "max_iters": default.max_iters,
+                                    "tol": default.tol},
+                         "iterations": int(info_def.iterations), **scores(p_def)},
+        "speedup_vs_authors_wall": {k: round(t.ratio("authors_torch", k, "wall"), 1)
+                                    for k in runs if k != "authors_torch"},
+        "speedup_vs_authors_cpu": {k: round(t.ratio("authors_torch", k, "cpu"), 1)
+                                   for k in runs if k != "authors_torch"},
+        "timing": t.to_json("authors_torch"),
+    }
+    if matched is not None:
+        result["ours_matched"] = {"s_per_frame": round(t.wall["ours_matched"], 4),
+                                  "solver": {"method": "gauss_newton",
+                                             "max_iters": matched[0].max_iters, "tol": 0.0},
+                                  **matched[1]}
+    else:
+        result["ours_matched"] = (f"no GN iteration count <= {args.match_probe} reached "
+                                  "their angle error")
+    return result
+
+
+def targets(report: dict) -> dict:
+    """Issue 22's targets against what this run measured (wall-clock ratios)."""
+    out = {}
+    if "unet" in report:
+        u = report["unet"]
+        best = max(u["speedup_vs_authors_wall"].values())
+        out["unet_inference_x_authors_best"] = best
+        out["unet_inference_goal_3x_met"] = best >= 3.0
+        out["im2col_bf16_rel_rms_vs_authors"] = u["agreement_vs_authors"]["im2col_bf16"][
+            "rel_rms"]
+        out["im2col_bf16_error_goal_1pct_met"] = out["im2col_bf16_rel_rms_vs_authors"] <= 0.01
+    if "lift" in report:
+        x = report["lift"]["speedup_vs_authors_wall"]["ours_default"]
+        out["lift_default_x_authors"] = x
+        out["lift_goal_100x_met"] = x >= 100.0
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def main(args):
+    t_start = time.perf_counter()
+    load_start = timing.load_average()
+    authors = load_authors(args.authors_repo, args.device)
+    torch = authors["torch"]
+    report = {
+        "benchmark": "reference_side_by_side",
+        "authors_repo": os.path.abspath(args.authors_repo),
+        "torch": torch.__version__, "jax": jax.__version__,
+        "device": args.device, "cpu": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(), "rounds": args.rounds,
+        "malloc": "retain (mallopt)" if MALLOC_RETAINED else "default",
+        "vgg_placeholder": authors["vgg_placeholder"],
+    }
+    rng = np.random.default_rng(0)
+    if not args.skip_unet:
+        report["unet"] = bench_unet(authors, args, rng)
+        print("unet done", file=sys.stderr, flush=True)
+    if not args.skip_lift:
+        report["lift"] = bench_lift(authors, args)
+    report["targets"] = targets(report)
+    report["loadavg_1min_start_end"] = [load_start, timing.load_average()]
+    report["wall_s"] = round(time.perf_counter() - t_start, 1)
+    print(json.dumps(report, indent=1))
+
+
+if __name__ == "__main__":
+    main(ARGS)

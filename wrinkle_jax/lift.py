@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from typing import Any
 
 import jax
@@ -61,6 +62,10 @@ from wrinkle_jax.lift_energy import (  # noqa: F401
 from wrinkle_jax.numerics import normalize, safe_div
 from wrinkle_jax.solvers import SolverConfig  # re-exported: the `solver` argument of `lift`
 
+# k of `texel_subdivision_level`: lifted edges of at least this many texels (measured on the
+# error/time Pareto of benchmarks/bench_subdivision.py, see its JSON).
+TEXELS_PER_EDGE = 3.0
+
 # --------------------------------------------------------------------------------------------
 # Diagnostics of a solve
 # --------------------------------------------------------------------------------------------
@@ -91,16 +96,52 @@ class LiftInfo:
 # --------------------------------------------------------------------------------------------
 
 
+def texel_subdivision_level(edge: float, texel_size: float,
+                            texels_per_edge: float = TEXELS_PER_EDGE, max_levels: int = 6) -> int:
+    """Subdivision levels that model only the detail the normal map holds.
+
+    Each (midpoint) level halves the edges; this returns the most levels L whose edges
+    edge / 2^L are still at least `texels_per_edge` texels long, so the lifted mesh is no
+    finer than the map (0 when the coarse mesh already is; at most `max_levels`). Finer
+    vertices would sample the same bilinear texels again and only cost solver time.
+
+    Args:
+      edge: mean edge length of the coarse mesh, meters (`coarse_mean_edge`).
+      texel_size: the map's texel edge, meters (2 mm for the shipped model).
+      texels_per_edge: k, the subdivided edge length in texels (`TEXELS_PER_EDGE`: the knee
+        of the error/time Pareto of benchmarks/bench_subdivision.py).
+    """
+    if not (edge > 0 and texel_size > 0 and texels_per_edge > 0):
+        raise ValueError(f"need positive edge, texel_size and texels_per_edge, got "
+                         f"{edge}, {texel_size}, {texels_per_edge}")
+    ratio = edge / (texels_per_edge * texel_size)
+    # The small slack keeps an exact power of two (edges of exactly k texels) at its level.
+    levels = int(math.floor(math.log2(ratio) + 1e-9)) if ratio > 1.0 else 0
+    return min(levels, int(max_levels))
+
+
 def upsample(garment: mesh.Garment, target_edge: float = REFERENCE_EDGE,
-             scheme: str = "midpoint", max_levels: int = 6):
-    """Subdivide a coarse garment until its mean edge is at most `target_edge` meters.
+             scheme: str = "midpoint", max_levels: int = 6, levels: int | None = None):
+    """Subdivide a coarse garment until its mean edge is at most `target_edge` meters, or by
+    exactly `levels` levels when given (e.g. from `texel_subdivision_level`).
 
     Returns:
       (fine Garment, Subdivision). Upsample further frames (V, 3) -> (V', 3) with the
       jittable `subdivision.apply(frame)` (vmap over frames).
     """
-    sub = mesh.subdivide_to_edge_length(garment, target_edge, scheme, max_levels)
+    if levels is None:
+        sub = mesh.subdivide_to_edge_length(garment, target_edge, scheme, max_levels)
+    else:
+        if int(levels) < 0:
+            raise ValueError(f"subdivision levels must be >= 0, got {levels}")
+        sub = mesh.subdivision(garment, int(levels), scheme)
     return sub.garment(garment), sub
+
+
+def coarse_mean_edge(garment: mesh.Garment) -> float:
+    """Mean edge length (meters) of a garment's unique edges (NumPy)."""
+    edges = mesh.unique_edges(garment.faces)
+    return float(mesh.mean_edge_length(np.asarray(garment.vertices, np.float64), edges))
 
 
 def sample_target_normals(normal_map, garment: mesh.Garment, layout: normalmap.UVLayout):

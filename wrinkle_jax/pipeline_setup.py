@@ -63,6 +63,10 @@ class PipelineConfig:
       target_edge: mean edge length of the lifted mesh, meters (the lift's weights are
         calibrated at 10 mm).
       subdivision_scheme: "midpoint" or "loop" upsampling of the coarse mesh before lifting.
+      subdivision: how many levels the coarse mesh is subdivided before lifting: None
+        (default: until the mean edge is at most `target_edge`), "auto" (no finer than the
+        map's detail: edges of at least `lift.TEXELS_PER_EDGE` texels of the model's texel
+        size, `lift.texel_subdivision_level`), or an int >= 0 (exactly that many levels).
       weights, solver: the lift's energy weights and solver settings (see `lift.lift`).
       warm_start: start each frame's lift from the previous streamed frame's solution,
         carried in the coarse surface's local frames (`stages._lift_warm`): fewer solver
@@ -83,6 +87,7 @@ class PipelineConfig:
     lift: bool = True
     target_edge: float = lift_lib.REFERENCE_EDGE
     subdivision_scheme: str = "midpoint"
+    subdivision: int | str | None = None
     weights: lift_lib.LiftWeights = lift_lib.LiftWeights()
     solver: lift_lib.SolverConfig = lift_lib.SolverConfig()
     warm_start: bool = False
@@ -93,6 +98,10 @@ class PipelineConfig:
         if self.batch_size < 1 or self.chunk_size < 1 or self.frames_per_batch < 1:
             raise ValueError(f"batch_size, chunk_size and frames_per_batch must be >= 1, got "
                              f"{self.batch_size}, {self.chunk_size}, {self.frames_per_batch}")
+        sub = self.subdivision
+        if not (sub is None or sub == "auto"
+                or (isinstance(sub, int) and not isinstance(sub, bool) and sub >= 0)):
+            raise ValueError(f"subdivision must be None, 'auto' or an int >= 0, got {sub!r}")
         if self.window not in patches.WINDOWS:
             raise ValueError(f"unknown window {self.window!r}; expected one of "
                              f"{', '.join(patches.WINDOWS)}")
@@ -202,7 +211,12 @@ def make_pipeline(garment: Garment, enhancer: enhancer_lib.Enhancer | None = Non
     origins = patches.tile(padded, size=size, stride=stride)
     fine = sub = top = None
     if config.lift:
-        fine, sub = lift_lib.upsample(garment, config.target_edge, config.subdivision_scheme)
+        levels = config.subdivision
+        if levels == "auto":
+            levels = lift_lib.texel_subdivision_level(lift_lib.coarse_mean_edge(garment),
+                                                      enh.config.texel_size)
+        fine, sub = lift_lib.upsample(garment, config.target_edge, config.subdivision_scheme,
+                                      levels=levels)
         top = lift_lib.lift_topology(fine.faces, fine.num_vertices)
         fine = jax.tree.map(jnp.asarray, fine)  # device arrays: arguments, not constants
     timings["setup"] = time.perf_counter() - t0

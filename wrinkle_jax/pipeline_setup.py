@@ -1,0 +1,280 @@
+"""The pipeline's per-garment setup: its settings (`PipelineConfig`), the prepared state
+(`Pipeline`) and `make_pipeline`, which builds it once per garment in NumPy and compiles every
+stage ahead of time for its fixed shapes. `wrinkle_jax.pipeline` re-exports the public names
+and runs the frames (streaming `iter_enhance`, `enhance_sequence`, and `frame_fn`).
+
+Topology-dependent setup runs once per garment: the raster plan at the enhancer's texel size,
+the origins of the non-empty patches, the subdivision of the lifted mesh and its lifting
+topology. Every stage is a jitted function with static shapes, compiled once (the
+``compile`` timing), so nothing recompiles, whatever the frame count.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wrinkle_jax import enhancer as enhancer_lib
+from wrinkle_jax import lift as lift_lib
+from wrinkle_jax import normalmap, patches
+from wrinkle_jax.mesh import Garment
+from wrinkle_jax.stages import (
+    _bake_chunk,
+    _extract_chunk,
+    _lift_frame,
+    _lift_frame_warm,
+    _merge_chunk,
+    _network_apply,
+    _network_frame,
+)
+
+# Per-stage timings recorded by the pipeline (seconds), in pipeline order.
+STAGES = ("setup", "compile", "classify", "bake", "tile", "network", "merge", "lift", "write")
+
+
+class PipelineError(ValueError):
+    """Bad pipeline input (unknown material, a garment that covers no texel, ...)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class PipelineConfig:
+    """Static settings of the pipeline (hashable).
+
+    Attributes:
+      batch_size: patches per jitted U-Net call; a frame's last batch is zero-padded, so the
+        network compiles once. Larger batches are faster per patch up to a point
+        (benchmarks/bench_pipeline.py).
+      chunk_size: frames baked, enhanced and merged per step (bounds memory: one chunk holds
+        chunk_size * P patches of S^2 * 3 float32 twice).
+      frames_per_batch: frames whose patches share one network call (their F * P patches
+        cut into batches of `batch_size`; a chunk's last group is zero-padded to F frames).
+        1 (default): each frame's batches hold only its own patches, so a frame's maps are
+        bit-identical whatever the chunking; > 1 saves the per-frame batch padding (results
+        equal up to float rounding: the network treats each patch on its own).
+      stride: patch stride in texels; None for half the patch (each texel in ~4 patches).
+      window: merge weights, "hann" (seam-free, default) or "uniform" (the paper's average).
+      smooth: bake interpolated vertex normals (True) or flat face normals.
+      lift: lift the enhanced maps to detailed meshes.
+      target_edge: mean edge length of the lifted mesh, meters (the lift's weights are
+        calibrated at 10 mm).
+      subdivision_scheme: "midpoint" or "loop" upsampling of the coarse mesh before lifting.
+      subdivision: how many levels the coarse mesh is subdivided before lifting: None
+        (default: until the mean edge is at most `target_edge`), "auto" (no finer than the
+        map's detail: edges of at least `lift.TEXELS_PER_EDGE` texels of the model's texel
+        size, `lift.texel_subdivision_level`), or an int >= 0 (exactly that many levels).
+      weights, solver: the lift's energy weights and solver settings (see `lift.lift`).
+      warm_start: start each frame's lift from the previous streamed frame's solution,
+        carried in the coarse surface's local frames (`stages._lift_warm`): fewer solver
+        iterations on an animation (the CLI turns it on; benchmarks/bench_lift.py
+        --sequence). A lifted frame then depends on the frames streamed before it: within
+        the solver's tolerance on a smooth animation, but on an erratic map (e.g. a random
+        network's) the lift can settle in another local minimum. False (default): every
+        frame starts at its upsampled coarse mesh, independent of the others.
+      resolve, phi: body-penetration settings (used only when a body is given).
+    """
+
+    batch_size: int = 8
+    chunk_size: int = 4
+    frames_per_batch: int = 1
+    stride: int | None = None
+    window: str = "hann"
+    smooth: bool = True
+    lift: bool = True
+    target_edge: float = lift_lib.REFERENCE_EDGE
+    subdivision_scheme: str = "midpoint"
+    subdivision: int | str | None = None
+    weights: lift_lib.LiftWeights = lift_lib.LiftWeights()
+    solver: lift_lib.SolverConfig = lift_lib.SolverConfig()
+    warm_start: bool = False
+    resolve: lift_lib.ResolveConfig = lift_lib.ResolveConfig()
+    phi: float = 5e3
+
+    def __post_init__(self):
+        if self.batch_size < 1 or self.chunk_size < 1 or self.frames_per_batch < 1:
+            raise ValueError(f"batch_size, chunk_size and frames_per_batch must be >= 1, got "
+                             f"{self.batch_size}, {self.chunk_size}, {self.frames_per_batch}")
+        sub = self.subdivision
+        if not (sub is None or sub == "auto"
+                or (isinstance(sub, int) and not isinstance(sub, bool) and sub >= 0)):
+            raise ValueError(f"subdivision must be None, 'auto' or an int >= 0, got {sub!r}")
+        if self.window not in patches.WINDOWS:
+            raise ValueError(f"unknown window {self.window!r}; expected one of "
+                             f"{', '.join(patches.WINDOWS)}")
+
+
+
+
+@dataclasses.dataclass(frozen=True)
+class Pipeline:
+    """Everything the per-frame work needs, prepared once per garment by `make_pipeline`.
+
+    Attributes:
+      enhancer: the model. config: PipelineConfig.
+      garment: the coarse garment (topology and UVs).
+      plan: raster plan at `enhancer.config.texel_size`; `mask` (H, W, 1) float32 its garment
+        texels (NumPy).
+      origins: (P, 2) int32 origins of the patches that touch the mask (padded-map pixels).
+      padded_shape: (Hp, Wp) map size the patches live on (>= one patch, bottom/right zeros).
+      fine_garment, subdivision, topology: the lifted mesh's topology (None without lifting).
+      body: a `bodies` body, a callable frame index -> body, or None.
+      timings: seconds spent in setup and compilation.
+    """
+
+    enhancer: enhancer_lib.Enhancer
+    config: PipelineConfig
+    garment: Garment
+    plan: normalmap.RasterPlan
+    mask: np.ndarray
+    origins: np.ndarray
+    padded_shape: tuple[int, int]
+    fine_garment: Garment | None
+    subdivision: Any
+    topology: lift_lib.LiftTopology | None
+    body: Any
+    timings: dict
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(H, W) of the normal maps."""
+        return self.plan.shape
+
+    @property
+    def num_patches(self) -> int:
+        """Patches enhanced per frame."""
+        return int(self.origins.shape[0])
+
+    @property
+    def frames_per_call(self) -> int:
+        """Frames whose patches go through one network call (at most a chunk)."""
+        return min(self.config.frames_per_batch, self.config.chunk_size)
+
+    @property
+    def batches_per_frame(self) -> int:
+        return -(-self.num_patches // self.config.batch_size)
+
+    @property
+    def batches_per_call(self) -> int:
+        return -(-self.frames_per_call * self.num_patches // self.config.batch_size)
+
+
+
+# --------------------------------------------------------------------------------------------
+# Setup
+# --------------------------------------------------------------------------------------------
+
+
+def _body_for(body, index: int):
+    return body(index) if callable(body) else body
+
+
+def make_pipeline(garment: Garment, enhancer: enhancer_lib.Enhancer | None = None,
+                  config: PipelineConfig = PipelineConfig(), body=None,  # noqa: B008
+                  compile: bool = True, layout: normalmap.UVLayout | None = None) -> Pipeline:
+    """Prepare the per-garment setup and compile every stage (NumPy setup, AOT compile).
+
+    Args:
+      garment: the coarse garment (topology, UVs; its vertices set the texel scale).
+      enhancer: the model; None loads the shipped default (`enhancer.load_enhancer`).
+      config: PipelineConfig.
+      body: None, a `bodies.PrimitiveBody`/`bodies.MeshBody` (meters, the garment's frame), or
+        a callable ``frame_index -> body`` for an animated body (bodies of the same structure
+        share one compile).
+      compile: compile the stages now (the "compile" timing); False compiles on first use.
+      layout: bake onto this UV layout instead of the garment's own (e.g.
+        `evaluation`-style comparisons with a fine mesh baked on the same pixels); its texel
+        size must be the model's.
+    Raises:
+      PipelineError: the garment covers no texel at the model's texel size, or `layout` has
+        another texel size.
+      enhancer.EnhancerError: no model given and the shipped one is missing or unreadable.
+    """
+    enh = enhancer_lib.load_enhancer() if enhancer is None else enhancer
+    size = int(enh.config.patch_size)
+    stride = size // 2 if config.stride is None else int(config.stride)
+    timings = {}
+    t0 = time.perf_counter()
+    if layout is not None and not np.isclose(layout.texel_size, enh.config.texel_size,
+                                             rtol=1e-6):
+        raise PipelineError(f"layout texel size {layout.texel_size} m differs from the "
+                            f"model's {enh.config.texel_size} m")
+    plan = normalmap.make_plan(garment, texel_size=enh.config.texel_size, layout=layout)
+    mask = np.asarray(plan.mask)
+    if not mask.any():
+        raise PipelineError(f"the garment covers no texel at texel size "
+                            f"{enh.config.texel_size} m (is its UV layout degenerate?)")
+    padded, _ = patches.pad_to_patch(mask, size)
+    origins = patches.tile(padded, size=size, stride=stride)
+    fine = sub = top = None
+    if config.lift:
+        levels = config.subdivision
+        if levels == "auto":
+            levels = lift_lib.texel_subdivision_level(lift_lib.coarse_mean_edge(garment),
+                                                      enh.config.texel_size)
+        fine, sub = lift_lib.upsample(garment, config.target_edge, config.subdivision_scheme,
+                                      levels=levels)
+        top = lift_lib.lift_topology(fine.faces, fine.num_vertices)
+        fine = jax.tree.map(jnp.asarray, fine)  # device arrays: arguments, not constants
+    timings["setup"] = time.perf_counter() - t0
+    pipe = Pipeline(enh, dataclasses.replace(config, stride=stride), garment, plan, mask,
+                    origins, tuple(padded.shape[:2]), fine, sub, top, body, timings)
+    timings["compile"] = _compile(pipe) if compile else 0.0
+    return pipe
+
+
+def _compile(pipe: Pipeline) -> float:
+    """Compile every stage for the pipeline's fixed shapes; returns the seconds it took."""
+    t0 = time.perf_counter()
+    cfg, enh = pipe.config, pipe.enhancer
+    c, size, p = cfg.chunk_size, enh.config.patch_size, pipe.num_patches
+    hp, wp = pipe.padded_shape
+    f32 = jnp.float32
+    spec = jax.ShapeDtypeStruct
+    _bake_chunk.lower(pipe.plan, spec((c, pipe.garment.num_vertices, 3), f32),
+                      _padded_mask(pipe), smooth=cfg.smooth,
+                      padded_shape=pipe.padded_shape).compile()
+    _extract_chunk.lower(spec((c, hp, wp, 3), f32), pipe.origins, size=size).compile()
+    _network_frame.lower(_network_apply(enh), enh.params,
+                         spec((pipe.frames_per_call * p, size, size, 3), f32),
+                         spec((), jnp.int32), batch_size=cfg.batch_size,
+                         origins=_noise_origins(pipe)).compile()
+    _merge_chunk.lower(spec((c, p, size, size, 3), f32), pipe.origins, _padded_mask(pipe),
+                       spec((c, hp, wp, 3), f32), window=cfg.window, shape=pipe.shape).compile()
+    if cfg.lift:
+        body = _body_for(pipe.body, 0)
+        coarse, nmap = spec((pipe.garment.num_vertices, 3), f32), spec((*pipe.shape, 3), f32)
+        if cfg.warm_start:
+            _lift_frame_warm.lower(coarse, nmap, _no_offsets(pipe), pipe.subdivision,
+                                   pipe.fine_garment, pipe.topology, body,
+                                   **_lift_static(pipe)).compile()
+        else:
+            _lift_frame.lower(coarse, nmap, pipe.subdivision, pipe.fine_garment, pipe.topology,
+                              body, **_lift_static(pipe)).compile()
+    return time.perf_counter() - t0
+
+
+def _noise_origins(pipe: Pipeline):
+    """The patch origins of one network call (`frames_per_call` frames) for models with
+    texel noise (fixed to the cloth), else None."""
+    if not pipe.enhancer.config.unet.noise_channels:
+        return None
+    return jnp.asarray(np.tile(pipe.origins, (pipe.frames_per_call, 1)))
+
+
+def _padded_mask(pipe: Pipeline):
+    return jnp.asarray(patches.pad_to_patch(pipe.mask, pipe.enhancer.config.patch_size)[0])
+
+
+def _no_offsets(pipe: Pipeline):
+    """Zero carried lift offsets (V', 3): a cold start."""
+    return jnp.zeros((pipe.fine_garment.num_vertices, 3), jnp.float32)
+
+
+def _lift_static(pipe: Pipeline) -> dict:
+    cfg = pipe.config
+    return dict(layout=pipe.plan.layout, weights=cfg.weights, solver=cfg.solver,
+                resolve=cfg.resolve, phi=float(cfg.phi))

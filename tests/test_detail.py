@@ -123,11 +123,13 @@ def test_gradients_are_finite_and_match_finite_differences():
         mask = np.ones(n.shape[:-1] + (1,))
         w = np.random.default_rng(3).normal(size=n.shape)
 
+        # Jitted (an op-by-op backward pass compiles each of its primitives separately).
+        @jax.jit
         def f(x):
             return jnp.sum(detail.to_detail_rgb(x, mask, 4.0) * w)
 
         x = (n + 1) / 2
-        g = jax.grad(f)(x)
+        g = jax.jit(jax.grad(f))(x)
         assert np.all(np.isfinite(g))
         v = np.random.default_rng(4).normal(size=x.shape)
         h = 1e-6

@@ -113,7 +113,9 @@ def test_residual_gain_scales_the_residual_and_round_trips(tmp_path):
     params = jax.tree.map(lambda x: x + 0.05, enh.params)  # a non-zero residual
     x = jnp.asarray(np.random.default_rng(0).uniform(0.2, 0.8, (2, 32, 32, 3)), jnp.float32)
     m = jnp.array([0, 3])
-    out = {g: np.asarray(enhancer.with_unet(enh, residual_gain=g).model.apply(
+    # Jitted, one program per gain (op-by-op dispatch of the im2col U-Net compiles each of
+    # its many slices and dots separately).
+    out = {g: np.asarray(jax.jit(enhancer.with_unet(enh, residual_gain=g).model.apply)(
         {"params": params}, x, m)) for g in (0.0, 0.5, 1.0)}
     base = np.asarray(sharpen.unsharp_rgb(x, 2.0, params["unsharp_amount"][m],
                                           jnp.ones((2, 32, 32, 1)), 1))

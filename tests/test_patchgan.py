@@ -50,8 +50,10 @@ def _batch(n=4, seed=0):
 def test_discriminator_is_a_grid_of_logits_one_per_8x8_cell():
     b = _batch(2)
     d = TINY.discriminator()
-    params = d.init(_key(), b["input"], b["target"], b["mask"])["params"]
-    logits = d.apply({"params": params}, b["input"], b["target"], b["mask"])
+    # Shapes only: traced abstractly (nothing compiled or run).
+    params = jax.eval_shape(lambda: d.init(_key(), b["input"], b["target"], b["mask"]))["params"]
+    logits = jax.eval_shape(lambda p: d.apply({"params": p}, b["input"], b["target"], b["mask"]),
+                            params)
     assert logits.shape == (2, SIZE // 8, SIZE // 8, 1)
     w = patchgan.cell_weights(b["mask"], logits.shape)
     assert w.shape == logits.shape
@@ -142,9 +144,11 @@ def test_generator_exports_as_an_enhancer_that_reproduces_it(tmp_path):
 def test_receptive_layers_set_the_logit_grid(layers):
     b = _batch(1)
     d = patchgan.PatchDiscriminator(width=4, layers=layers)
-    params = d.init(_key(), b["input"], b["target"], b["mask"])["params"]
-    assert d.apply({"params": params}, b["input"], b["target"], b["mask"]).shape == (
-        1, SIZE // 2**layers, SIZE // 2**layers, 1)
+    # Shapes only: traced abstractly (nothing compiled or run).
+    params = jax.eval_shape(lambda: d.init(_key(), b["input"], b["target"], b["mask"]))["params"]
+    logits = jax.eval_shape(lambda p: d.apply({"params": p}, b["input"], b["target"], b["mask"]),
+                            params)
+    assert logits.shape == (1, SIZE // 2**layers, SIZE // 2**layers, 1)
 
 
 # --------------------------------------------------------------------------------------------

@@ -120,17 +120,19 @@ def test_gradient_matches_finite_differences(order):
     x, m = _folds(n=1, size=24)
     w = jnp.asarray(np.random.default_rng(1).normal(size=x.shape), jnp.float32)
 
+    # Jitted (an op-by-op backward pass compiles each of its primitives separately).
+    @jax.jit
     def f(amount, xx):
         return jnp.sum(w * sharpen.unsharp_rgb(xx, 2.0, amount, m, order))
 
-    g_a, g_x = jax.grad(f, argnums=(0, 1))(jnp.float32(0.8), jnp.asarray(x))
+    g_a, g_x = jax.jit(jax.grad(f, argnums=(0, 1)))(jnp.float32(0.8), jnp.asarray(x))
     h = 1e-2
     fd = (f(jnp.float32(0.8 + h), x) - f(jnp.float32(0.8 - h), x)) / (2 * h)
     np.testing.assert_allclose(float(g_a), float(fd), rtol=2e-2)
     assert np.all(np.isfinite(np.asarray(g_x)))
     # A directional derivative with respect to the input, inside the mask.
     d = jnp.asarray(np.random.default_rng(2).normal(size=x.shape) * m * 1e-3, jnp.float32)
-    fd_x = (f(0.8, x + d) - f(0.8, x - d)) / 2
+    fd_x = (f(jnp.float32(0.8), x + d) - f(jnp.float32(0.8), x - d)) / 2
     np.testing.assert_allclose(float(jnp.sum(g_x * d)), float(fd_x), rtol=5e-2)
 
 

@@ -256,7 +256,9 @@ def test_restore_run_and_export_run_give_a_model_file_of_the_run(data_root, tmp_
     ds = data.PatchDataset(data_root, "train")
     assert enh.meta["train_patches"] == len(ds)
     x = ds.get(np.arange(2))
-    ref = dataclasses.replace(cfg, conv_impl="im2col_f32").model().apply(
+    # The run's own network, jitted (op-by-op dispatch of the im2col U-Net compiles each of
+    # its many slices and dots separately).
+    ref = jax.jit(dataclasses.replace(cfg, conv_impl="im2col_f32").model().apply)(
         {"params": state.params}, x["input"], x["material"])
     out = enhancer.make_apply(enh, clip=False)(enh.params, x["input"], x["material"])
     # float16 storage: ~5e-4 relative rounding of the weights

@@ -54,10 +54,12 @@ def test_constant_patch_is_finite(small):
     x = jnp.full((1, 32, 32, 3), 0.5)
 
     def f(p):
-        return jnp.sum(model.apply({"params": p}, x, jnp.array([2])) ** 2)
+        y = model.apply({"params": p}, x, jnp.array([2]))
+        return jnp.sum(y**2), y
 
-    y = model.apply({"params": params}, x, jnp.array([2]))
-    g = jax.jit(jax.grad(f))(params)
+    # Output and gradient from one jitted program (op-by-op dispatch of the U-Net compiles
+    # every primitive separately).
+    (_, y), g = jax.jit(jax.value_and_grad(f, has_aux=True))(params)
     assert np.isfinite(np.asarray(y)).all()
     assert all(np.isfinite(np.asarray(v)).all() for v in jax.tree_util.tree_leaves(g))
 
@@ -221,11 +223,12 @@ def test_detail_space_model_starts_as_identity_and_keeps_the_large_scale():
     x = _tilted_wrinkles()
     m = jnp.array([0, 1])
     zero = {**params, "out": jax.tree.map(jnp.zeros_like, params["out"])}
-    np.testing.assert_allclose(model.apply({"params": zero}, x, m), x, atol=2e-5)
+    apply = jax.jit(model.apply)  # one program for both parameter sets
+    np.testing.assert_allclose(apply({"params": zero}, x, m), x, atol=2e-5)
     # With a random output layer the network adds detail, and with the residual high-passed
     # at a radius above the detail's the large scale stays the input's: the low-pass of the
     # output agrees with the input's within a few degrees (measured 2.7; 6.0 without it).
-    out = model.apply({"params": params}, x, m)
+    out = apply({"params": params}, x, m)
     mask = jnp.ones((2, 32, 32, 1))
     assert float(jnp.abs(out - x).max()) > 1e-2
     lin = detail.large_scale(x * 2 - 1, mask, 4.0)
@@ -256,12 +259,13 @@ def test_noise_model_depends_on_origins_only_through_the_noise():
     assert params["enc1"]["kernel"].shape == (3, 3, 5, 4)
     x = _tilted_wrinkles(1)
     m = jnp.array([1])
-    o1 = model.apply({"params": params}, x, m, jnp.array([[0, 0]]))
-    o2 = model.apply({"params": params}, x, m, jnp.array([[0, 0]]))
-    o3 = model.apply({"params": params}, x, m, jnp.array([[64, 3]]))
+    apply = jax.jit(model.apply)
+    o1 = apply({"params": params}, x, m, jnp.array([[0, 0]]))
+    o2 = apply({"params": params}, x, m, jnp.array([[0, 0]]))
+    o3 = apply({"params": params}, x, m, jnp.array([[64, 3]]))
     np.testing.assert_array_equal(o1, o2)
     assert float(jnp.abs(o1 - o3).max()) > 1e-3
-    np.testing.assert_array_equal(model.apply({"params": params}, x, m), o1)  # None = (0, 0)
+    np.testing.assert_array_equal(apply({"params": params}, x, m), o1)  # None = (0, 0)
 
 
 def test_lattice_noise_is_smooth_unit_and_fixed_to_the_texel():
@@ -319,13 +323,15 @@ def test_resize_decoders_avoid_the_transposed_conv_checkerboard():
         model = unet.UNetConfig(width=8, input_norm="none", residual=False,
                                 upsample=up).module(2, "im2col_f32")
         params = unet.init_params(model, jax.random.key(0, impl="rbg"), patch_size=32)
-        y = model.apply({"params": params}, x, jnp.array([0, 1]))
+        # Jitted: op-by-op dispatch of a U-Net compiles every primitive separately.
+        y = jax.jit(model.apply)({"params": params}, x, jnp.array([0, 1]))
         ratio[up] = float(evaluation.checker_rms(y, mask).mean() / np.asarray(y).std())
         if up == "bilinear":
             assert params["dec1"]["kernel"].shape == (3, 3, 64, 64)
             ref = unet.UNetConfig(width=8, input_norm="none", residual=False,
                                   upsample=up).module(2, "xla")
-            np.testing.assert_allclose(ref.apply({"params": params}, x, jnp.array([0, 1])), y,
+            np.testing.assert_allclose(jax.jit(ref.apply)({"params": params}, x,
+                                                          jnp.array([0, 1])), y,
                                        rtol=1e-4, atol=1e-4)
     assert ratio["transpose"] > 0.5
     assert ratio["bilinear"] < 0.25 * ratio["transpose"]

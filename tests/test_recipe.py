@@ -99,3 +99,35 @@ def test_material_gains_from_values_and_from_a_sweep(tmp_path):
         recipe.material_gains("sweep", 4.0, path)
     # The committed sweep reads (the default file).
     assert len(recipe.material_gains("sweep", 16.0)) == len(MATERIALS)
+
+
+def test_building_the_parser_imports_no_jax():
+    """The recipe's defaults are read when a command line is parsed, not when the parser is
+    built: `wrinkle-jax --help` and the other subcommands start without jax."""
+    import subprocess
+    import sys
+
+    code = ("import argparse, sys\n"
+            "from wrinkle_jax import recipe\n"
+            "ap = argparse.ArgumentParser()\n"
+            "recipe.add_recipe_args(ap); recipe.add_run_args(ap); ap.format_help()\n"
+            "print(sorted(m for m in ('jax', 'flax', 'wrinkle_jax.train') if m in sys.modules))\n"
+            "ap.parse_args([])\n"
+            "print('wrinkle_jax.train' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, cwd=ROOT).stdout.split("\n")
+    assert out[:2] == ["[]", "True"]
+
+
+def test_parse_time_defaults_behave_as_argparse_defaults():
+    ap = argparse.ArgumentParser()
+    recipe.add_recipe_args(ap)
+    args = ap.parse_args([])
+    assert (args.width, args.style_layers, args.relative_floor, args.upsample) == (
+        train.RECIPE.unet.width, ",".join(train.RECIPE.style_layers),
+        train.RECIPE.relative_floor, train.RECIPE.unet.upsample)
+    assert ap.get_default("w_s") == train.RECIPE.w_s
+    ap.set_defaults(width=24, upsample="nearest")  # a script may change a default
+    got = recipe.config_from_args(ap.parse_args(["--batch", "2"]))  # --batch: --batch-size
+    assert (got.unet.width, got.unet.upsample, got.batch_size) == (24, "nearest", 2)
+    assert ap.parse_args(["--width", "8"]).width == 8

@@ -94,6 +94,11 @@ def test_resume_equals_straight_run(data_root, tmp_path, tiny_vgg):
     for a, b in zip(jax.tree_util.tree_leaves(straight["state"]),
                     jax.tree_util.tree_leaves(again["state"]), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # Five calls (two step counts), one train and one eval program: each traced and compiled
+    # once (train.cached_step), yet every run above matched the straight one bit for bit.
+    step = train.cached_step("train", CONFIG, tiny_vgg)
+    assert step._cache_size() == 1
+    assert train.cached_step("eval", CONFIG, tiny_vgg)._cache_size() == 1
 
 
 def test_warm_start_from_params(data_root, tmp_path, tiny_vgg):
@@ -280,3 +285,25 @@ def test_restore_run_and_export_run_give_a_model_file_of_the_run(data_root, tmp_
     assert not (tmp_path / "x.npz").exists()
     with pytest.raises(FileNotFoundError, match="no config.json"):
         train.restore_run(tmp_path / "nothing")
+
+
+def test_cached_steps_are_keyed_on_what_the_step_closes_over(tiny_vgg):
+    """Loop-only settings share a step; the loss settings, the VGG object and the kind do not;
+    no compile is needed to tell (jit compiles on first call). Last in this file: it evicts
+    the steps the other tests share."""
+    step = train.cached_step("train", CONFIG, tiny_vgg)
+    assert train.cached_step("train", dataclasses.replace(
+        CONFIG, steps=7, seed=3, batch_size=2, eval_every=1, checkpoint_every=5), tiny_vgg) is step
+    assert train.cached_step("train", dataclasses.replace(CONFIG, w_s=11.0), tiny_vgg) is not step
+    assert train.cached_step("eval", CONFIG, tiny_vgg) is not step
+    other = jax.tree.map(lambda x: x, tiny_vgg)  # equal values, another object
+    assert train.cached_step("train", CONFIG, other) is not step
+    # The cache holds few entries, each keeping its VGG pytree alive (so no other object can
+    # take its id while the entry lives): filling it drops the oldest.
+    for w in range(train._STEP_CACHE_SIZE):
+        train.cached_step("train", dataclasses.replace(CONFIG, w_c=float(w + 2)), tiny_vgg)
+    assert len(train._STEP_CACHE) == train._STEP_CACHE_SIZE
+    assert train.cached_step("train", CONFIG, tiny_vgg) is not step
+    with pytest.raises(ValueError, match="kind"):
+        train.cached_step("apply", CONFIG, tiny_vgg)
+

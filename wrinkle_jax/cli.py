@@ -11,8 +11,10 @@ Exit codes: 0 success, 1 failure (bad input file, runtime error), 2 bad usage, 1
                         [--chunk C] [--template T.obj] [--force] [--json]
     wrinkle-jax bake INPUT --out DIR [--texel-size M] [--frames A:B] [--flat] [--units U]
     wrinkle-jax assets fetch makehuman [--force]
-    wrinkle-jax train-enhancer --data DIR --out DIR [--steps N] [--minutes M] [--width W]
-                               [--batch B] [--resume] [--export PATH [--export-only]]
+    wrinkle-jax train-enhancer --data DIR --out DIR [recipe flags: wrinkle_jax.recipe]
+                               [--minutes M] [--init-from RUN] [--material-gains G|sweep]
+                               [--eval-split S] [--train-scenes A,B] [--resume]
+                               [--export PATH [--export-only] [--export-steps A,B]]
     wrinkle-jax simulate SCENE --material NAME --resolution fine|coarse --frames N --out PATH
     wrinkle-jax train-classifier --data DIR --out PATH;  wrinkle-jax classify INPUT [--json]
 """
@@ -414,14 +416,27 @@ def _cmd_assets_fetch(args) -> int:
     return 0
 
 
-def _cmd_train_enhancer(args) -> int:
+def train_config(args):
+    """The `train.TrainConfig` of a parsed `train-enhancer` command line: the recipe flags
+    (`recipe.config_from_args`, as `experiments.train_default` reads them) plus the seed and
+    the evaluation and checkpoint intervals, which only this command sets."""
     import dataclasses
 
-    from wrinkle_jax import train
+    from wrinkle_jax import recipe
+
+    extra = {"seed": args.seed, "eval_every": args.eval_every,
+             "checkpoint_every": args.checkpoint_every}
+    return dataclasses.replace(recipe.config_from_args(args),
+                               **{k: v for k, v in extra.items() if v is not None})
+
+
+def _cmd_train_enhancer(args) -> int:
+    from wrinkle_jax import recipe, train
     from wrinkle_jax.validate import UsageError
 
     if args.export_only and not args.export:
         raise UsageError("--export-only needs --export PATH")
+    t0 = time.time()
     if not args.export_only:
         if args.data is None:
             raise UsageError("--data is required to train (--export-only --export PATH "
@@ -431,19 +446,18 @@ def _cmd_train_enhancer(args) -> int:
                   "(no index/ folder; build one with wrinkle_jax.data.build_dataset)",
                   file=sys.stderr)
             return 1
-        r = train.RECIPE
-        flags = {"steps": args.steps, "batch_size": args.batch, "learning_rate": args.lr,
-                 "seed": args.seed, "eval_every": args.eval_every,
-                 "checkpoint_every": args.checkpoint_every,
-                 "style_layers": args.style_layers and tuple(args.style_layers)}
-        net = r.unet if args.width is None else dataclasses.replace(r.unet, width=args.width)
-        config = dataclasses.replace(r, unet=net,
-                                     **{k: v for k, v in flags.items() if v is not None})
-        result = train.train(config, args.data, args.out, resume=args.resume,
-                             time_limit_s=None if args.minutes is None else 60 * args.minutes)
+        try:
+            # JSON lines on stdout: the chosen --material-gains (if any), then the last metrics.
+            result = recipe.train_from_args(train_config(args), args, Path(args.data),
+                                            Path(args.out), resume=args.resume, progress=True)
+        except recipe.RecipeError as e:
+            raise UsageError(str(e)) from None
         print(json.dumps({k: v for k, v in result["last"].items()}, indent=2))
     if args.export:
-        path = train.export_run(args.out, args.export)
+        # The data facts the run recorded (data.json), so --export-only needs no --data.
+        path = train.export_run(args.out, args.export, None,
+                                None if args.export_only else round(time.time() - t0, 1),
+                                steps=recipe.export_steps(args))
         print(json.dumps({"exported": str(path), "bytes": path.stat().st_size}))
     return 0
 
@@ -578,22 +592,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", default=None,
                    help="patch data set folder (data.build_dataset); required to train")
     p.add_argument("--out", required=True, help="run folder")
-    # Defaults (None): wrinkle_jax.train.RECIPE's, read when training (the parser stays light).
-    p.add_argument("--steps", type=int, default=None, help="default: the recipe's (20000)")
-    p.add_argument("--minutes", type=float, default=None,
-                   help="stop after this much wall time (with a checkpoint; --resume goes on)")
-    p.add_argument("--width", type=int, default=None, help="default: the recipe's (16)")
-    p.add_argument("--batch", type=int, default=None)
-    p.add_argument("--lr", type=float, default=None)
+    # The recipe's flags and a run's options, shared with experiments.train_default
+    # (wrinkle_jax.recipe; the recipe defaults are read only when this subcommand is parsed).
+    from wrinkle_jax import recipe
+
+    recipe.add_recipe_args(p)
+    recipe.add_run_args(p)
+    # Defaults (None): wrinkle_jax.train.RECIPE's.
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--eval-every", type=int, default=None)
     p.add_argument("--checkpoint-every", type=int, default=None)
-    p.add_argument("--style-layers", nargs="+", default=None, help="VGG layers of the style loss")
     p.add_argument("--resume", action="store_true", help="continue from the last checkpoint")
     p.add_argument("--export", default=None, metavar="PATH",
-                   help="then write the run's last checkpoint as a model file (.npz, float16)")
+                   help="then write the run's checkpoint (or --export-steps' average) as a "
+                   "model file (.npz, float16)")
     p.add_argument("--export-only", action="store_true",
-                   help="only export --out's last checkpoint to --export (no training)")
+                   help="only export --out's checkpoint(s) to --export (no training)")
     p.set_defaults(func=_cmd_train_enhancer)
 
     from wrinkle_jax.sim.command import add_simulate_parser

@@ -5,9 +5,15 @@ model's recipe), so every script that trains it varies the same knobs with the s
     recipe.add_recipe_args(ap)                   # --width, --style-layers, --w-s, ...
     config = recipe.config_from_args(ap.parse_args(argv))      # a train.TrainConfig
 
-`experiments.train_default` (the shipped model), `experiments.short_runs` (one-knob studies of
-the same recipe) and any later study share these flags from here, so no script imports another.
-`material_gains` reads `--material-gains` (per-material initial unsharp gains).
+`experiments.train_default` (the shipped model), `wrinkle-jax train-enhancer`,
+`experiments.short_runs` (one-knob studies of the same recipe) and any later study share these
+flags from here, so no script imports another. `add_run_args` adds the options of a training
+run (warm start, per-material gains, evaluation split, scene subset, exported checkpoints,
+budget), `train_from_args` runs one, and `material_gains` reads `--material-gains`.
+
+The parser builds without importing `wrinkle_jax.train` (and so jax): the recipe's defaults are
+read from `train.RECIPE` only when a command line is parsed, which keeps `wrinkle-jax --help`
+and every other subcommand's start free of it.
 """
 
 from __future__ import annotations
@@ -16,11 +22,18 @@ import argparse
 import dataclasses
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-from wrinkle_jax import MATERIALS, train
+from wrinkle_jax import MATERIALS
 
-__all__ = ["UNSHARP_SWEEP", "add_recipe_args", "config_from_args", "material_gains"]
+if TYPE_CHECKING:
+    from wrinkle_jax import train
+
+__all__ = ["UNSHARP_SWEEP", "RecipeError", "add_recipe_args", "add_run_args",
+           "config_from_args", "initial_params", "material_gains", "train_from_args",
+           "train_scenes"]
 
 # The per-material unsharp-mask sweep on the val split (written by experiments.fidelity in
 # the project checkout), which `material_gains("sweep", sigma)` reads.
@@ -28,59 +41,107 @@ UNSHARP_SWEEP = (Path(__file__).resolve().parents[1] / "experiments" / "results"
                  / "unsharp_sweep_material.json")
 
 
+class RecipeError(ValueError):
+    """Run options that contradict each other or the recipe (the message names the flag)."""
+
+
+class _FromRecipe:
+    """A flag's default, `read(train.RECIPE)`, evaluated when a command line is parsed."""
+
+    def __init__(self, read: Callable[[Any], Any]):
+        self.read = read
+
+
+class _StoreRecipeDefault(argparse.Action):
+    """argparse's "store" action whose default (a `_FromRecipe`) is read on first use: argparse
+    reads `action.default` only while parsing (or for a help text naming it), so building the
+    parser imports nothing heavy. The value is kept once read, so argparse sees one object."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, values)
+
+    @property
+    def default(self):
+        if isinstance(self._default, _FromRecipe):
+            from wrinkle_jax import train
+
+            self._default = self._default.read(train.RECIPE)
+        return self._default
+
+    @default.setter
+    def default(self, value):  # argparse's __init__ and `set_defaults` assign it
+        self._default = value
+
+
+class _RecipeFlags:
+    """`ap.add_argument` for flags whose `default` reads the recipe: `r` is `train.RECIPE`, `u`
+    its `unet` (e.g. ``default=lambda r, u: u.width``)."""
+
+    def __init__(self, ap: argparse.ArgumentParser):
+        self.ap = ap
+
+    def add_argument(self, *names, default, **kw):
+        self.ap.add_argument(*names, action=_StoreRecipeDefault,
+                             default=_FromRecipe(lambda r: default(r, r.unet)), **kw)
+
+
 def add_recipe_args(ap: argparse.ArgumentParser) -> None:
-    """Add the training recipe's flags to `ap` (defaults: `train.RECIPE`, the shipped model's);
-    `config_from_args` reads them back."""
-    r, u = train.RECIPE, train.RECIPE.unet
-    ap.add_argument("--width", type=int, default=u.width,
+    """Add the training recipe's flags to `ap` (defaults: `train.RECIPE`, the shipped model's,
+    read at parse time); `config_from_args` reads them back."""
+    ap = _RecipeFlags(ap)
+    ap.add_argument("--width", type=int, default=lambda r, u: u.width,
                     help="the width study's choice (experiments/results/width_unsharp2_study)")
-    ap.add_argument("--residual", type=int, default=int(u.residual))
-    ap.add_argument("--style-layers", default=",".join(r.style_layers),
+    ap.add_argument("--residual", type=int, default=lambda r, u: int(u.residual))
+    ap.add_argument("--style-layers", default=lambda r, u: ",".join(r.style_layers),
                     help="layer_selection's relu2_2,relu3_1,relu3_2 plus relu1_2,relu2_1, where "
                          "the content term otherwise undoes the sharpening "
                          "(experiments.per_layer_ratios)")
-    ap.add_argument("--normalize-channels", type=int, default=int(r.normalize_channels))
-    ap.add_argument("--w-c", type=float, default=r.w_c, help="content weight")
-    ap.add_argument("--steps", type=int, default=r.steps)
-    ap.add_argument("--lr", type=float, default=r.learning_rate)
-    ap.add_argument("--w-s", type=float, default=r.w_s)
-    ap.add_argument("--relative-floor", type=float, default=r.relative_floor,
+    ap.add_argument("--normalize-channels", type=int,
+                    default=lambda r, u: int(r.normalize_channels))
+    ap.add_argument("--w-c", type=float, default=lambda r, u: r.w_c, help="content weight")
+    ap.add_argument("--steps", type=int, default=lambda r, u: r.steps)
+    ap.add_argument("--lr", type=float, default=lambda r, u: r.learning_rate)
+    ap.add_argument("--w-s", type=float, default=lambda r, u: r.w_s)
+    ap.add_argument("--relative-floor", type=float, default=lambda r, u: r.relative_floor,
                     help="per-patch relative style loss floor; <= 0 for the paper's absolute loss")
-    ap.add_argument("--relative-log", type=int, default=int(r.relative_log),
+    ap.add_argument("--relative-log", type=int, default=lambda r, u: int(r.relative_log),
                     help="1: the log of the per-patch relative style loss (median-seeking)")
-    ap.add_argument("--band-weight", type=float, default=r.band_weight,
+    ap.add_argument("--band-weight", type=float, default=lambda r, u: r.band_weight,
                     help="weight of the detail band-energy term (train.TrainConfig.band_weight)")
-    ap.add_argument("--residual-base", default=u.residual_base, choices=("input", "unsharp"))
-    ap.add_argument("--unsharp-sigma", type=float, default=u.unsharp_sigma,
+    ap.add_argument("--residual-base", default=lambda r, u: u.residual_base,
+                    choices=("input", "unsharp"))
+    ap.add_argument("--unsharp-sigma", type=float, default=lambda r, u: u.unsharp_sigma,
                     help="texels; the best sigma of the unsharp-mask sweep on training patches")
-    ap.add_argument("--unsharp-amount", type=float, default=u.unsharp_amount,
+    ap.add_argument("--unsharp-amount", type=float, default=lambda r, u: u.unsharp_amount,
                     help="initial per-material gain (learned)")
-    ap.add_argument("--residual-highpass", type=float, default=u.residual_highpass,
+    ap.add_argument("--residual-highpass", type=float, default=lambda r, u: u.residual_highpass,
                     help="texels; the residual can add detail but not shift orientation")
-    ap.add_argument("--blur-order", type=int, default=u.blur_order, choices=(0, 1),
+    ap.add_argument("--blur-order", type=int, default=lambda r, u: u.blur_order, choices=(0, 1),
                     help="masked blur of the unsharp base and the high-pass: 1 = local plane "
                          "(flat tilted panels pass unchanged), 0 = local mean (pre-session-4)")
-    ap.add_argument("--detail-sigma", type=float, default=u.detail_sigma,
+    ap.add_argument("--detail-sigma", type=float, default=lambda r, u: u.detail_sigma,
                     help="texels; > 0: the model and the loss work on detail maps "
                          "(wrinkle_jax.detail), for real coarse/fine pairs (data/pairs)")
-    ap.add_argument("--noise-channels", type=int, default=u.noise_channels,
+    ap.add_argument("--noise-channels", type=int, default=lambda r, u: u.noise_channels,
                     help="fixed per-texel noise inputs (nn.unet.texel_noise)")
-    ap.add_argument("--noise-scale", type=int, default=u.noise_scale,
+    ap.add_argument("--noise-scale", type=int, default=lambda r, u: u.noise_scale,
                     help="texels between the noise's lattice points (1: per-texel noise)")
-    ap.add_argument("--upsample", default=u.upsample,
+    ap.add_argument("--upsample", default=lambda r, u: u.upsample,
                     choices=("transpose", "nearest", "bilinear"),
                     help="decoder up-sampling (UNetConfig.upsample; bilinear: no checkerboard)")
-    ap.add_argument("--batch-size", type=int, default=r.batch_size)
-    ap.add_argument("--keep-checkpoints", type=int, default=r.keep_checkpoints,
+    ap.add_argument("--batch-size", "--batch", type=int, default=lambda r, u: r.batch_size)
+    ap.add_argument("--keep-checkpoints", type=int, default=lambda r, u: r.keep_checkpoints,
                     help="checkpoints kept (every checkpoint_every steps), so a later "
                          "checkpoint choice on validation data has candidates")
-    ap.add_argument("--eval-batches", type=int, default=r.eval_batches,
+    ap.add_argument("--eval-batches", type=int, default=lambda r, u: r.eval_batches,
                     help="batches of the periodic evaluation (evenly spaced over its split)")
 
 
 def config_from_args(args: argparse.Namespace) -> train.TrainConfig:
     """`train.RECIPE` with the flags of `add_recipe_args` (whose defaults are the recipe's, so
     no flags give `train.RECIPE` itself); a `--relative-floor` <= 0 means the absolute loss."""
+    from wrinkle_jax import train
+
     net = dataclasses.replace(
         train.RECIPE.unet, width=args.width, residual=bool(args.residual),
         residual_base=args.residual_base, unsharp_sigma=args.unsharp_sigma,
@@ -95,6 +156,113 @@ def config_from_args(args: argparse.Namespace) -> train.TrainConfig:
         relative_log=bool(args.relative_log), band_weight=args.band_weight,
         batch_size=args.batch_size, keep_checkpoints=args.keep_checkpoints,
         eval_batches=args.eval_batches)
+
+
+def add_run_args(ap: argparse.ArgumentParser, minutes: float | None = None) -> None:
+    """Add a training run's options (not recipe settings) to `ap`: --init-from,
+    --material-gains, --minutes (default `minutes`; None: no wall-clock budget),
+    --export-steps, --eval-split and --train-scenes; `train_from_args` reads them."""
+    ap.add_argument("--init-from", default=None,
+                    help="start a fresh run from another run's last checkpoint (warm start)")
+    ap.add_argument("--material-gains", default=None,
+                    help="initial per-material unsharp gains of a fresh run (residual base "
+                         "unsharp): 'sweep' = each material's best amount at --unsharp-sigma "
+                         "in experiments/results/fidelity/unsharp_sweep_material.json (val "
+                         "split), or comma-separated values in wrinkle_jax.MATERIALS order")
+    ap.add_argument("--minutes", type=float, default=minutes,
+                    help="stop after this much wall time (with a checkpoint; running again "
+                         "resumes)")
+    ap.add_argument("--export-steps", default=None,
+                    help="export these checkpoints (comma-separated steps), their parameters "
+                         "averaged (train.averaged_params); default the last checkpoint")
+    ap.add_argument("--eval-split", default="heldout",
+                    help="split of the periodic evaluation: heldout, val (pair data: frames "
+                         "of the training scenes) or valgarment (pair data: the validation-only "
+                         "garment), so no held-out data guides the recipe")
+    ap.add_argument("--train-scenes", default=None,
+                    help="train on these scenes only (comma-separated; e.g. sheet_balls_wind "
+                         "for the sheet-only ablation, paper Fig. 8)")
+
+
+def train_scenes(args: argparse.Namespace) -> tuple[str, ...] | None:
+    """`--train-scenes` as a tuple of scene names (None: every training scene)."""
+    return tuple(args.train_scenes.split(",")) if args.train_scenes else None
+
+
+def export_steps(args: argparse.Namespace) -> list[int] | None:
+    """`--export-steps` as checkpoint steps (None: the last checkpoint)."""
+    return [int(x) for x in args.export_steps.split(",")] if args.export_steps else None
+
+
+def initial_params(cfg: train.TrainConfig, run: Path, data_root: Path,
+                   init_from: str | None = None, gains: str | None = None,
+                   warm_start: bool = False, log: Callable[[str], Any] = print):
+    """Starting parameters of a fresh run in `run` (None: the config's random initialization,
+    or a run that already has checkpoints, which resumes instead).
+
+    Args:
+      warm_start: start from the shipped model's weights (`enhancer.load_enhancer()`).
+      init_from: start from this run folder's last checkpoint (after `warm_start`, so it wins).
+      gains: a `--material-gains` value: these per-material unsharp gains replace the
+        starting parameters' ``unsharp_amount`` (needs residual base "unsharp"); the chosen
+        gains are logged as one JSON line through `log`.
+    Raises:
+      RecipeError: the shipped model's architecture differs from `cfg` (`warm_start`), or bad
+        `gains`.
+    """
+    import jax
+    import numpy as np
+
+    from wrinkle_jax import data, enhancer, train
+
+    if (Path(run) / "checkpoints").exists():
+        return None
+    init = None
+    if warm_start:
+        shipped = enhancer.load_enhancer()
+        c, n = shipped.config.unet, cfg.unet
+        if ((c.width, c.residual, c.residual_base, c.unsharp_sigma, c.blur_order)
+                != (n.width, n.residual, n.residual_base, n.unsharp_sigma, n.blur_order)):
+            raise RecipeError("--warm-start: the shipped model's width/residual/base/"
+                              "unsharp sigma/blur order differ from the flags")
+        init = shipped.params
+    if init_from:
+        init = train.restore_run(init_from)[1].params
+    if gains:
+        if cfg.unet.residual_base != "unsharp":
+            raise RecipeError("--material-gains needs --residual-base unsharp")
+        try:
+            values = material_gains(gains, cfg.unet.unsharp_sigma)
+        except ValueError as e:
+            raise RecipeError(str(e)) from None
+        if init is None:
+            init = train.create_train_state(cfg, jax.random.key(cfg.seed, impl="rbg"),
+                                            data.PatchDataset(data_root).patch_size).params
+        init = {**init, "unsharp_amount": np.asarray(values, np.float32)}
+        log(json.dumps({"material_gains": dict(zip(MATERIALS, values, strict=True))}))
+    return init
+
+
+def train_from_args(cfg: train.TrainConfig, args: argparse.Namespace, data_root: Path,
+                    run: Path, resume: bool = True, warm_start: bool = False, vgg_params=None,
+                    progress: bool = False, log: Callable[[str], Any] = print) -> dict:
+    """Train `cfg` into `run` with the options of `add_run_args` in `args` (`initial_params`
+    for a fresh run, then `train.train`); returns `train.train`'s result.
+
+    Raises:
+      RecipeError: see `initial_params`.
+    """
+    from wrinkle_jax import train
+    from wrinkle_jax.nn import vgg
+
+    init = initial_params(cfg, run, data_root, args.init_from, args.material_gains,
+                          warm_start, log)
+    return train.train(cfg, data_root, run, resume=resume,
+                       vgg_params=vgg.load_vgg19() if vgg_params is None else vgg_params,
+                       progress=progress,
+                       time_limit_s=None if args.minutes is None else 60 * args.minutes,
+                       init_params=init, train_scenes=train_scenes(args),
+                       eval_split=args.eval_split)
 
 
 def material_gains(spec: str, sigma: float,

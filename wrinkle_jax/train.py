@@ -269,6 +269,45 @@ def make_eval_step(config: TrainConfig, vgg_params):
     return jax.jit(eval_fn)
 
 
+# Jitted steps of earlier `train` calls, reused by later calls in the same process (a resumed
+# run, a study's variants): building a step anew re-traces and re-compiles it, seconds of CPU
+# each call. Keyed on what the step closes over -- the frozen config, the VGG parameters'
+# identity and the mesh; each entry holds its VGG pytree, so that while the entry lives no
+# other object can take its id(). (VGG parameters mutated in place would be missed: they are
+# treated as immutable, like every parameter pytree here.) A few entries only: each keeps
+# compiled programs and, for the real VGG19, 80 MB of weights alive.
+_STEP_CACHE: dict[tuple, tuple[Any, Any]] = {}
+_STEP_CACHE_SIZE = 4
+# Settings only the training loop reads (cadences, budget, data order, batch size -- a shape,
+# which jit specializes on by itself); the key and the built steps see them at their
+# defaults, so e.g. a run cut at 2 steps and its resumption to 4 share one program.
+_LOOP_ONLY = ("batch_size", "steps", "seed", "eval_every", "eval_batches", "checkpoint_every",
+              "keep_checkpoints")
+
+
+def cached_step(kind: str, config: TrainConfig, vgg_params,
+                mesh: jax.sharding.Mesh | None = None):
+    """`make_train_step(config, vgg_params, mesh)` (kind "train") or `make_eval_step(config,
+    vgg_params)` (kind "eval"), built once per (config, VGG params object, mesh) and then
+    returned again (least recently used entries are dropped past `_STEP_CACHE_SIZE`); configs
+    that differ only in loop settings (`_LOOP_ONLY`) share their steps."""
+    if kind not in ("train", "eval"):
+        raise ValueError(f"kind: 'train' or 'eval', got {kind!r}")
+    mesh = data_mesh() if mesh is None and kind == "train" else mesh
+    config = dataclasses.replace(
+        config, **{f: TrainConfig.__dataclass_fields__[f].default for f in _LOOP_ONLY})
+    key = (kind, config, id(vgg_params), mesh)
+    hit = _STEP_CACHE.pop(key, None)
+    if hit is None or hit[0] is not vgg_params:
+        fn = (make_train_step(config, vgg_params, mesh) if kind == "train"
+              else make_eval_step(config, vgg_params))
+        hit = (vgg_params, fn)
+    _STEP_CACHE[key] = hit  # (re)inserted last: dicts keep insertion order, oldest first
+    while len(_STEP_CACHE) > _STEP_CACHE_SIZE:
+        del _STEP_CACHE[next(iter(_STEP_CACHE))]
+    return hit[1]
+
+
 # --------------------------------------------------------------------------------------------
 # Checkpoints
 # --------------------------------------------------------------------------------------------
@@ -580,8 +619,9 @@ def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.P
          "train_scenes_selected": None if train_scenes is None else list(train_scenes),
          "eval_split": eval_split, **_data_facts(train_set)}, indent=1))
 
-    step_fn = make_train_step(config, vgg_params, mesh)
-    eval_step = make_eval_step(config, vgg_params)
+    # Reused across calls (a resume compiles nothing new; see `cached_step`).
+    step_fn = cached_step("train", config, vgg_params, mesh)
+    eval_step = cached_step("eval", config, vgg_params)
     # Fixed held-out patches spread over the whole split (all held-out sequences), not its head.
     n_eval = min(len(held_set), config.eval_batches * config.batch_size)
     held_idx = np.unique(np.linspace(0, len(held_set) - 1, n_eval).round().astype(int))

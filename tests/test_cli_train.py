@@ -121,6 +121,7 @@ def test_train_enhancer_run_options_reach_the_run(tiny_patch_root, tmp_path, tin
             "--checkpoint-every", "1", "--eval-every", "2"]
     donor = tmp_path / "donor"
     assert cli.main(["train-enhancer", "--out", str(donor), "--steps", "1", *base]) == 0
+    capsys.readouterr()  # the donor's metrics
     run, model = tmp_path / "run", tmp_path / "model.npz"
     gains = "0.5,1,1.5,2,2.5"
     assert cli.main(["train-enhancer", "--out", str(run), "--steps", "2", *base,

@@ -69,11 +69,14 @@ def test_bad_inputs_exit_nonzero_with_a_message(tmp_path, capsys):
 
 
 def test_help_on_every_command(capsys):
-    for argv in (["--help"], ["demo", "--help"], ["bake", "--help"], ["enhance", "--help"]):
+    for argv in (["--help"], ["demo", "--help"], ["bake", "--help"], ["enhance", "--help"],
+                 ["train-enhancer", "--help"]):
         with pytest.raises(SystemExit) as info:
             cli.main(argv)
         assert info.value.code == 0
-    assert "--texel-size" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    # train-enhancer's help lists the recipe's flags (wrinkle_jax.recipe) and the run options
+    assert "--texel-size" in out and "--detail-sigma" in out and "--init-from" in out
 
 
 # ---------------------------------------------------------------- enhance

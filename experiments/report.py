@@ -76,6 +76,10 @@ FIDELITY_METHODS = {
                              "(not shipped)",
     "detail_garments_s2397": "candidate, session 11: session 10's run warm-started on five "
                              "training garments, chosen on the validation garment (not shipped)",
+    "detail_bands_w3": "candidate, session 12: + band-energy loss (weight 3), chosen on the "
+                       "validation garment (not shipped)",
+    "detail_bands_w10": "candidate, session 12: + band-energy loss (weight 10; not chosen, "
+                        "not shipped)",
 }
 
 

@@ -18,7 +18,8 @@ Normalization (why the paper's weights are the defaults and mean the same everyw
     divided by V. E is thus the paper's energy (in meters, at its own 10 mm resolution) per
     vertex, so eta = 5e3 and omega = 8 keep their meaning for any vertex count and any
     length unit. (Refining one garment shifts the per-vertex balance, as for any discrete
-    Laplacian energy; the pipeline always lifts at ~10 mm, where the weights are calibrated.)
+    Laplacian energy; the pipeline lifts at ~10 mm by default, where the weights are
+    calibrated; `PipelineConfig.subdivision="auto"` may pick coarser edges.)
     The normal term is dimensionless; an energy of 0.01 is a mean squared sine of 0.01/6 per
     one-ring pair.
   * |e|_eps = sqrt(|e|^2 + (1e-2 h)^2): a softened edge length, so zero-length edges and

@@ -45,42 +45,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax import lift as L
-from wrinkle_jax import mesh, primitives
+from wrinkle_jax import primitives
 
 AUTHORS_S_PER_FRAME_10K = 15.0
 AUTHORS_S_PER_ITER_10K = 0.33
 
 
-def _coarse_height(x, y):
-    return 0.03 * np.sin(2 * np.pi * x / 0.8) * np.cos(2 * np.pi * y / 1.1)
-
-
-def _height(x, y):
-    """Coarse drape + two wrinkle trains (10 and 13 cm, fixed directions) blended smoothly."""
-    amp = 0.005 * (0.6 + 0.4 * np.cos(2 * np.pi * y / 0.9))
-    blend = 0.5 + 0.5 * np.sin(2 * np.pi * x / 1.3) * np.cos(2 * np.pi * y / 1.7)
-    w1 = np.sin(2 * np.pi / 0.10 * (x * np.cos(0.5) + y * np.sin(0.5)))
-    w2 = np.sin(2 * np.pi / 0.13 * (x * np.cos(2.0) + y * np.sin(2.0)) + 1.0)
-    return _coarse_height(x, y) + amp * (blend * w1 + (1 - blend) * w2)
-
-
 def make_case(cells: int):
-    """Upsampled coarse sheet (p0), target normals and the ideal wrinkled surface."""
-    size = cells * 0.01
-    coarse = primitives.grid_sheet(cells // 4, cells // 4, size=(size, size),
-                                   height_fn=_coarse_height)
-    sub = mesh.subdivision(coarse, 2)
-    fine = sub.garment(coarse)
-    x = fine.vertices[:, 0].astype(np.float64)
-    y = fine.vertices[:, 1].astype(np.float64)
-    d = 1e-6
-    hx = (_height(x + d, y) - _height(x - d, y)) / (2 * d)
-    hy = (_height(x, y + d) - _height(x, y - d)) / (2 * d)
-    n = np.stack([-hx, -hy, np.ones_like(hx)], 1)
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    ideal = np.stack([x, y, _height(x, y)], 1)
-    return fine, jnp.asarray(fine.vertices), jnp.asarray(n, jnp.float32), jnp.asarray(
-        ideal, jnp.float32)
+    """Upsampled coarse sheet (p0), target normals and the ideal wrinkled surface
+    (`primitives.wrinkled_sheet_case`)."""
+    case = primitives.wrinkled_sheet_case(cells)
+    fine = case["fine"]
+    return (fine, jnp.asarray(fine.vertices), jnp.asarray(case["normals"]),
+            jnp.asarray(case["ideal"]))
 
 
 def _timed(fn, reps: int):

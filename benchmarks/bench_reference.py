@@ -157,26 +157,6 @@ def load_authors(repo: str, device: str) -> dict:
 # U-Net
 
 
-def synthetic_normal_maps(rng, batch: int, size: int = PATCH) -> np.ndarray:
-    """(batch, size, size, 3) float32 RGB form in [0, 1] of the normals of random height
-    fields: sums of eight sinusoids, amplitudes 0.002-0.01 patch widths, wave numbers drawn
-    from N(0, 12) cycles per patch width."""
-    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size
-    out = np.empty((batch, size, size, 3), np.float32)
-    for i in range(batch):
-        hx = np.zeros((size, size), np.float32)
-        hy = np.zeros((size, size), np.float32)
-        for _ in range(8):
-            kx, ky = rng.normal(0, 12, 2)
-            amp, phase = rng.uniform(0.002, 0.01), rng.uniform(0, 2 * np.pi)
-            c = amp * 2 * np.pi * np.cos(2 * np.pi * (kx * xx + ky * yy) + phase)
-            hx += kx * c
-            hy += ky * c
-        n = np.stack([-hx, -hy, np.ones_like(hx)], -1)
-        out[i] = (n / np.linalg.norm(n, axis=-1, keepdims=True) + 1) / 2
-    return out
-
-
 def agreement(ours: np.ndarray, theirs: np.ndarray) -> dict:
     """Errors of `ours` against `theirs` (same shape), relative to RMS(theirs)."""
     d = np.asarray(ours, np.float64) - np.asarray(theirs, np.float64)
@@ -206,7 +186,7 @@ def bench_unet(authors: dict, args, rng) -> dict:
     if kwargs["config"].width != args.width:
         raise SystemExit(f"their network has width {kwargs['config'].width}, not {args.width}")
 
-    x = synthetic_normal_maps(rng, args.batch)
+    x = primitives.wavy_normal_maps(rng, args.batch, PATCH)
     mats = rng.integers(0, NUM_MATERIALS, args.batch)
     mean = np.asarray(unet.IMAGENET_MEAN, np.float32)
     std = np.asarray(unet.IMAGENET_STD, np.float32)
@@ -260,46 +240,18 @@ def bench_unet(authors: dict, args, rng) -> dict:
 # Lifting: the problem, and their inputs built from our mesh (NumPy; no torch needed).
 
 
-def drape(x, y):
-    """The coarse shape, meters: a 3 cm drape."""
-    return 0.03 * np.sin(2 * np.pi * x / 0.8) * np.cos(2 * np.pi * y / 1.1)
-
-
-def wrinkled(x, y):
-    """The drape plus two wrinkle trains (10 and 13 cm wavelength, crossing), 3-5 mm."""
-    amp = 0.005 * (0.6 + 0.4 * np.cos(2 * np.pi * y / 0.9))
-    mix = 0.5 + 0.5 * np.sin(2 * np.pi * x / 1.3) * np.cos(2 * np.pi * y / 1.7)
-    a = np.sin(2 * np.pi / 0.10 * (x * np.cos(0.5) + y * np.sin(0.5)))
-    b = np.sin(2 * np.pi / 0.13 * (x * np.cos(2.0) + y * np.sin(2.0)) + 1.0)
-    return drape(x, y) + amp * (mix * a + (1 - mix) * b)
-
-
 def make_lift_case(cells: int) -> dict:
-    """A (cells/4)-cell draped grid subdivided twice (edges 10 mm when cells = 100, 1 m side).
-
-    Returns:
-      {"p0": (V, 3) float32 upsampled coarse vertices, "faces": (F, 3) int32,
-       "normals": (V, 3) float32 unit target normals of `wrinkled`, "ideal": (V, 3) float32
-       the wrinkled surface at the same (x, y), "num_coarse": Vc (the first Vc fine vertices
-       are the coarse ones: midpoint subdivision keeps them in front)}.
-    """
+    """`primitives.wrinkled_sheet_case` (the case `bench_lift` times) in the arrays their loop
+    reads: {"p0": (V, 3) float32 upsampled coarse vertices, "faces": (F, 3) int32,
+    "normals", "ideal": (V, 3) float32, "num_coarse": Vc (the first Vc fine vertices are the
+    coarse ones)}; `cells` a multiple of 4 (exact 10 mm edges)."""
     if cells % 4:
         raise ValueError(f"cells must be a multiple of 4, got {cells}")
-    side = cells * 0.01
-    coarse = primitives.grid_sheet(cells // 4, cells // 4, size=(side, side), height_fn=drape)
-    fine = mesh.subdivision(coarse, 2).garment(coarse)
-    x = np.asarray(fine.vertices[:, 0], np.float64)
-    y = np.asarray(fine.vertices[:, 1], np.float64)
-    d = 1e-6  # central differences of an analytic field: ~1e-10 truncation error
-    hx = (wrinkled(x + d, y) - wrinkled(x - d, y)) / (2 * d)
-    hy = (wrinkled(x, y + d) - wrinkled(x, y - d)) / (2 * d)
-    n = np.stack([-hx, -hy, np.ones_like(hx)], 1)
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    return {"p0": np.asarray(fine.vertices, np.float32),
-            "faces": np.asarray(fine.faces, np.int32),
-            "normals": n.astype(np.float32),
-            "ideal": np.stack([x, y, wrinkled(x, y)], 1).astype(np.float32),
-            "num_coarse": int(coarse.num_vertices)}
+    case = primitives.wrinkled_sheet_case(cells)
+    return {"p0": np.asarray(case["fine"].vertices, np.float32),
+            "faces": np.asarray(case["fine"].faces, np.int32),
+            "normals": case["normals"], "ideal": case["ideal"],
+            "num_coarse": int(case["coarse"].num_vertices)}
 
 
 def cross_edges(faces: np.ndarray, num_vertices: int):

@@ -83,7 +83,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from wrinkle_jax import timing, train  # noqa: E402
+from wrinkle_jax import primitives, timing, train  # noqa: E402
 from wrinkle_jax.nn import fastconv, unet, vgg  # noqa: E402
 
 # ---------------------------------------------------------------------------------------------
@@ -142,24 +142,6 @@ def loss_flops(vgg_params, config):
 
 # ---------------------------------------------------------------------------------------------
 # Inputs, timing.
-
-
-def synthetic_normal_maps(rng, batch, size=PATCH):
-    """Wrinkle-like normal maps (random sinusoidal height fields), RGB form in [0, 1]."""
-    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size
-    out = np.empty((batch, size, size, 3), np.float32)
-    for i in range(batch):
-        dhdx = np.zeros((size, size), np.float32)
-        dhdy = np.zeros((size, size), np.float32)
-        for _ in range(8):
-            kx, ky = rng.normal(0, 12, 2)
-            amp, phase = rng.uniform(0.002, 0.01), rng.uniform(0, 2 * np.pi)
-            c = amp * 2 * np.pi * np.cos(2 * np.pi * (kx * xx + ky * yy) + phase)
-            dhdx += kx * c
-            dhdy += ky * c
-        n = np.stack([-dhdx, -dhdy, np.ones_like(dhdx)], -1)
-        out[i] = (n / np.linalg.norm(n, axis=-1, keepdims=True) + 1) / 2
-    return out
 
 
 def timed(runs: dict, reps: int) -> dict:
@@ -261,7 +243,7 @@ def bench_inference(widths, batches, reps, rng):
                                   jax.random.key(0, impl="rbg"))
         fwd_flops = unet_flops(width)[0]
         for batch in batches:
-            x = jnp.asarray(synthetic_normal_maps(rng, batch))
+            x = jnp.asarray(primitives.wavy_normal_maps(rng, batch, PATCH))
             m = jnp.asarray(rng.integers(0, 5, batch), jnp.int32)
             runs, compile_s, outs = {}, {}, {}
             for impl in (PLAIN, FAST):
@@ -295,8 +277,8 @@ def bench_inference(widths, batches, reps, rng):
 def bench_training(widths, reps, rng, vgg_params, quick):
     base = train.TrainConfig(batch_size=TRAIN_BATCH)
     loss_fl = loss_flops(vgg_params, base)
-    raw = {"input": synthetic_normal_maps(rng, TRAIN_BATCH),
-           "target": synthetic_normal_maps(rng, TRAIN_BATCH),
+    raw = {"input": primitives.wavy_normal_maps(rng, TRAIN_BATCH, PATCH),
+           "target": primitives.wavy_normal_maps(rng, TRAIN_BATCH, PATCH),
            "mask": np.ones((TRAIN_BATCH, PATCH, PATCH, 1), np.float32),
            "material": rng.integers(0, 5, TRAIN_BATCH).astype(np.int32)}
     raw["mask"][:, :, : PATCH // 6] = 0.0  # some background, as in real UV patches
@@ -353,9 +335,9 @@ def bench_loss_share(reps, rng, vgg_params):
     from wrinkle_jax.nn import losses
 
     config = train.TrainConfig()
-    x = jnp.asarray(synthetic_normal_maps(rng, TRAIN_BATCH))
-    inp = jnp.asarray(synthetic_normal_maps(rng, TRAIN_BATCH))
-    tgt = jnp.asarray(synthetic_normal_maps(rng, TRAIN_BATCH))
+    x = jnp.asarray(primitives.wavy_normal_maps(rng, TRAIN_BATCH, PATCH))
+    inp = jnp.asarray(primitives.wavy_normal_maps(rng, TRAIN_BATCH, PATCH))
+    tgt = jnp.asarray(primitives.wavy_normal_maps(rng, TRAIN_BATCH, PATCH))
     mask = jnp.ones((TRAIN_BATCH, PATCH, PATCH, 1))
 
     def loss(out, inp, tgt, mask):

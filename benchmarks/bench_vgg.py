@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wrinkle_jax import primitives
 from wrinkle_jax.nn import losses, vgg
 
 LAYER_SETS = {
@@ -35,25 +36,6 @@ LAYER_SETS = {
     "relu5_1": ("relu1_2", "relu2_1", "relu3_1", "relu4_1", "relu5_1"),
 }
 DTYPES = {"float32": None, "bfloat16": jnp.bfloat16}
-
-
-def synthetic_normal_maps(rng, batch, size):
-    """Wrinkle-like normal maps: random sinusoidal height fields, RGB form in [0, 1]."""
-    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size
-    images = []
-    for _ in range(batch):
-        dhdx = np.zeros((size, size), np.float32)
-        dhdy = np.zeros((size, size), np.float32)
-        for _ in range(12):
-            kx, ky = rng.normal(0, 12, 2)
-            amp, phase = rng.uniform(0.002, 0.01), rng.uniform(0, 2 * np.pi)
-            arg = 2 * np.pi * (kx * xx + ky * yy) + phase
-            dhdx += amp * 2 * np.pi * kx * np.cos(arg)
-            dhdy += amp * 2 * np.pi * ky * np.cos(arg)
-        n = np.stack([-dhdx, -dhdy, np.ones_like(dhdx)], -1)
-        n /= np.linalg.norm(n, axis=-1, keepdims=True)
-        images.append((n + 1) / 2)
-    return jnp.asarray(np.stack(images), jnp.float32)
 
 
 def timed_interleaved(runs, reps):
@@ -113,8 +95,8 @@ def main():
 
     params = vgg.load_vgg19()
     rng = np.random.default_rng(0)
-    images = synthetic_normal_maps(rng, args.batch, args.size)
-    target = synthetic_normal_maps(rng, args.batch, args.size)
+    images = jnp.asarray(primitives.wavy_normal_maps(rng, args.batch, args.size, waves=12))
+    target = jnp.asarray(primitives.wavy_normal_maps(rng, args.batch, args.size, waves=12))
     mask = np.ones((args.batch, args.size, args.size, 1), np.float32)
     mask[:, :, : args.size // 5] = 0.0  # some background, as in real UV patches
     mask = jnp.asarray(mask)

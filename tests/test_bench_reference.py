@@ -74,7 +74,7 @@ def test_lift_case_targets_are_the_ideal_surfaces_normals(bench):
     lengths = np.linalg.norm(p0[edges[:, 0]] - p0[edges[:, 1]], axis=1)
     assert 0.0099 < np.median(lengths) < 0.0106  # 10 mm grid edges (diagonals are longer)
     # The anchors: the first num_coarse fine vertices are the coarse grid's own vertices.
-    coarse = primitives.grid_sheet(5, 5, size=(0.2, 0.2), height_fn=bench.drape)
+    coarse = primitives.grid_sheet(5, 5, size=(0.2, 0.2), height_fn=primitives.draped_height)
     assert case["num_coarse"] == coarse.num_vertices
     np.testing.assert_allclose(p0[: coarse.num_vertices], coarse.vertices, atol=1e-7)
     # The analytic normals agree with the discrete normals of the ideal mesh (to the
@@ -85,3 +85,5 @@ def test_lift_case_targets_are_the_ideal_surfaces_normals(bench):
         return np.degrees(np.mean(np.arccos(np.clip(np.sum(vn * n, 1), -1, 1))))
     assert mean_angle(ideal) < 1.5
     assert mean_angle(p0) > 4.0
+    with pytest.raises(ValueError, match="multiple of 4"):
+        bench.make_lift_case(30)

@@ -2,14 +2,16 @@
 seamed cube. Used by tests (closed-form normals), benchmarks and the demo.
 
 All return validated `Garment`s (NumPy arrays) in meters, with UVs in meters of the unrolled
-surface wherever the surface is developable (so one UV unit is one meter of cloth).
+surface wherever the surface is developable (so one UV unit is one meter of cloth). Two
+benchmark inputs live here too, so every benchmark times the same case: the wrinkled-sheet
+lifting case (`wrinkled_sheet_case`) and wavy normal-map patches (`wavy_normal_maps`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from wrinkle_jax.mesh import Garment, make_garment
+from wrinkle_jax.mesh import Garment, make_garment, subdivision
 
 
 def _grid_faces(nx: int, ny: int, alternate: bool = True) -> np.ndarray:
@@ -201,3 +203,68 @@ def flared_skirt(waist_radius: float = 0.12, hem_radius: float = 0.32, length: f
     uf = np.concatenate([x.reshape(-1, 3) for x in uv_faces])
     return make_garment(v, f, np.concatenate(uvs), uf, np.concatenate(panels),
                         source="flared_skirt")
+
+
+def draped_height(x, y):
+    """The wrinkled sheet's coarse shape z(x, y), meters: a 3 cm drape (x, y in meters)."""
+    return 0.03 * np.sin(2 * np.pi * x / 0.8) * np.cos(2 * np.pi * y / 1.1)
+
+
+def wrinkled_height(x, y):
+    """`draped_height` plus two crossing wrinkle trains (10 and 13 cm wavelength, fixed
+    directions, 3-5 mm amplitude), blended smoothly across the sheet; meters."""
+    amp = 0.005 * (0.6 + 0.4 * np.cos(2 * np.pi * y / 0.9))
+    mix = 0.5 + 0.5 * np.sin(2 * np.pi * x / 1.3) * np.cos(2 * np.pi * y / 1.7)
+    a = np.sin(2 * np.pi / 0.10 * (x * np.cos(0.5) + y * np.sin(0.5)))
+    b = np.sin(2 * np.pi / 0.13 * (x * np.cos(2.0) + y * np.sin(2.0)) + 1.0)
+    return draped_height(x, y) + amp * (mix * a + (1 - mix) * b)
+
+
+def wrinkled_sheet_case(cells: int) -> dict:
+    """The lifting benchmark's case: a (cells // 4)-cell grid on `draped_height`, side
+    cells x 10 mm, subdivided twice by midpoints (10 mm edges when 4 divides cells), and the
+    normals of `wrinkled_height` at its vertices.
+
+    Returns:
+      {"coarse": the grid `Garment`, "fine": the subdivided `Garment` (its first Vc vertices
+       are the coarse ones), "normals": (V, 3) float32 unit target normals (central
+       differences of the analytic field), "ideal": (V, 3) float32 the wrinkled surface at the
+       fine vertices' (x, y)}.
+    """
+    side = cells * 0.01
+    coarse = grid_sheet(cells // 4, cells // 4, size=(side, side), height_fn=draped_height)
+    fine = subdivision(coarse, 2).garment(coarse)
+    x = np.asarray(fine.vertices[:, 0], np.float64)
+    y = np.asarray(fine.vertices[:, 1], np.float64)
+    d = 1e-6  # central differences of an analytic field: ~1e-10 truncation error
+    hx = (wrinkled_height(x + d, y) - wrinkled_height(x - d, y)) / (2 * d)
+    hy = (wrinkled_height(x, y + d) - wrinkled_height(x, y - d)) / (2 * d)
+    n = np.stack([-hx, -hy, np.ones_like(hx)], 1)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return {"coarse": coarse, "fine": fine, "normals": n.astype(np.float32),
+            "ideal": np.stack([x, y, wrinkled_height(x, y)], 1).astype(np.float32)}
+
+
+def wavy_normal_maps(rng: np.random.Generator, batch: int, size: int,
+                     waves: int = 8) -> np.ndarray:
+    """Wrinkle-like normal-map patches: normals of random height fields, each a sum of `waves`
+    sinusoids with amplitudes 0.002-0.01 patch widths and wave numbers drawn from N(0, 12)
+    cycles per patch width.
+
+    Returns:
+      (batch, size, size, 3) float32, RGB form ((n + 1) / 2) in [0, 1].
+    """
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size
+    out = np.empty((batch, size, size, 3), np.float32)
+    for i in range(batch):
+        hx = np.zeros((size, size), np.float32)
+        hy = np.zeros((size, size), np.float32)
+        for _ in range(waves):
+            kx, ky = rng.normal(0, 12, 2)
+            amp, phase = rng.uniform(0.002, 0.01), rng.uniform(0, 2 * np.pi)
+            c = amp * 2 * np.pi * np.cos(2 * np.pi * (kx * xx + ky * yy) + phase)
+            hx += kx * c
+            hy += ky * c
+        n = np.stack([-hx, -hy, np.ones_like(hx)], -1)
+        out[i] = (n / np.linalg.norm(n, axis=-1, keepdims=True) + 1) / 2
+    return out

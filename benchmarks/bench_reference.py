@@ -109,6 +109,7 @@ from wrinkle_jax.nn import unet  # noqa: E402
 PATCH = 128
 NUM_MATERIALS = 5
 AUTHORS_DIR = "network_train_and_run"
+AUTHORS_MODULES = ("models", "DataIO", "Losses", "Geometry_Opt")
 
 # ---------------------------------------------------------------------------------------------
 # Their code, imported from the given checkout.
@@ -132,8 +133,11 @@ def load_authors(repo: str, device: str) -> dict:
     """Import their `models`, `DataIO`, `Losses` and `Geometry_Opt` from `repo`.
 
     Returns:
-      {"torch", "models", "DataIO", "Geometry_Opt", "vgg_placeholder": bool}.
+      {"torch", "models", "DataIO", "Losses", "Geometry_Opt", "vgg_placeholder": bool,
+       "code_sha256": SHA-256 of those four modules' sources (which version of their code
+       ran, without recording where it sits on this machine)}.
     """
+    import hashlib
     import importlib
     import importlib.util
 
@@ -147,10 +151,14 @@ def load_authors(repo: str, device: str) -> dict:
         sys.modules.setdefault("VGG_Model", _vgg_placeholder())
     sys.path.insert(0, src)
     with contextlib.redirect_stdout(sys.stderr):  # their modules print at import
-        mods = {name: importlib.import_module(name)
-                for name in ("models", "DataIO", "Losses", "Geometry_Opt")}
+        mods = {name: importlib.import_module(name) for name in AUTHORS_MODULES}
     mods["Geometry_Opt"].device = torch.device(device)  # the CPU shim: their global device
-    return {"torch": torch, **mods, "vgg_placeholder": placeholder}
+    digest = hashlib.sha256()
+    for name in AUTHORS_MODULES:
+        with open(os.path.join(src, f"{name}.py"), "rb") as f:
+            digest.update(name.encode() + b"\0" + f.read())
+    return {"torch": torch, **mods, "vgg_placeholder": placeholder,
+            "code_sha256": digest.hexdigest()}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -430,7 +438,7 @@ def main(args):
     torch = authors["torch"]
     report = {
         "benchmark": "reference_side_by_side",
-        "authors_repo": os.path.abspath(args.authors_repo),
+        "authors_code_sha256": authors["code_sha256"],
         "torch": torch.__version__, "jax": jax.__version__,
         "device": args.device, "cpu": platform.processor() or platform.machine(),
         "cpu_count": os.cpu_count(), "rounds": args.rounds,

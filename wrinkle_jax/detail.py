@@ -40,9 +40,9 @@ import jax.numpy as jnp
 
 from wrinkle_jax import sharpen
 
-__all__ = ["BAND_SIGMAS", "DEFAULT_SIGMA", "band_rms", "branch_of", "decompose", "from_detail",
-           "from_detail_rgb", "large_scale", "on_reference_branch_rgb", "to_detail",
-           "to_detail_rgb", "transplant_rgb"]
+__all__ = ["BAND_SIGMAS", "DEFAULT_SIGMA", "band_rms", "band_rms_pair", "branch_of",
+           "decompose", "from_detail", "from_detail_rgb", "large_scale",
+           "on_reference_branch_rgb", "to_detail", "to_detail_rgb", "transplant_rgb"]
 
 # Low-pass radius in texels (2 mm texels: 16 mm): the wrinkle band (16-64 mm) stays in the
 # detail, the coarse/fine large-scale divergence (>= 30 mm) leaves it. Chosen by measurement
@@ -221,3 +221,11 @@ def band_rms(detail_rgb, mask, bands=BAND_SIGMAS, eps: float = 0.0):
         ms = jnp.sum(sq * inner, axis=(1, 2, 3)) / jnp.maximum(count, 1)
         out[name] = jnp.sqrt(ms + eps) * (count > 0)
     return out
+
+
+def band_rms_pair(a, b, mask, bands=BAND_SIGMAS, eps: float = 0.0):
+    """`band_rms` of two detail maps on one mask (e.g. an output and its target) in one call:
+    name -> ((N,) RMS of `a`, (N,) RMS of `b`)."""
+    n = a.shape[0]
+    both = band_rms(jnp.concatenate([a, b]), jnp.concatenate([mask, mask]), bands, eps)
+    return {k: (v[:n], v[n:]) for k, v in both.items()}

@@ -260,8 +260,8 @@ def make_eval_step(config: TrainConfig, vgg_params):
         content = losses.content_loss(f_out, f_in, mask, config.content_layer)
         bands = {}
         if config.unet.detail_sigma > 0:
-            rms = detail.band_rms(jnp.concatenate([out, target]), jnp.concatenate([mask, mask]))
-            bands = {f"band_{k}": safe_div(v[:n], v[n:]) for k, v in rms.items()}
+            bands = {f"band_{k}": safe_div(o, t)
+                     for k, (o, t) in detail.band_rms_pair(out, target, mask).items()}
         return {"content": content, "style": loss_out, "input_style": loss_in,
                 "improvement": score.score, "improvement_signed": score.signed_score,
                 "valid": score.valid, **bands}

@@ -252,12 +252,10 @@ def band_loss(out_detail, target_detail, mask, bands=detail.BAND_SIGMAS, eps: fl
     Returns:
       (N,) float32; 0 where the mask has no interior texels.
     """
-    both = detail.band_rms(jnp.concatenate([out_detail, target_detail]),
-                           jnp.concatenate([mask, mask]), bands, eps=eps)
-    n = out_detail.shape[0]
     total = 0.0
-    for rms in both.values():
-        ok = rms[:n] > 0
-        diff = jnp.log(jnp.where(ok, rms[:n], 1.0)) - jnp.log(jnp.where(ok, rms[n:], 1.0))
+    for rms_out, rms_tgt in detail.band_rms_pair(out_detail, target_detail, mask, bands,
+                                                 eps).values():
+        ok = rms_out > 0
+        diff = jnp.log(jnp.where(ok, rms_out, 1.0)) - jnp.log(jnp.where(ok, rms_tgt, 1.0))
         total = total + jnp.square(diff)
     return total

@@ -298,7 +298,7 @@ def cached_step(kind: str, config: TrainConfig, vgg_params,
         config, **{f: TrainConfig.__dataclass_fields__[f].default for f in _LOOP_ONLY})
     key = (kind, config, id(vgg_params), mesh)
     hit = _STEP_CACHE.pop(key, None)
-    if hit is None or hit[0] is not vgg_params:
+    if hit is None:
         fn = (make_train_step(config, vgg_params, mesh) if kind == "train"
               else make_eval_step(config, vgg_params))
         hit = (vgg_params, fn)

@@ -42,7 +42,9 @@ ROOT = Path(__file__).resolve().parents[1]
 # Measured ms/frame (fine, coarse) used for the ETA only.
 EST_MS = {"sheet_balls_wind": (125, 8), "skirt_dance": (210, 15), "pleated_skirt_dance2": (130, 10),
           "shawl_dance2": (100, 8), "apron_dance": (60, 6), "tabard_dance2": (70, 6),
-          "dress_dance": (135, 8), "cape_walk": (131, 8), "skirt_walk": (235, 15)}
+          "dress_dance": (135, 8), "cape_walk": (131, 8), "skirt_walk": (235, 15),
+          "circle_skirt_dance2": (220, 12), "long_shawl_dance": (160, 10),
+          "skirt_dance2": (230, 15), "apron_dance2": (60, 6)}
 
 
 def plan(train_frames: int, test_frames: int, val_frames: int = 150) -> list[dict]:

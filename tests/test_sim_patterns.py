@@ -32,7 +32,8 @@ def test_quality_and_coverage(meshes):
 def test_uvs_are_meters_for_isometric_drapes(meshes):
     # Sheet, flared skirt (exact cone), pleated skirt (generalized cylinder), cape (flat):
     # 3D area equals UV area.
-    for name in ("sheet", "flared_skirt", "pleated_skirt", "cape", "shawl", "apron", "tabard"):
+    for name in ("sheet", "flared_skirt", "circle_skirt", "pleated_skirt", "cape", "shawl",
+                 "long_shawl", "apron", "tabard"):
         _, m = meshes[name]
         g = m.garment
         a3 = float(np.sum(np.asarray(face_areas(g.vertices, g.faces))))

@@ -47,8 +47,9 @@ def test_metadata_tracks_and_roundtrip(tmp_path):
 
 
 def test_scene_registry_and_errors():
-    assert set(scenes.TRAINING_SCENES) == {"sheet_balls_wind", "skirt_dance",
-                                           "pleated_skirt_dance2", "shawl_dance2", "apron_dance"}
+    assert set(scenes.TRAINING_SCENES) == {
+        "sheet_balls_wind", "skirt_dance", "pleated_skirt_dance2", "shawl_dance2", "apron_dance",
+        "circle_skirt_dance2", "long_shawl_dance", "skirt_dance2", "apron_dance2"}
     assert {"dress_dance", "cape_walk"} <= set(scenes.TEST_SCENES)
     assert scenes.VAL_SCENES == ("tabard_dance2",)
     held = {scenes.get_scene(n).garment for n in scenes.TEST_SCENES + scenes.VAL_SCENES}

@@ -24,11 +24,12 @@ Contract:
     and its minimum angle is reported by `mesh_quality`.
 
 Garments (`GARMENTS`): `sheet` (1 m square, hanging), `flared_skirt` (4 gores, half-circle
-flare), `pleated_skirt` (2 panels, 16 pleats pressed into the waist), and test-only `dress`
-(front/back with side and shoulder seams) and `cape` (a 252-degree circular cape fastened at
-the neck); hanging panels pinned along their top edge: `shawl` (down the back from the
-shoulders) and `apron` (in front of the legs from the waist), and validation-only `tabard`
-(in front, from the shoulders). Coordinates: z up, the mannequin faces +y.
+flare), `circle_skirt` (6 gores, 288-degree flare, knee length), `pleated_skirt` (2 panels,
+16 pleats pressed into the waist), and test-only `dress` (front/back with side and shoulder
+seams) and `cape` (a 252-degree circular cape fastened at the neck); hanging panels pinned
+along their top edge: `shawl` (down the back from the shoulders), `long_shawl` (1.0 x 1.1 m,
+down to the calves) and `apron` (in front of the legs from the waist), and validation-only
+`tabard` (in front, from the shoulders). Coordinates: z up, the mannequin faces +y.
 """
 
 from __future__ import annotations
@@ -459,6 +460,18 @@ def tabard_pattern() -> Pattern:
     return panel_pattern("tabard", 0.45, 0.9, SHOULDER_Z, 0.17, 1.0)
 
 
+def circle_skirt_pattern() -> Pattern:
+    """A knee-length near-circle skirt (training): 6 gores, a 288-degree flare, 0.62 m long;
+    much fuller than `flared_skirt`, so its hem swings out and folds into deep cones."""
+    return flared_skirt_pattern(0.62, 1.6 * math.pi, 6, name="circle_skirt")
+
+
+def long_shawl_pattern() -> Pattern:
+    """A long, wide shawl down the back from the shoulder line to the calves (1.0 x 1.1 m,
+    training): unlike `shawl`, its lower half hits the legs and folds around them."""
+    return panel_pattern("long_shawl", 1.0, 1.1, SHOULDER_Z, -0.17, -1.0)
+
+
 def _sector(r_in: float, r_out: float, angle: float, n: int = 96) -> tuple:
     """Annular sector centred on -v: sides 0 outer arc, 1 right edge, 2 inner arc, 3 left."""
     h = angle / 2
@@ -466,7 +479,8 @@ def _sector(r_in: float, r_out: float, angle: float, n: int = 96) -> tuple:
             _poly(_arc(r_in, h, -h, n)), _poly(_arc(1, -h, -h, 2) * [[r_in], [r_out]]))
 
 
-def flared_skirt_pattern(length: float = 0.8, flare: float = math.pi, gores: int = 4) -> Pattern:
+def flared_skirt_pattern(length: float = 0.8, flare: float = math.pi, gores: int = 4,
+                         name: str = "flared_skirt") -> Pattern:
     """A long flared skirt: `gores` annular-sector panels, total pattern angle `flare`.
 
     The waist arc equals the waistband perimeter. Initial shape: the exact cone the flat
@@ -489,7 +503,7 @@ def flared_skirt_pattern(length: float = 0.8, flare: float = math.pi, gores: int
         r = rho * sin_b
         return np.stack([r * np.cos(theta), r * np.sin(theta), apex - rho * cos_b], 1)
 
-    return Pattern("flared_skirt", panels, seams, drape,
+    return Pattern(name, panels, seams, drape,
                    {"waist": tuple((f"gore{i}", 2) for i in range(gores)),
                     "hem": tuple((f"gore{i}", 0) for i in range(gores))})
 
@@ -643,10 +657,12 @@ def cape_neck_targets(initial_xy: np.ndarray, angle: float = 1.4 * math.pi) -> n
 GARMENTS = {
     "sheet": sheet_pattern,
     "flared_skirt": flared_skirt_pattern,
+    "circle_skirt": circle_skirt_pattern,
     "pleated_skirt": pleated_skirt_pattern,
     "dress": dress_pattern,
     "cape": cape_pattern,
     "shawl": shawl_pattern,
+    "long_shawl": long_shawl_pattern,
     "apron": apron_pattern,
     "tabard": tabard_pattern,
 }

@@ -9,6 +9,10 @@ Scenes (`SCENES`; z up, the mannequin faces +y; 30 fps):
     pleated_skirt_dance2  pleated skirt, a second dance (spins, kicks, jumps)
     shawl_dance2          rectangular shawl hanging down the back from the shoulders, dance 2
     apron_dance           apron hanging in front of the legs from the waist, dance
+    circle_skirt_dance2   knee-length circle skirt (288-degree flare), dance 2
+    long_shawl_dance      long wide shawl down the back to the calves, dance
+    skirt_dance2          the flared skirt, dance 2
+    apron_dance2          the apron, dance 2
   validation only (a garment neither training nor the held-out sets contain; checkpoint and
   recipe choices read it)
     tabard_dance2         narrow front panel hanging from the shoulders, dance 2
@@ -117,6 +121,15 @@ SCENES = {s.name: s for s in (
                 description="shawl hanging down the back from the shoulders, dance 2"),
     SceneConfig("apron_dance", "apron", "dance", "top", "pelvis",
                 description="apron hanging in front of the legs from the waist, dance"),
+    # Session 13: more garments and garment/motion pairs for the enhancer's training set.
+    SceneConfig("circle_skirt_dance2", "circle_skirt", "dance2", "waist", "pelvis",
+                description="knee-length circle skirt (288-degree flare, 6 gores), dance 2"),
+    SceneConfig("long_shawl_dance", "long_shawl", "dance", "top", "chest",
+                description="long wide shawl down the back to the calves, dance"),
+    SceneConfig("skirt_dance2", "flared_skirt", "dance2", "waist", "pelvis",
+                description="long flared 4-gore skirt, dance 2"),
+    SceneConfig("apron_dance2", "apron", "dance2", "top", "pelvis",
+                description="apron hanging in front of the legs from the waist, dance 2"),
     SceneConfig("tabard_dance2", "tabard", "dance2", "top", "chest", val_only=True,
                 description="VAL: narrow front panel from the shoulders (unseen garment), "
                             "dance 2"),
@@ -215,7 +228,7 @@ def _pins(scene: SceneConfig, pattern, mesh, frames, n_pre: int, attach_frames: 
         return pins, np.broadcast_to(x0[pins], (n,) + x0[pins].shape).astype(np.float32)
     pins = mesh.landmark_vertices(pattern, scene.pins)
     p0 = x0[pins]
-    if scene.garment == "flared_skirt":
+    if scene.garment in ("flared_skirt", "circle_skirt"):
         rx, ry = patterns.WAIST_RADII
         ang = np.arctan2(p0[:, 1], p0[:, 0])
         target = np.stack([rx * np.cos(ang), ry * np.sin(ang), np.full(len(p0), patterns.WAIST_Z)],

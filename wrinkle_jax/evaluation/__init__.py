@@ -6,6 +6,7 @@ Modules (by concept):
     stats       summaries: per-group means, bootstrap intervals, paired differences
     baselines   identity, unsharp masking, down/up-sampling (NumPy/OpenCV, masked)
     bands       band energies of detail maps, the 2-texel checkerboard artefact
+    energy      local band-energy maps, coarse in-plane stretches, energy-matched gains
     sets        sets of patches without correspondence (paper Table 2): Chamfer, DR, embedding
     flicker     frame-to-frame angular change of normal maps
     seams       how much sharper normals turn across the tile borders of a merged map

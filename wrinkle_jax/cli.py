@@ -113,9 +113,31 @@ def _add_frames_out(p) -> None:
                    help="print the JSON report to stdout (it is always in --out/report.json)")
 
 
-def build_parser() -> argparse.ArgumentParser:
+# The help lines of the sub-commands registered by other modules (sim/command.py,
+# classifier/cli.py), for their placeholders in a parser built for another sub-command. They
+# must match what those modules register (the top-level help is the same either way).
+_OTHER_HELP = {
+    "simulate": "simulate a cloth scene into an .npz sequence",
+    "train-classifier": "train the material classifier on simulated sequences",
+    "classify": "predict the material of a coarse garment sequence",
+}
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The `wrinkle-jax` argument parser.
+
+    Args:
+      command: None builds every sub-command in full. A name builds that sub-command in full
+        and only a placeholder (its name and help line) for the others whose arguments need
+        heavy imports to build (the demo's and bake's default texel size is in `normalmap`,
+        the scene list in `sim.scenes`, the classifier's defaults in `classifier`: each
+        imports JAX); the top-level help and the choices named in usage errors are the same,
+        and `wrinkle-jax --help` imports no JAX. `main` passes the name on its command line.
+    """
     from wrinkle_jax import __version__
-    from wrinkle_jax.normalmap import DEFAULT_TEXEL_SIZE
+
+    def full(name: str) -> bool:
+        return command is None or command == name
 
     parser = argparse.ArgumentParser(
         prog="wrinkle-jax",
@@ -128,21 +150,24 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Enhance the bundled coarse skirt sequence with the shipped "
                        "model (bake, enhance, merge, lift) and write maps, meshes and a report; "
                        "without a shipped model, only bake it to normal maps (and say so).")
-    p.add_argument("--out", default="outputs/demo", help="output folder (default: %(default)s)")
-    p.add_argument("--texel-size", type=float, default=DEFAULT_TEXEL_SIZE,
-                   help="meters of cloth per texel of the bake-only demo (the full pipeline "
-                   "uses the model's) (default: %(default)s)")
-    _add_material(p)
-    _add_frames_out(p)
-    p.add_argument("--no-lift", action="store_true", help="stop at the enhanced normal maps")
-    p.add_argument("--batch", type=int, default=16,
-                   help="patches per U-Net call (frames per bake call in the bake-only demo)")
-    p.add_argument("--chunk", type=int, default=4, help="frames per streamed chunk")
-    p.add_argument("--stride", type=int, default=None,
-                   help="patch stride in texels (default: half a patch)")
-    p.add_argument("--no-previews", action="store_true",
-                   help="skip the preview PNGs and MP4 (faster)")
-    p.set_defaults(func=_cmd_demo)
+    if full("demo"):
+        from wrinkle_jax.normalmap import DEFAULT_TEXEL_SIZE
+
+        p.add_argument("--out", default="outputs/demo", help="output folder (default: %(default)s)")
+        p.add_argument("--texel-size", type=float, default=DEFAULT_TEXEL_SIZE,
+                       help="meters of cloth per texel of the bake-only demo (the full pipeline "
+                       "uses the model's) (default: %(default)s)")
+        _add_material(p)
+        _add_frames_out(p)
+        p.add_argument("--no-lift", action="store_true", help="stop at the enhanced normal maps")
+        p.add_argument("--batch", type=int, default=16,
+                       help="patches per U-Net call (frames per bake call in the bake-only demo)")
+        p.add_argument("--chunk", type=int, default=4, help="frames per streamed chunk")
+        p.add_argument("--stride", type=int, default=None,
+                       help="patch stride in texels (default: half a patch)")
+        p.add_argument("--no-previews", action="store_true",
+                       help="skip the preview PNGs and MP4 (faster)")
+        p.set_defaults(func=_cmd_demo)
 
     p = sub.add_parser("enhance", help="add wrinkles to a coarse garment animation",
                        description="Bake the coarse frames to normal maps, enhance them with "
@@ -178,15 +203,18 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bake", help="bake a garment or sequence to 16-bit normal-map PNGs",
                        description="Bake an OBJ, a folder of OBJ frames or an .npz sequence.")
-    p.add_argument("input", help="OBJ file, folder of OBJ frames, or .npz sequence")
-    p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--texel-size", type=float, default=DEFAULT_TEXEL_SIZE,
-                   help="meters of cloth per texel (default: %(default)s)")
-    _add_units(p)
-    _add_frames_out(p)
-    p.add_argument("--flat", action="store_true", help="bake flat face normals")
-    p.add_argument("--batch", type=int, default=16, help="frames per jitted bake call")
-    p.set_defaults(func=_cmd_bake)
+    if full("bake"):
+        from wrinkle_jax.normalmap import DEFAULT_TEXEL_SIZE
+
+        p.add_argument("input", help="OBJ file, folder of OBJ frames, or .npz sequence")
+        p.add_argument("--out", required=True, help="output folder")
+        p.add_argument("--texel-size", type=float, default=DEFAULT_TEXEL_SIZE,
+                       help="meters of cloth per texel (default: %(default)s)")
+        _add_units(p)
+        _add_frames_out(p)
+        p.add_argument("--flat", action="store_true", help="bake flat face normals")
+        p.add_argument("--batch", type=int, default=16, help="frames per jitted bake call")
+        p.set_defaults(func=_cmd_bake)
 
     p = sub.add_parser("assets", help="manage external assets in the user cache",
                        description="Manage external assets kept in the user cache.")
@@ -225,17 +253,29 @@ def build_parser() -> argparse.ArgumentParser:
                    help="only export --out's checkpoint(s) to --export (no training)")
     p.set_defaults(func=_cmd_train_enhancer)
 
-    from wrinkle_jax.sim.command import add_simulate_parser
+    if full("simulate"):
+        from wrinkle_jax.sim.command import add_simulate_parser
 
-    add_simulate_parser(sub)
-    from wrinkle_jax.classifier import cli as classify_cli
+        add_simulate_parser(sub)
+    else:
+        sub.add_parser("simulate", help=_OTHER_HELP["simulate"])
+    if full("train-classifier") or full("classify"):
+        from wrinkle_jax.classifier import cli as classify_cli
 
-    classify_cli.register(sub)
+        classify_cli.register(sub)
+    else:
+        for name in ("train-classifier", "classify"):
+            sub.add_parser(name, help=_OTHER_HELP[name])
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    # The sub-command is the first argument that is not an option (the top level's only
+    # options, -h and --version, take no value); only its parser is built in full, so the
+    # top-level help and a usage error import no JAX. "" (none given) builds none in full.
+    command = next((a for a in argv if not a.startswith("-")), "")
+    parser = build_parser(command)
     args = parser.parse_args(argv)  # exits with code 2 on bad usage
     from wrinkle_jax.mesh import GarmentError
     from wrinkle_jax.normalmap import NormalMapError

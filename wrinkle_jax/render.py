@@ -9,7 +9,9 @@ The contract, in stages (each a pure function of arrays):
     image = shade(n, frags.covered, camera, light)         # (H, W, 3) float32 in [0, 1]
 
 `render_mesh` chains them with supersampling (antialiasing); `preview_panel` puts three views
-side by side (coarse | coarse shaded with the enhanced normal map | lifted mesh).
+side by side (coarse | coarse shaded with the enhanced normal map | lifted mesh). The camera
+and light are defined in `camera.py`, the uint8 conversions and PNG / MP4 files in `images.py`;
+both are re-exported here, so `render.Camera`, `render.write_png` etc. keep working.
 
 Conventions:
   * World units are meters. Image rows run top to bottom; pixel (row r, col c) has its center
@@ -40,12 +42,6 @@ cloth simulation and other jobs (load average 10).
 
 from __future__ import annotations
 
-import dataclasses
-import math
-import os
-import tempfile
-from collections.abc import Iterable
-from pathlib import Path
 from typing import NamedTuple
 
 import cv2
@@ -53,6 +49,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax import normalmap
+
+# The camera and light, and the uint8 / PNG / MP4 edges, live in their own modules; their
+# names stay importable from here (old import paths, pickles).
+from wrinkle_jax.camera import Camera, Light, RenderError, _unit, fit_camera  # noqa: F401
+from wrinkle_jax.images import (  # noqa: F401
+    _as_rgb8,
+    normal_map_image,
+    to_uint8,
+    write_mp4,
+    write_png,
+)
 
 __all__ = ["Camera", "Fragments", "Light", "RenderError", "fit_camera", "normal_map_image",
            "pixel_normals", "preview_panel", "rasterize", "render_mesh", "shade", "to_uint8",
@@ -69,153 +76,6 @@ _NO_KEY = np.iinfo(np.int64).max
 
 DEFAULT_COLOR = (0.62, 0.72, 0.92)  # garment albedo, linear RGB in [0, 1]
 DEFAULT_BACKGROUND = (1.0, 1.0, 1.0)
-
-
-class RenderError(ValueError):
-    """Invalid rendering input or an output that cannot be written (the message says which)."""
-
-
-# --------------------------------------------------------------------------------------------
-# Camera and light
-# --------------------------------------------------------------------------------------------
-
-
-def _unit(v, what: str) -> np.ndarray:
-    v = np.asarray(v, np.float64)
-    n = float(np.linalg.norm(v))
-    if not (np.isfinite(n) and n > 0):
-        raise RenderError(f"{what} must be a finite non-zero vector, got {tuple(v)}")
-    return v / n
-
-
-@dataclasses.dataclass(frozen=True)
-class Camera:
-    """A look-at camera (static, hashable).
-
-    Attributes:
-      eye: camera position, meters.
-      target: the point looked at, meters.
-      up: approximate up direction (orthogonalized against the viewing direction).
-      projection: "perspective" or "orthographic".
-      fov: vertical field of view in degrees (perspective).
-      ortho_height: meters of the scene spanned by the image height (orthographic).
-      near: triangles with a vertex at depth < near (meters) are not drawn.
-    """
-
-    eye: tuple[float, float, float]
-    target: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    up: tuple[float, float, float] = (0.0, 0.0, 1.0)
-    projection: str = "perspective"
-    fov: float = 30.0
-    ortho_height: float = 1.0
-    near: float = 1e-3
-
-    def __post_init__(self):
-        for name in ("eye", "target", "up"):
-            object.__setattr__(self, name, tuple(float(x) for x in getattr(self, name)))
-        if self.projection not in ("perspective", "orthographic"):
-            raise RenderError(f"projection must be 'perspective' or 'orthographic', "
-                              f"got {self.projection!r}")
-        if not 0.0 < self.fov < 180.0:
-            raise RenderError(f"fov must be in (0, 180) degrees, got {self.fov}")
-        if not self.ortho_height > 0:
-            raise RenderError(f"ortho_height must be positive, got {self.ortho_height}")
-
-    @property
-    def perspective(self) -> bool:
-        return self.projection == "perspective"
-
-    def basis(self) -> np.ndarray:
-        """(3, 3) rows: right, up, back (= towards the viewer), world coordinates."""
-        back = _unit(np.subtract(self.eye, self.target), "eye - target")
-        right = np.cross(_unit(self.up, "up"), back)
-        if np.linalg.norm(right) < 1e-9:
-            raise RenderError(f"camera up {self.up} is parallel to the viewing direction")
-        right /= np.linalg.norm(right)
-        return np.stack([right, np.cross(back, right), back])
-
-    def focal(self, height: int) -> float:
-        """Pixels per unit of (lateral offset / depth) for a perspective image `height` tall."""
-        return 0.5 * height / math.tan(math.radians(self.fov) / 2)
-
-    def project(self, points, height: int, width: int) -> np.ndarray:
-        """World points (N, 3) meters -> (N, 3) float64: pixel x, pixel y, depth (meters)."""
-        p = np.asarray(points, np.float64) - np.asarray(self.eye)
-        cam = p @ self.basis().T
-        depth = -cam[:, 2]
-        if self.perspective:
-            scale = self.focal(height) / np.where(depth > 0, depth, 1.0)
-            scale = scale[:, None]
-        else:
-            scale = height / self.ortho_height
-        xy = cam[:, :2] * scale
-        return np.stack([0.5 * width + xy[:, 0], 0.5 * height - xy[:, 1], depth], axis=1)
-
-
-def fit_camera(points, *, azimuth: float = 20.0, elevation: float = 10.0,
-               up=(0.0, 0.0, 1.0), front=(0.0, -1.0, 0.0), projection: str = "perspective",
-               fov: float = 30.0, margin: float = 1.05, aspect: float = 1.0) -> Camera:
-    """A camera that frames every point, e.g. all frames of a sequence (views do not jump).
-
-    The sphere about the center of the points' bounding box that holds every point is fitted
-    into the image (whatever the viewing direction); the camera
-    looks at the box center from the direction `front` turned by `azimuth` about `up` and
-    raised by `elevation`.
-
-    Args:
-      points: (..., 3) meters, e.g. (T, V, 3) frames or a (2, 3) bounding box.
-      azimuth, elevation: viewing direction in degrees.
-      up: the world's up axis (the bundled garments are z-up). front: the direction from the
-        garment towards the viewer at azimuth 0 (perpendicular to `up`).
-      projection, fov: as in `Camera`. margin: >= 1, extra room around the sphere.
-      aspect: image width / height the camera is fitted for.
-    Returns:
-      Camera.
-    """
-    p = np.asarray(points, np.float64).reshape(-1, 3)
-    if p.size == 0 or not np.isfinite(p).all():
-        raise RenderError("fit_camera needs at least one point and only finite coordinates")
-    center = (p.min(0) + p.max(0)) / 2
-    # The smallest sphere about the box center holding every point (tighter than the box's).
-    radius = max(float(np.sqrt(((p - center) ** 2).sum(1).max())), 1e-6) * margin
-    u = _unit(up, "up")
-    f = np.asarray(front, np.float64)
-    f = _unit(f - (f @ u) * u, "front (perpendicular to up)")
-    a, e = math.radians(azimuth), math.radians(elevation)
-    side = np.cross(u, f)
-    direction = math.cos(e) * (math.cos(a) * f + math.sin(a) * side) + math.sin(e) * u
-    # Half the narrower field of view must see the whole sphere.
-    half_v = math.radians(fov) / 2
-    half = min(half_v, math.atan(math.tan(half_v) * aspect))
-    distance = radius / math.sin(half)
-    eye = center + distance * direction
-    ortho_height = 2 * radius / min(1.0, aspect)
-    return Camera(eye=tuple(eye), target=tuple(center), up=tuple(u), projection=projection,
-                  fov=fov, ortho_height=ortho_height, near=1e-3 * distance)
-
-
-@dataclasses.dataclass(frozen=True)
-class Light:
-    """A directional light plus ambient light (static, hashable).
-
-    Pixel intensity = ambient + diffuse * max(0, n . l), times the albedo.
-
-    Attributes:
-      direction: towards the light (normalized internally); in the camera frame (x right,
-        y up, z towards the viewer) when `camera_frame`, else in world coordinates.
-      ambient, diffuse: intensities.
-      camera_frame: the light moves with the camera (the default: every view is lit alike).
-    """
-
-    direction: tuple[float, float, float] = (-0.35, 0.45, 1.0)
-    ambient: float = 0.22
-    diffuse: float = 0.78
-    camera_frame: bool = True
-
-    def world_direction(self, camera: Camera) -> np.ndarray:
-        """(3,) unit vector towards the light, world coordinates."""
-        d = _unit(self.direction, "light direction")
-        return d @ camera.basis() if self.camera_frame else d
 
 
 # --------------------------------------------------------------------------------------------
@@ -552,37 +412,8 @@ def render_mesh(vertices, faces, camera: Camera, size=512, *, light: Light = Lig
 
 
 # --------------------------------------------------------------------------------------------
-# Images: normal maps, preview panels
+# Preview panels
 # --------------------------------------------------------------------------------------------
-
-
-def to_uint8(image) -> np.ndarray:
-    """Float [0, 1] (or uint8) image -> uint8, rounded; NaNs become 0."""
-    x = np.asarray(image)
-    if x.dtype == np.uint8:
-        return x
-    x = np.nan_to_num(x.astype(np.float64), nan=0.0)
-    return np.round(np.clip(x, 0.0, 1.0) * 255.0).astype(np.uint8)
-
-
-def normal_map_image(rgb_map, mask=None, background=(0.5, 0.5, 0.5)) -> np.ndarray:
-    """A normal map for viewing: its RGB form on a flat background.
-
-    Args:
-      rgb_map: (H, W, 3) the RGB form (n + 1) / 2 in [0, 1] (pass `normalmap.to_rgb(n)` for a
-        map of unit normals n in [-1, 1]).
-      mask: optional (H, W) or (H, W, 1) in [0, 1]; texels outside get `background`.
-      background: RGB in [0, 1].
-    Returns:
-      (H, W, 3) uint8 RGB.
-    """
-    rgb = np.asarray(rgb_map, np.float64)
-    if rgb.ndim != 3 or rgb.shape[2] != 3:
-        raise RenderError(f"normal_map_image expects (H, W, 3), got shape {rgb.shape}")
-    if mask is not None:
-        m = np.clip(np.asarray(mask, np.float64).reshape(rgb.shape[0], rgb.shape[1], 1), 0, 1)
-        rgb = rgb * m + np.asarray(background, np.float64) * (1 - m)
-    return to_uint8(rgb)
 
 
 def _label(image: np.ndarray, text: str) -> np.ndarray:
@@ -650,86 +481,3 @@ def preview_panel(coarse_vertices, faces, enhanced_normal_map, lifted_vertices, 
         lift_label = labels[2]
     views = [_label(coarse, labels[0]), _label(middle, mid_label), _label(lifted, lift_label)]
     return np.concatenate(views, axis=1)
-
-
-# --------------------------------------------------------------------------------------------
-# Files
-# --------------------------------------------------------------------------------------------
-
-
-def _as_rgb8(image, what: str) -> np.ndarray:
-    img = to_uint8(image)
-    if img.ndim == 2:
-        img = np.repeat(img[..., None], 3, axis=2)
-    if img.ndim != 3 or img.shape[2] != 3 or img.shape[0] < 1 or img.shape[1] < 1:
-        raise RenderError(f"{what}: expected an (H, W, 3) RGB image, got shape {img.shape}")
-    return img
-
-
-def write_png(path: str | os.PathLike, image) -> None:
-    """Write an RGB image ((H, W, 3) uint8, or float in [0, 1]) as an 8-bit PNG, atomically."""
-    from wrinkle_jax.fileio import atomic_write_bytes
-
-    img = _as_rgb8(image, str(path))
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img[..., ::-1]))  # OpenCV wants BGR
-    if not ok:
-        raise RenderError(f"{path}: PNG encoding failed")
-    atomic_write_bytes(path, buf.tobytes())
-
-
-def write_mp4(path: str | os.PathLike, frames: Iterable, fps: float = 24.0) -> int:
-    """Stream RGB frames into an MP4 file (OpenCV, codec 'mp4v'), atomically.
-
-    Frames are encoded as they arrive (a generator is never materialized). The first frame
-    fixes the size; every frame must match it. The video is written to a temporary file in
-    the same folder and renamed when complete: a failure leaves no partial file.
-
-    Args:
-      path: output file (.mp4). frames: iterable of (H, W, 3) uint8 RGB (or float in [0, 1]).
-      fps: frames per second (> 0).
-    Returns:
-      The number of frames written.
-    Raises:
-      RenderError: no frames, a frame of another size, or OpenCV cannot open the writer.
-    """
-    path = Path(path)
-    if not fps > 0:
-        raise RenderError(f"{path}: fps must be positive, got {fps}")
-    if path.is_dir():
-        raise RenderError(f"{path}: is a directory, cannot write a video there")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.mp4", dir=path.parent)
-    os.close(fd)
-    writer = None
-    count = 0
-    shape = None
-    try:
-        for frame in frames:
-            img = _as_rgb8(frame, f"{path}: frame {count}")
-            if writer is None:
-                shape = img.shape
-                writer = cv2.VideoWriter(tmp, cv2.VideoWriter_fourcc(*"mp4v"), float(fps),
-                                         (shape[1], shape[0]))
-                if not writer.isOpened():
-                    raise RenderError(f"{path}: OpenCV cannot open an MP4 writer (codec "
-                                      f"'mp4v', {shape[1]}x{shape[0]}); this OpenCV build "
-                                      f"may lack FFmpeg video support")
-            elif img.shape != shape:
-                raise RenderError(f"{path}: frame {count} has shape {img.shape}, the first "
-                                  f"frame {shape}")
-            writer.write(np.ascontiguousarray(img[..., ::-1]))
-            count += 1
-        if writer is None:
-            raise RenderError(f"{path}: no frames to write")
-        writer.release()
-        writer = None
-        if os.path.getsize(tmp) == 0:
-            raise RenderError(f"{path}: OpenCV wrote an empty video")
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    finally:
-        if writer is not None:
-            writer.release()
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return count

@@ -18,6 +18,10 @@ on VGG19 features, with the network output masked to the garment. Optimizer: Ada
 A checkpoint holds the train state (params, optimizer state, step), the data iterator position
 and the config; Orbax writes it atomically. `train(..., resume=True)` continues from the last
 one and reproduces the uninterrupted run bit for bit on the same machine.
+
+`TrainConfig`, `RECIPE` and `TrainState` are defined in `train_config`, the checkpoints, run
+restore and export (`restore_run`, `averaged_params`, `export_run`, ...) in `train_runs`; both
+are re-exported here.
 """
 
 from __future__ import annotations
@@ -26,7 +30,6 @@ import dataclasses
 import json
 import os
 import time
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -39,125 +42,32 @@ from jax.sharding import PartitionSpec as P
 
 from wrinkle_jax import detail
 from wrinkle_jax import metrics as metrics_lib
-from wrinkle_jax.data import BatchIterator, IteratorState, PatchDataset
+from wrinkle_jax.data import BatchIterator, PatchDataset
 from wrinkle_jax.fileio import atomic_write_text
-from wrinkle_jax.nn import losses, unet
+from wrinkle_jax.nn import losses
 from wrinkle_jax.numerics import safe_div
 
-
-@dataclasses.dataclass(frozen=True)
-class TrainConfig:
-    """Enhancer training configuration (static, hashable, JSON-serializable).
-
-    Attributes:
-      unet: the U-Net's architecture (`nn.unet.UNetConfig`; e.g. ``detail_sigma`` > 0 makes
-        the model AND the loss work on detail maps -- input, output and target each with its
-        own large scale removed, on the input's branch -- so coarse-input/fine-target pairs
-        whose large scales diverge can be used without pixel alignment; ``noise_channels`` > 0
-        makes the batches carry random "origins" that place each patch in a noise field).
-      num_materials: rows of the CIN tables.
-      batch_size: global batch (divisible by the number of devices).
-      steps: total optimizer steps.
-      learning_rate, b1, b2, weight_decay: Adam(W).
-      style_layers, content_layer, w_c, w_s, normalize_channels, pool: the loss (see
-        `nn.losses.enhancer_loss`).
-      conv_impl: convolution form of the U-Net and of the loss's VGG ("xla", "im2col_f32" --
-        U-Net only, exact -- or "im2col_bf16"; see `nn.unet`). Parameters are the same for all
-        forms, so a run may resume with another one.
-      relative_floor: None for the paper's absolute style loss, or the floor of the per-patch
-        relative style loss (`nn.losses.enhancer_loss`); the "style" metric is then a ratio.
-      relative_log: the log of that ratio instead (the median-seeking form; "style" is then
-        a log ratio, 0 = as far from the target as the input).
-      band_weight: weight of the band-energy term (`nn.losses.band_loss`: log band RMS of the
-        output's detail against the target's, < 16 mm and 16-64 mm); 0 leaves it out. Needs
-        ``unet.detail_sigma`` > 0 (the bands are those of detail maps).
-      zero_init_output: with a residual U-Net, start the output conv at zero so the untrained
-        network is the identity (improvement 0) instead of input + random noise, whose style
-        loss starts ~40x above the input's.
-      seed: parameter init and data order.
-      eval_every, eval_batches: held-out evaluation cadence and size.
-      checkpoint_every, keep_checkpoints: Orbax cadence and retention.
-    """
-
-    unet: unet.UNetConfig = unet.UNetConfig(width=32, residual=True)
-    num_materials: int = 5
-    batch_size: int = 8
-    steps: int = 1000
-    learning_rate: float = 1e-4
-    b1: float = 0.9
-    b2: float = 0.9
-    weight_decay: float = 0.0
-    style_layers: tuple[str, ...] = ("relu1_2", "relu2_1", "relu3_1", "relu4_1")
-    content_layer: str = "relu2_1"
-    w_c: float = 1.0
-    w_s: float = 1e4
-    normalize_channels: bool = True
-    pool: str = "avg"
-    conv_impl: str = "im2col_bf16"
-    zero_init_output: bool = True
-    relative_floor: float | None = None
-    relative_log: bool = False
-    band_weight: float = 0.0
-    seed: int = 0
-    eval_every: int = 50
-    eval_batches: int = 4
-    checkpoint_every: int = 100
-    keep_checkpoints: int = 3
-
-    def model(self) -> unet.CINUNet:
-        return self.unet.module(self.num_materials, self.conv_impl)
-
-    @property
-    def vgg_conv_impl(self) -> str:
-        return "im2col_bf16" if self.conv_impl == "im2col_bf16" else "xla"
-
-    def to_json(self) -> dict:
-        """Flat: the U-Net's settings among the training fields (the run-config format)."""
-        own = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "unet"}
-        return {**self.unet.to_json(), **own}
-
-    @classmethod
-    def from_json(cls, d: dict) -> TrainConfig:
-        """Read `to_json`'s form, including run configs written before `unet` was nested."""
-        net, rest = unet.UNetConfig.split_json(d, cls.__dataclass_fields__["unet"].default)
-        rest["style_layers"] = tuple(rest["style_layers"])
-        return cls(unet=net, **rest)
-
-
-# The shipped model's training recipe (wrinkle_jax/assets/MODEL_CARD.md): its U-Net
-# (`unet.RECIPE_UNET`), the style loss on relu1_2..relu3_2 (layer_selection's relu2_2, relu3_1,
-# relu3_2, plus relu1_2 and relu2_1, where the content term otherwise undoes the sharpening:
-# experiments.per_layer_ratios) relative to each patch's input with floor 100, a light content
-# term, Adam at 2e-4. `experiments.train_default` and `wrinkle-jax train-enhancer` start here.
-RECIPE = TrainConfig(unet=unet.RECIPE_UNET, batch_size=8, steps=20_000, learning_rate=2e-4,
-                     style_layers=("relu1_2", "relu2_1", "relu2_2", "relu3_1", "relu3_2"),
-                     w_c=0.1, w_s=10.0, normalize_channels=False, relative_floor=100.0,
-                     eval_every=100, eval_batches=8, checkpoint_every=100)
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class TrainState:
-    """step () int32, params (CINUNet pytree), opt_state (optax state)."""
-
-    step: Any
-    params: Any
-    opt_state: Any
-
-
-def optimizer(config: TrainConfig) -> optax.GradientTransformation:
-    if config.weight_decay > 0:
-        return optax.adamw(config.learning_rate, b1=config.b1, b2=config.b2,
-                           weight_decay=config.weight_decay)
-    return optax.adam(config.learning_rate, b1=config.b1, b2=config.b2)
-
-
-def create_train_state(config: TrainConfig, key, patch_size: int = 128) -> TrainState:
-    """Fresh parameters and optimizer state (step 0)."""
-    params = unet.init_params(config.model(), key, patch_size)
-    if config.unet.residual and config.zero_init_output:
-        params = {**params, "out": jax.tree.map(jnp.zeros_like, params["out"])}
-    return TrainState(jnp.zeros((), jnp.int32), params, optimizer(config).init(params))
+# The config and state, and the checkpoints / run restore / export, live in their own modules;
+# every name stays importable from here (old import paths, run configs, pickles).
+from wrinkle_jax.train_config import (  # noqa: F401
+    RECIPE,
+    TrainConfig,
+    TrainState,
+    create_train_state,
+    optimizer,
+)
+from wrinkle_jax.train_runs import (  # noqa: F401
+    _data_facts,
+    _manager,
+    _open_run,
+    _restore_states,
+    averaged_params,
+    checkpoint_steps,
+    export_run,
+    restore_checkpoint,
+    restore_run,
+    save_checkpoint,
+)
 
 
 def _forward(config: TrainConfig, params, batch):
@@ -306,161 +216,6 @@ def cached_step(kind: str, config: TrainConfig, vgg_params,
     while len(_STEP_CACHE) > _STEP_CACHE_SIZE:
         del _STEP_CACHE[next(iter(_STEP_CACHE))]
     return hit[1]
-
-
-# --------------------------------------------------------------------------------------------
-# Checkpoints
-# --------------------------------------------------------------------------------------------
-
-
-def _manager(directory: Path, config: TrainConfig):
-    import orbax.checkpoint as ocp
-
-    options = ocp.CheckpointManagerOptions(max_to_keep=config.keep_checkpoints, create=True)
-    return ocp.CheckpointManager(directory.absolute(), options=options)
-
-
-def save_checkpoint(manager, state: TrainState, iterator: IteratorState, config: TrainConfig):
-    import orbax.checkpoint as ocp
-
-    step = int(state.step)
-    meta = {"step": step, "iterator": dataclasses.asdict(iterator), "config": config.to_json()}
-    manager.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(state),
-                                               meta=ocp.args.JsonSave(meta)))
-    manager.wait_until_finished()
-
-
-def restore_checkpoint(manager, template: TrainState, config: TrainConfig, step=None):
-    """Restore (state, iterator state) from `step` (default: the latest).
-
-    Raises:
-      ValueError: when the checkpoint's config differs from `config` in anything but the
-        step budget and the logging/checkpoint cadence.
-    """
-    import orbax.checkpoint as ocp
-
-    step = manager.latest_step() if step is None else step
-    if step is None:
-        raise FileNotFoundError(f"{manager.directory}: no checkpoint to resume from")
-    abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, template)
-    got = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
-                                                        meta=ocp.args.JsonRestore()))
-    saved = TrainConfig.from_json(got["meta"]["config"]).to_json()
-    want = config.to_json()
-    free = ("steps", "eval_every", "eval_batches", "checkpoint_every", "keep_checkpoints",
-            "conv_impl")
-    diff = {k for k in want if k not in free and saved[k] != want[k]}
-    if diff:
-        raise ValueError(f"{manager.directory}: checkpoint was trained with a different "
-                         f"config ({', '.join(sorted(diff))})")
-    return got["state"], IteratorState(**got["meta"]["iterator"])
-
-
-def _open_run(run_dir: str | os.PathLike):
-    """(config, checkpoint manager) of a run folder written by `train`."""
-    run = Path(run_dir)
-    if not (run / "config.json").is_file():
-        raise FileNotFoundError(f"{run}: no training run here (no config.json), so no checkpoint")
-    cfg = TrainConfig.from_json(json.loads((run / "config.json").read_text()))
-    return cfg, _manager(run / "checkpoints", cfg)
-
-
-def _restore_states(run_dir: str | os.PathLike, steps: Sequence[int | None]):
-    """(config, [train state at each of `steps`]) (None: the last checkpoint); the run's
-    config, manager and state template are built once."""
-    cfg, manager = _open_run(run_dir)
-    # Only the shapes are needed: tracing the init is far cheaper than running it at 128 px.
-    template = jax.eval_shape(lambda: create_train_state(cfg, jax.random.key(0, impl="rbg")))
-    return cfg, [restore_checkpoint(manager, template, cfg, s)[0] for s in steps]
-
-
-def restore_run(run_dir: str | os.PathLike, step: int | None = None
-                ) -> tuple[TrainConfig, TrainState]:
-    """The config and the train state of a run folder written by `train` (its
-    ``config.json`` and ``checkpoints/``), at its last checkpoint or at `step`."""
-    cfg, (state,) = _restore_states(run_dir, [step])
-    return cfg, state
-
-
-def checkpoint_steps(run_dir: str | os.PathLike) -> list[int]:
-    """The steps of a run folder's kept checkpoints, ascending."""
-    return sorted(int(s) for s in _open_run(run_dir)[1].all_steps())
-
-
-def averaged_params(run_dir: str | os.PathLike, steps: Sequence[int]):
-    """(config, the parameter mean over the run's checkpoints at `steps`) (float32 leaves).
-
-    Weight averaging of checkpoints along one run (they share an architecture and lie in one
-    basin, so the mean is a network too): it smooths the last steps' noise, a common
-    regulariser for generalisation to unseen inputs. One step returns that checkpoint."""
-    if not steps:
-        raise ValueError("averaged_params needs at least one step")
-    cfg, states = _restore_states(run_dir, [int(s) for s in steps])
-    params = jax.tree_util.tree_map(
-        lambda *x: np.mean(np.stack([np.asarray(v, np.float32) for v in x]), 0),
-        *[st.params for st in states])
-    return cfg, params
-
-
-def _data_facts(ds: PatchDataset) -> dict:
-    """What a model file records about the patch data set it was trained on."""
-    entry = ds.entries[0]
-    return {"patch_size": ds.patch_size, "texel_size": entry["texel_size"],
-            "coarse_pd": entry["config"]["coarse_pd"], "train_patches": len(ds),
-            "train_sequences": [e["sequence"] for e in ds.entries],
-            "train_scenes": sorted({e["scene"] for e in ds.entries})}
-
-
-def export_run(run_dir: str | os.PathLike, out_path: str | os.PathLike,
-               data_root: str | os.PathLike | None = None, wall_s: float | None = None,
-               train_scenes: tuple[str, ...] | None = None,
-               steps: Sequence[int] | None = None) -> Path:
-    """Write a run's last checkpoint as an enhancer model file (`enhancer.save_enhancer`,
-    float16, loadable by `wrinkle_jax.load_enhancer`) with the training facts in its metadata;
-    returns `out_path`.
-
-    Args:
-      data_root: None: the data facts the run recorded (``data.json``, written by `train`);
-        or the patch data set the run trained on, read again (needed for runs from before
-        ``data.json`` existed), restricted to `train_scenes` if given.
-      wall_s: seconds of wall time to record (``meta["wall_seconds_this_call"]``).
-      steps: None: the last checkpoint; else the checkpoints at these steps, their parameters
-        averaged (`averaged_params`; one step = that checkpoint), recorded in
-        ``meta["checkpoint_steps"]``.
-
-    Raises:
-      FileNotFoundError: naming the folder, if it holds no run, no checkpoint, or (without
-        `data_root`) no ``data.json``.
-    """
-    from wrinkle_jax import MATERIALS, enhancer
-
-    run = Path(run_dir)
-    if steps is None:
-        cfg, state = restore_run(run)
-        params, last_step = state.params, int(state.step)
-    else:
-        (cfg, params), last_step = averaged_params(run, steps), int(max(steps))
-    if data_root is not None:
-        facts = _data_facts(PatchDataset(data_root, "train", scenes=train_scenes))
-    elif (run / "data.json").is_file():
-        facts = json.loads((run / "data.json").read_text())
-    else:
-        raise FileNotFoundError(f"{run}: no data.json (a run written before it was recorded): "
-                                "give the data set it trained on")
-    econf = enhancer.EnhancerConfig(unet=cfg.unet, materials=MATERIALS,
-                                    patch_size=facts["patch_size"],
-                                    texel_size=facts["texel_size"], coarse_pd=facts["coarse_pd"])
-    rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if x]
-    train_s = float(sum(r.get("step_s", 0.0) for r in rows if r["kind"] == "train"))
-    evals = [r for r in rows if r["kind"] == "eval"]
-    meta = {"train_config": cfg.to_json(),
-            "steps": last_step,
-            "checkpoint_steps": None if steps is None else [int(x) for x in steps],
-            "train_step_seconds": round(train_s, 1), "wall_seconds_this_call": wall_s,
-            "train_patches": facts["train_patches"], "train_sequences": facts["train_sequences"],
-            "train_scenes": facts["train_scenes"], "last_eval": evals[-1] if evals else None,
-            "exported": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())}
-    return enhancer.save_enhancer(out_path, jax.device_get(params), econf, meta)
 
 
 def enhance_batch(config: TrainConfig, params, batch: dict, batch_size: int = 16) -> np.ndarray:

@@ -264,7 +264,7 @@ def _cell_ranges(lo, hi, cell_size, band, xp=jnp):
 
 
 def mesh_template(vertices, faces, cell_size: float | None = None, cluster_size: int = 16,
-                  band: float | None = None, near_clusters: int = 4, batch: int = 512,
+                  band: float | None = None, near_clusters: int = 4, batch: int = 128,
                   slack: float = 1.5, quantile: float = 0.95) -> MeshTemplate:
     """The pose-independent part of a mesh body (NumPy, once per topology).
 
@@ -449,21 +449,44 @@ def _better(a: _Nearest, b: _Nearest) -> _Nearest:
                         a, b)
 
 
+# Clusters per group in the fallback's upper level. Median splits emit clusters in depth-first
+# order, so consecutive clusters are neighbours and a group of 16 is about one subtree.
+_GROUP = 16
+
+
 def _branch_and_bound(body: MeshBody, points, best: _Nearest) -> _Nearest:
-    """Exact nearest triangles of points (m, 3): test clusters in increasing box distance,
-    2k at a time, until no untested box is nearer than the best triangle found."""
-    k = min(2 * body.template.near_clusters, body.cluster_lo.shape[0])
-    lb = _box_d2(points[:, None], body.cluster_lo[None], body.cluster_hi[None])  # (m, Q)
+    """Exact nearest triangles of points (m, 3), branch and bound on two levels: groups of
+    `_GROUP` clusters in increasing box distance, and inside a group its clusters, k at a
+    time, until no untested box is nearer than the best triangle found."""
+    n_clusters = body.cluster_lo.shape[0]
+    pad = (-n_clusters) % _GROUP
+    lo = jnp.pad(body.cluster_lo, ((0, pad), (0, 0)), constant_values=jnp.inf)
+    hi = jnp.pad(body.cluster_hi, ((0, pad), (0, 0)), constant_values=-jnp.inf)
+    g_lo = lo.reshape(-1, _GROUP, 3).min(1)
+    g_hi = hi.reshape(-1, _GROUP, 3).max(1)
+    k = min(body.template.near_clusters, _GROUP)
+    p = points[:, None]
     rows = jnp.arange(points.shape[0])[:, None]
 
-    def step(state):
-        lb, best = state
-        low, q = _smallest(lb, k)
+    def inner(state):
+        lb, ids, best = state
+        low, j = _smallest(lb, k)
+        q = jnp.minimum(jnp.take_along_axis(ids, j, 1), n_clusters - 1)
         best = _better(best, _nearest_in(body, points, q, low < best.d2[:, None]))
-        return lb.at[rows, q].set(jnp.inf), best
+        return lb.at[rows, j].set(jnp.inf), ids, best
 
-    return jax.lax.while_loop(lambda s: jnp.any(jnp.min(s[0], 1) < s[1].d2), step,
-                              (lb, best))[1]
+    def outer(state):
+        lb_g, best = state
+        _, g = _smallest(lb_g, 1)  # the nearest untested group of each point
+        ids = g * _GROUP + jnp.arange(_GROUP)  # (m, _GROUP) cluster ids (padding: inf box)
+        lb = _box_d2(p, lo[ids], hi[ids])
+        _, _, best = jax.lax.while_loop(lambda s: jnp.any(jnp.min(s[0], 1) < s[2].d2), inner,
+                                        (lb, ids, best))
+        return lb_g.at[rows, g].set(jnp.inf), best
+
+    lb_g = _box_d2(p, g_lo[None], g_hi[None])
+    return jax.lax.while_loop(lambda s: jnp.any(jnp.min(s[0], 1) < s[1].d2), outer,
+                              (lb_g, best))[1]
 
 
 def _fast_path(body: MeshBody, points):

@@ -14,8 +14,8 @@ Contract:
   * Mesh bodies: `mesh_template(vertices, faces)` once per topology (NumPy), then
     `pose_mesh_body(template, posed_vertices)` per pose (jitted, static shapes: one compile
     for every pose of a skinned character); `mesh_body(vertices, faces)` does both. The
-    previous form (a per-cell candidate grid built in NumPy, minutes per pose for a 27k-
-    triangle character) is kept as the reference in `wrinkle_jax.bodies_grid`.
+    previous form (a per-cell candidate grid built in NumPy; on the 27k-triangle MakeHuman
+    body it raised BodyError after 68 s) is kept as the reference in `wrinkle_jax.bodies_grid`.
 """
 
 from __future__ import annotations

@@ -13,9 +13,11 @@ Contract:
 
   * Mesh bodies: `mesh_template(vertices, faces)` once per topology (NumPy), then
     `pose_mesh_body(template, posed_vertices)` per pose (jitted, static shapes: one compile
-    for every pose of a skinned character); `mesh_body(vertices, faces)` does both. The
-    previous form (a per-cell candidate grid built in NumPy; on the 27k-triangle MakeHuman
-    body it raised BodyError after 68 s) is kept as the reference in `wrinkle_jax.bodies_grid`.
+    for every pose of a skinned character; `wrinkle_jax.mesh_body`). `mesh_body(vertices,
+    faces)` builds one static body: up to `GRID_MAX_TRIANGLES` triangles as a per-cell
+    candidate grid (`bodies_grid`, built in NumPy; its queries cost ~1/10 of the clustered
+    form's on small bodies, benchmarks/bench_bodies.py), larger ones in the clustered form
+    (the grid raised BodyError after 68 s on the 27k-triangle MakeHuman body).
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wrinkle_jax import mesh_body as _clustered
+from wrinkle_jax.bodies_grid import GridMeshBody, grid_mesh_body, grid_query
 from wrinkle_jax.mesh_body import (  # noqa: F401  (re-exported: the public body API)
     _ON_SURFACE,
     BodyError,
@@ -34,7 +38,6 @@ from wrinkle_jax.mesh_body import (  # noqa: F401  (re-exported: the public body
     MeshBody,
     MeshTemplate,
     closest_point_on_triangle,
-    mesh_body,
     mesh_query,
     mesh_query_stats,
     mesh_template,
@@ -42,7 +45,8 @@ from wrinkle_jax.mesh_body import (  # noqa: F401  (re-exported: the public body
 )
 from wrinkle_jax.numerics import normalize, safe_div, safe_norm
 
-__all__ = ["BodyError", "BodyQuery", "Capsules", "MeshBody", "MeshTemplate", "PrimitiveBody",
+__all__ = ["BodyError", "BodyQuery", "Capsules", "GridMeshBody", "MeshBody", "MeshTemplate",
+           "PrimitiveBody",
            "Spheres", "closest_point_on_triangle", "mesh_body", "mesh_query_stats",
            "mesh_template", "pose_mesh_body", "primitive_body", "query"]
 
@@ -174,11 +178,33 @@ def _primitive_query(body: PrimitiveBody, points) -> BodyQuery:
 
 
 # --------------------------------------------------------------------------------------------
+# Static mesh bodies
+# --------------------------------------------------------------------------------------------
+
+GRID_MAX_TRIANGLES = 8192
+
+
+def mesh_body(vertices, faces, **options) -> GridMeshBody | MeshBody:
+    """A body from a closed triangle mesh in one pose (static: e.g. a `--body` file).
+
+    Args:
+      vertices: (Nv, 3) meters. faces: (T, 3) int, consistently oriented (either way).
+      **options: the chosen form's options (`bodies_grid.grid_mesh_body` for at most
+        `GRID_MAX_TRIANGLES` triangles, else `mesh_body.mesh_template`).
+    Raises:
+      BodyError: the mesh is not closed/manifold or has non-finite coordinates.
+    """
+    if len(np.asarray(faces)) <= GRID_MAX_TRIANGLES:
+        return grid_mesh_body(vertices, faces, **options)
+    return _clustered.mesh_body(vertices, faces, **options)
+
+
+# --------------------------------------------------------------------------------------------
 # Dispatch
 # --------------------------------------------------------------------------------------------
 
 
-def query(body: PrimitiveBody | MeshBody, points) -> BodyQuery:
+def query(body: PrimitiveBody | GridMeshBody | MeshBody, points) -> BodyQuery:
     """Signed distance, nearest surface point and outward normal of a body at points (N, 3).
 
     Jittable and vmappable; the body type is resolved at trace time, so only the code for
@@ -189,4 +215,6 @@ def query(body: PrimitiveBody | MeshBody, points) -> BodyQuery:
         return _primitive_query(body, points)
     if isinstance(body, MeshBody):
         return mesh_query(body, points)
+    if isinstance(body, GridMeshBody):
+        return grid_query(body, points)
     raise BodyError(f"unknown body type {type(body).__name__}; use primitive_body or mesh_body")

@@ -3,62 +3,52 @@ outward normal of spheres, capsules and closed triangle meshes.
 
 Contract:
   * A body is a frozen pytree: `PrimitiveBody` (a union of spheres and capsules, analytic) or
-    `MeshBody` (a closed, consistently oriented triangle mesh with a precomputed query grid).
+    `MeshBody` (a closed, consistently oriented triangle mesh in one pose with its query
+    structure; `wrinkle_jax.mesh_body`, re-exported here).
   * `query(body, points)` is pure JAX (jittable, vmappable) and returns a `BodyQuery`:
 
         distance (N,)   float32 meters, signed: negative inside the body
         closest  (N, 3) float32 meters, nearest point on the body surface
         normal   (N, 3) float32 unit outward surface normal at `closest`
 
-  * Everything that depends only on the body's shape (triangle pseudo-normals, the candidate
-    grid, inside/outside flags of empty cells) is built once in NumPy by `mesh_body`.
-
-Mesh bodies (method). A uniform grid covers the body's bounding box plus a margin. For every
-cell we store a fixed number K of candidate triangles, so a query is a fixed-shape gather:
-point -> cell -> K exact point-triangle distances -> the nearest. The candidates of a cell are
-the triangles t with d(c, t) <= min_t' d(c, t') + 2 r (c the cell center, r its half-diagonal),
-which provably contains the nearest triangle of every point of the cell (they are found in two
-levels, blocks of cells first; see `mesh_body`). K is the largest such set over the cells that
-touch the surface, so queries there are exact. Inside/outside comes from the angle-weighted
-pseudo-normal of the nearest feature (face, edge or vertex; Baerentzen and Aanaes 2005), which
-is exact for a closed manifold mesh. Cells that do not touch the surface (d(c) > r) take their
-sign from a flood fill of the empty cells from the grid border, and, if their candidate list
-was cut at K, their distance and nearest point are within 2 r of exact (they are at least r
-from the surface, so this only affects deep points). Points outside the grid are outside.
-The build is NumPy once per body pose (about 1 s for a few hundred triangles, ~15 s for 20k);
-a query costs N * K point-triangle tests.
+  * Mesh bodies: `mesh_template(vertices, faces)` once per topology (NumPy), then
+    `pose_mesh_body(template, posed_vertices)` per pose (jitted, static shapes: one compile
+    for every pose of a skinned character; `wrinkle_jax.mesh_body`). `mesh_body(vertices,
+    faces)` builds one static body: up to `GRID_MAX_TRIANGLES` triangles as a per-cell
+    candidate grid (`bodies_grid`, built in NumPy; its queries cost ~1/10 of the clustered
+    form's on small bodies, benchmarks/bench_bodies.py), larger ones in the clustered form
+    (the grid raised BodyError after 68 s on the 27k-triangle MakeHuman body).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax.numerics import normalize, positive_div, safe_div, safe_norm
+from wrinkle_jax import mesh_body as _clustered
+from wrinkle_jax.bodies_grid import GridMeshBody, grid_mesh_body, grid_query
+from wrinkle_jax.mesh_body import (  # noqa: F401  (re-exported: the public body API)
+    _ON_SURFACE,
+    BodyError,
+    BodyQuery,
+    MeshBody,
+    MeshTemplate,
+    closest_point_on_triangle,
+    mesh_query,
+    mesh_query_stats,
+    mesh_template,
+    pose_mesh_body,
+)
+from wrinkle_jax.numerics import normalize, safe_div, safe_norm
 
-# Distance (meters) below which a point is treated as lying on the surface: its outward
-# direction then comes from the surface normal instead of (point - closest).
-_ON_SURFACE = 1e-9
-
-
-class BodyError(ValueError):
-    """Invalid body definition (the message says what is wrong)."""
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class BodyQuery:
-    """Result of `query`: signed distance (N,), nearest surface point (N, 3), outward unit
-    normal (N, 3); all in meters."""
-
-    distance: Any
-    closest: Any
-    normal: Any
+__all__ = ["BodyError", "BodyQuery", "Capsules", "GridMeshBody", "MeshBody", "MeshTemplate",
+           "PrimitiveBody",
+           "Spheres", "closest_point_on_triangle", "mesh_body", "mesh_query_stats",
+           "mesh_template", "pose_mesh_body", "primitive_body", "query"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -188,339 +178,25 @@ def _primitive_query(body: PrimitiveBody, points) -> BodyQuery:
 
 
 # --------------------------------------------------------------------------------------------
-# Triangle meshes
+# Static mesh bodies
 # --------------------------------------------------------------------------------------------
 
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class MeshBody:
-    """A closed triangle mesh with its query grid (built by `mesh_body`).
-
-    Attributes:
-      vertices: (Nv, 3) float32 meters. faces: (T, 3) int32, outward (counter-clockwise).
-      face_normals: (T, 3) unit outward normals.
-      vertex_normals: (Nv, 3) angle-weighted pseudo-normals.
-      edge_normals: (E, 3) pseudo-normals of edges (sum of the two adjacent face normals).
-      face_edges: (T, 3) int32, edge id of face edge k (corners k -> k+1).
-      origin: (3,) float32 grid corner, meters. cell_size: () float32 meters.
-      candidates: (cells, K) int32 candidate triangles per cell (x-major flat cell index).
-      cell_far: (cells,) bool, the cell does not touch the surface.
-      cell_inside: (cells,) bool, for far cells: inside the body.
-      dims: static (nx, ny, nz) cell counts.
-    """
-
-    vertices: Any
-    faces: Any
-    face_normals: Any
-    vertex_normals: Any
-    edge_normals: Any
-    face_edges: Any
-    origin: Any
-    cell_size: Any
-    candidates: Any
-    cell_far: Any
-    cell_inside: Any
-    dims: tuple[int, int, int] = dataclasses.field(metadata=dict(static=True))
-
-    @property
-    def max_candidates(self) -> int:
-        return int(self.candidates.shape[1])
+GRID_MAX_TRIANGLES = 8192
 
 
-
-def closest_point_on_triangle(p, a, b, c):
-    """Nearest point of triangles (a, b, c) to points p (all broadcastable (..., 3)).
-
-    Ericson's Voronoi-region walk ("Real-Time Collision Detection", 5.1.5), vectorized with
-    `where`; degenerate triangles fall back to a finite point of the triangle.
-
-    Returns:
-      closest (..., 3) and region (...) int32: 0 face interior, 1/2/3 vertex a/b/c,
-      4/5/6 edge ab/bc/ca.
-    """
-
-    def dot(x, y):
-        return jnp.sum(x * y, -1)
-
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = dot(ab, ap), dot(ac, ap)
-    bp = p - b
-    d3, d4 = dot(ab, bp), dot(ac, bp)
-    cp = p - c
-    d5, d6 = dot(ab, cp), dot(ac, cp)
-    vc = d1 * d4 - d3 * d2
-    vb = d5 * d2 - d1 * d6
-    va = d3 * d6 - d5 * d4
-    # Candidate points of every region, then pick by the region tests in priority order.
-    s = lambda x: x[..., None]  # noqa: E731
-    p_ab = a + s(jnp.clip(positive_div(d1, d1 - d3), 0, 1)) * ab
-    p_ac = a + s(jnp.clip(positive_div(d2, d2 - d6), 0, 1)) * ac
-    w_bc = jnp.clip(positive_div(d4 - d3, (d4 - d3) + (d5 - d6)), 0, 1)
-    p_bc = b + s(w_bc) * (c - b)
-    den = va + vb + vc
-    p_face = a + s(positive_div(vb, den)) * ab + s(positive_div(vc, den)) * ac
-    in_a = (d1 <= 0) & (d2 <= 0)
-    in_b = (d3 >= 0) & (d4 <= d3)
-    in_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    in_c = (d6 >= 0) & (d5 <= d6)
-    in_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    in_bc = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
-    closest, region = p_face, jnp.zeros(d1.shape, jnp.int32)
-    # Later assignments win: apply the tests from the lowest to the highest priority.
-    for test, point, code in ((in_bc, p_bc, 5), (in_ac, p_ac, 6), (in_c, c, 3),
-                              (in_ab, p_ab, 4), (in_b, b, 2), (in_a, a, 1)):
-        closest = jnp.where(s(test), jnp.broadcast_to(point, closest.shape), closest)
-        region = jnp.where(test, code, region)
-    return closest, region
-
-
-_closest_point_jit = jax.jit(closest_point_on_triangle)
-
-
-def _mesh_query(body: MeshBody, points) -> BodyQuery:
-    dims = jnp.asarray(body.dims, jnp.int32)
-    cell = jnp.floor((points - body.origin) / body.cell_size).astype(jnp.int32)
-    outside_grid = jnp.any((cell < 0) | (cell >= dims), axis=-1)
-    cell = jnp.clip(cell, 0, dims - 1)
-    flat = (cell[:, 0] * body.dims[1] + cell[:, 1]) * body.dims[2] + cell[:, 2]
-    cand = body.candidates[flat]  # (N, K)
-    tri = body.vertices[body.faces[cand]]  # (N, K, 3, 3)
-    p = points[:, None, :]
-    cp, region = closest_point_on_triangle(p, tri[..., 0, :], tri[..., 1, :], tri[..., 2, :])
-    d2 = jnp.sum((p - cp) ** 2, -1)
-    k = jnp.argmin(d2, axis=1)
-    rows = jnp.arange(points.shape[0])
-    closest, reg, t = cp[rows, k], region[rows, k], cand[rows, k]
-    corner = jnp.clip(reg - 1, 0, 2)
-    edge_k = jnp.clip(reg - 4, 0, 2)
-    pseudo = jnp.where(
-        (reg == 0)[:, None], body.face_normals[t],
-        jnp.where(((reg >= 1) & (reg <= 3))[:, None],
-                  body.vertex_normals[body.faces[t, corner]],
-                  body.edge_normals[body.face_edges[t, edge_k]]))
-    v = points - closest
-    dist = safe_norm(v)
-    near_inside = jnp.sum(v * pseudo, -1) < 0
-    far = body.cell_far[flat] | outside_grid
-    inside = jnp.where(far, body.cell_inside[flat] & ~outside_grid, near_inside)
-    sign = jnp.where(inside, -1.0, 1.0).astype(points.dtype)
-    on_surface = (dist <= _ON_SURFACE)[:, None]
-    normal = jnp.where(on_surface, normalize(pseudo), normalize(v) * sign[:, None])
-    return BodyQuery(sign * dist, closest, normal)
-
-
-def _closed_mesh_normals(v: np.ndarray, f: np.ndarray):
-    """Face normals, angle-weighted vertex pseudo-normals, edge pseudo-normals, face edges."""
-    p = v[f]
-    cr = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    ln = np.linalg.norm(cr, axis=1, keepdims=True)
-    fn = np.where(ln > 0, cr / np.where(ln > 0, ln, 1.0), 0.0)
-    vn = np.zeros_like(v)
-    for k in range(3):
-        e1 = p[:, (k + 1) % 3] - p[:, k]
-        e2 = p[:, (k + 2) % 3] - p[:, k]
-        cosang = np.sum(e1 * e2, 1) / np.maximum(
-            np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1), 1e-300)
-        np.add.at(vn, f[:, k], fn * np.arccos(np.clip(cosang, -1.0, 1.0))[:, None])
-    he = np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1).reshape(-1, 2)
-    edges, inv, counts = np.unique(np.sort(he, axis=1), axis=0, return_inverse=True,
-                                   return_counts=True)
-    if (counts != 2).any():
-        bad = edges[counts != 2][0]
-        raise BodyError(
-            f"a mesh body must be closed and manifold: {(counts != 2).sum()} edge(s) have "
-            f"{sorted(set(counts[counts != 2].tolist()))} faces instead of 2 "
-            f"(first: vertices {bad[0]}-{bad[1]})")
-    en = np.zeros((len(edges), 3))
-    np.add.at(en, inv.reshape(-1), np.repeat(fn, 3, axis=0))
-    return fn, vn, en, inv.reshape(-1, 3).astype(np.int32)
-
-
-def _center_distances(c: np.ndarray, centroid: np.ndarray) -> np.ndarray:
-    """|c_i - centroid_j| (n, T) via one matrix product (float64, clamped at 0)."""
-    sq = (c * c).sum(1)[:, None] + (centroid * centroid).sum(1)[None] - 2.0 * c @ centroid.T
-    return np.sqrt(np.maximum(sq, 0.0))
-
-
-def mesh_body(vertices, faces, cell_size: float | None = None, max_candidates: int = 16,
-              max_cells: int = 1 << 18, block: int = 4, block_candidates: int = 1024,
-              chunk: int = 256) -> MeshBody:
-    """Build a `MeshBody` from a closed triangle mesh (NumPy, once per body pose).
-
-    Candidates are found in two levels: blocks of `block`^3 cells keep the (at most
-    `block_candidates`) triangles that can be nearest to any point of the block, using
-    bounding-sphere bounds; each cell then computes exact distances from its center to its
-    block's triangles only. Build cost is O(blocks * T + cells * block_candidates).
+def mesh_body(vertices, faces, **options) -> GridMeshBody | MeshBody:
+    """A body from a closed triangle mesh in one pose (static: e.g. a `--body` file).
 
     Args:
-      vertices: (Nv, 3) meters. faces: (T, 3) int, consistently oriented (either way: a
-        mesh with negative signed volume is flipped to face outward).
-      cell_size: grid cell edge in meters; default: half the mean edge length (grown by
-        1.25x steps until the grid has at most `max_cells` cells).
-      max_candidates: minimum K; K grows to the largest candidate set of any cell touching
-        the surface (at most 128).
-      max_cells, block, block_candidates: grid size bound, block edge in cells, and the
-        block-level candidate cap.
-      chunk: blocks (8 * chunk cells) processed per vectorized batch (bounds build memory).
+      vertices: (Nv, 3) meters. faces: (T, 3) int, consistently oriented (either way).
+      **options: the chosen form's options (`bodies_grid.grid_mesh_body` for at most
+        `GRID_MAX_TRIANGLES` triangles, else `mesh_body.mesh_template`).
     Raises:
-      BodyError: the mesh is not closed/manifold, has non-finite coordinates, or a cell near
-        the surface needs more candidates than allowed (pass a smaller `cell_size`).
+      BodyError: the mesh is not closed/manifold or has non-finite coordinates.
     """
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    if v.ndim != 2 or v.shape[1] != 3 or not np.isfinite(v).all():
-        raise BodyError(f"mesh body vertices must be finite (Nv, 3), got {v.shape}")
-    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0 or f.min() < 0 or f.max() >= len(v):
-        raise BodyError(f"mesh body faces must be (T, 3) indices into {len(v)} vertices")
-    p = v[f]
-    volume = np.sum(p[:, 0] * np.cross(p[:, 1], p[:, 2])) / 6.0
-    if volume < 0:
-        f = f[:, ::-1].copy()
-        p = v[f]
-    fn, vn, en, fe = _closed_mesh_normals(v, f)
-    edge_len = np.linalg.norm(p - np.roll(p, 1, axis=1), axis=2).mean()
-    lo, hi = v.min(0), v.max(0)
-    extent = hi - lo
-    cell_size = 0.5 * float(edge_len) if cell_size is None else float(cell_size)
-    if not cell_size > 0:
-        raise BodyError(f"cell_size must be positive, got {cell_size}")
-    while True:  # grow cells until the grid (body + two-cell margin, whole blocks) fits
-        margin = 2.0 * cell_size
-        nb = [int(math.ceil(x / (block * cell_size))) for x in extent + 2 * margin]
-        dims = tuple(block * n for n in nb)
-        if dims[0] * dims[1] * dims[2] <= max_cells:
-            break
-        cell_size *= 1.25
-    origin = lo - margin
-    hd = 0.5 * math.sqrt(3.0) * cell_size  # cell half-diagonal
-    hd_b = block * hd  # block half-diagonal
-    n_tri = len(f)
-    centroid = p.mean(1)
-    tri_r = np.linalg.norm(p - centroid[:, None], axis=2).max(1) + 1e-9 * (1 + extent.max())
-    # Block level: a superset of every cell's candidates (the cell rule's bounds hold for the
-    # block center too, with the block's half-diagonal, since every cell lies in its block).
-    bi, bj, bk = np.meshgrid(*[np.arange(n) for n in nb], indexing="ij")
-    bidx = np.stack([bi, bj, bk], -1).reshape(-1, 3)
-    bcenters = origin + (bidx + 0.5) * block * cell_size
-    mb = min(n_tri, block_candidates)
-    bsets = np.zeros((len(bidx), mb), np.int64)  # sorted by lower bound, best first
-    blower = np.zeros((len(bidx), mb))  # their lower bounds (inf: ruled out)
-    brest = np.full(len(bidx), np.inf)  # every triangle outside the set has lower >= brest
-    for s0 in range(0, len(bidx), chunk):
-        dc = _center_distances(bcenters[s0:s0 + chunk], centroid)
-        lower = np.maximum(dc - tri_r, 0.0)
-        upper_min = (dc + tri_r).min(1)
-        lower = np.where(lower <= upper_min[:, None] + 2 * hd_b, lower, np.inf)
-        if mb < n_tri:
-            part = np.argpartition(lower, mb - 1, axis=1)[:, :mb]
-            brest[s0:s0 + chunk] = np.take_along_axis(lower, part, 1).max(1)
-        else:
-            part = np.broadcast_to(np.arange(n_tri), lower.shape)
-        lw = np.take_along_axis(lower, part, 1)
-        order = np.argsort(lw, axis=1)
-        bsets[s0:s0 + chunk] = np.take_along_axis(part, order, 1)
-        blower[s0:s0 + chunk] = np.take_along_axis(lw, order, 1)
-    # A block whose every triangle is farther than its half-diagonal has only far cells.
-    block_near = blower[:, 0] <= hd_b
-    # Cell level: exact distances from each cell center to (the start of) its block's set.
-    ci, cj, ck = np.meshgrid(*[np.arange(n) for n in dims], indexing="ij")
-    cidx = np.stack([ci, cj, ck], -1).reshape(-1, 3)
-    centers = origin + (cidx + 0.5) * cell_size
-    cblock = ((cidx[:, 0] // block) * nb[1] + cidx[:, 1] // block) * nb[2] + cidx[:, 2] // block
-    k_store = min(128, mb)
-    cand = np.zeros((len(cidx), k_store), np.int64)
-    filled = np.zeros(len(cidx), np.int64)
-    near = np.zeros(len(cidx), bool)
-    k_needed, n_bad = 0, 0
-    finite = np.isfinite(blower).sum(1)
-    for is_near in (True, False):
-        cells = np.flatnonzero(block_near[cblock] == is_near)
-        if len(cells) == 0:
-            continue
-        blocks = np.unique(cblock[cells])
-        m = int(finite[blocks].max()) if is_near else min(mb, 2 * max_candidates)
-        for s0 in range(0, len(cells), chunk * 8):
-            sel = cells[s0:s0 + chunk * 8]
-            b = cblock[sel]
-            c = centers[sel]
-            idx = bsets[b, :m]
-            # Cell-level bounding-sphere filter, then exact distances to the survivors only
-            # (the true nearest triangle always survives: its lower bound <= upper_min).
-            dcc = np.linalg.norm(c[:, None, :] - centroid[idx], axis=2)
-            lower = np.where(np.isfinite(blower[b, :m]), np.maximum(dcc - tri_r[idx], 0), np.inf)
-            upper_min = (dcc + tri_r[idx]).min(1)
-            lower = np.where(lower <= upper_min[:, None] + 2 * hd, lower, np.inf)
-            keep = np.argsort(lower, axis=1)
-            mc = int(np.isfinite(lower).sum(1).max())
-            # Powers of two and full-size row batches keep the number of compilations small.
-            mc = min(m, max(1 << max(mc - 1, 1).bit_length(), 2 * max_candidates))
-            keep = keep[:, :mc]
-            idx = np.take_along_axis(idx, keep, 1)
-            rows = np.resize(np.arange(len(sel)), chunk * 8)
-            cp, _ = _closest_point_jit(c[rows, None, :], p[idx[rows], 0], p[idx[rows], 1],
-                                       p[idx[rows], 2])
-            d = np.linalg.norm(np.asarray(cp)[:len(sel)] - c[:, None, :], axis=2)
-            d = np.where(np.isfinite(np.take_along_axis(lower, keep, 1)), d, np.inf)
-            order = np.argsort(d, axis=1)[:, :k_store]
-            cand[sel, :order.shape[1]] = np.take_along_axis(idx, order, 1)
-            filled[sel] = np.minimum(np.isfinite(d).sum(1), k_store)
-            if not is_near:
-                continue
-            dmin = d.min(1)
-            # Lower bound on the distance from anywhere in the cell to an unexamined triangle.
-            rest = brest[b] - (hd_b - hd)
-            nc = (dmin <= hd) | (rest <= hd)
-            count = (d <= dmin[:, None] + 2 * hd).sum(1)
-            bad = nc & ((count > k_store) | (rest <= dmin + 2 * hd))
-            n_bad += int(bad.sum())
-            near[sel] = nc
-            if nc.any():
-                k_needed = max(k_needed, int(count[nc].max()))
-    if n_bad:
-        raise BodyError(f"{n_bad} grid cells near the surface need more than {k_store} "
-                        f"candidate triangles; pass a smaller cell_size (now {cell_size:.4g} m)")
-    k = min(max(max_candidates, k_needed), k_store)
-    # Pad short rows by repeating their best candidate (the minimum is unchanged).
-    col = np.arange(k)[None, :]
-    cand = np.where(col < np.maximum(filled, 1)[:, None], cand[:, :k], cand[:, :1])
-    cand = cand.astype(np.int32)
-    far = ~near
-    inside = _flood_inside(far.reshape(dims))
-    return MeshBody(
-        vertices=jnp.asarray(v, jnp.float32), faces=jnp.asarray(f, jnp.int32),
-        face_normals=jnp.asarray(fn, jnp.float32), vertex_normals=jnp.asarray(vn, jnp.float32),
-        edge_normals=jnp.asarray(en, jnp.float32), face_edges=jnp.asarray(fe),
-        origin=jnp.asarray(origin, jnp.float32), cell_size=jnp.asarray(cell_size, jnp.float32),
-        candidates=jnp.asarray(cand), cell_far=jnp.asarray(far),
-        cell_inside=jnp.asarray(inside.reshape(-1)), dims=dims,
-    )
-
-
-def _flood_inside(free: np.ndarray) -> np.ndarray:
-    """Cells not reachable from the grid border through free (surface-free) cells.
-
-    Two face-adjacent free cells lie on the same side of the surface (their union is a box
-    the surface does not touch), so this labels every free cell exactly.
-    """
-    outside = np.zeros_like(free)
-    for axis in range(3):
-        for end in (0, -1):
-            sl = [slice(None)] * 3
-            sl[axis] = end
-            outside[tuple(sl)] = free[tuple(sl)]
-    while True:
-        grown = outside.copy()
-        grown[1:] |= outside[:-1]
-        grown[:-1] |= outside[1:]
-        grown[:, 1:] |= outside[:, :-1]
-        grown[:, :-1] |= outside[:, 1:]
-        grown[:, :, 1:] |= outside[:, :, :-1]
-        grown[:, :, :-1] |= outside[:, :, 1:]
-        grown &= free
-        if (grown == outside).all():
-            return free & ~outside
-        outside = grown
+    if len(np.asarray(faces)) <= GRID_MAX_TRIANGLES:
+        return grid_mesh_body(vertices, faces, **options)
+    return _clustered.mesh_body(vertices, faces, **options)
 
 
 # --------------------------------------------------------------------------------------------
@@ -528,7 +204,7 @@ def _flood_inside(free: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-def query(body: PrimitiveBody | MeshBody, points) -> BodyQuery:
+def query(body: PrimitiveBody | GridMeshBody | MeshBody, points) -> BodyQuery:
     """Signed distance, nearest surface point and outward normal of a body at points (N, 3).
 
     Jittable and vmappable; the body type is resolved at trace time, so only the code for
@@ -538,5 +214,7 @@ def query(body: PrimitiveBody | MeshBody, points) -> BodyQuery:
     if isinstance(body, PrimitiveBody):
         return _primitive_query(body, points)
     if isinstance(body, MeshBody):
-        return _mesh_query(body, points)
+        return mesh_query(body, points)
+    if isinstance(body, GridMeshBody):
+        return grid_query(body, points)
     raise BodyError(f"unknown body type {type(body).__name__}; use primitive_body or mesh_body")

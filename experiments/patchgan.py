@@ -4,9 +4,10 @@ shipped model on the model card's patches (paper Fig. 9).
 
     python -m experiments.patchgan [--data data/patches] [--minutes 45]
         [--run outputs/patchgan] [--out experiments/results/patchgan] [--fresh]
+        [--width W] [--disc-width W] [--plain-unet] [--lr 2e-4] [--batch 8]
 
 Training: `data.PatchDataset(<data>, "train")` in the enhancer's batch order (BatchIterator,
-seed 0, batch 8); one D and one G update per step (`patchgan.make_gan_step`) until
+seed 0, batch 8 or `--batch`); one D and one G update per step (`patchgan.make_gan_step`) until
 `--minutes` of wall time (the shipped model trained 0.75 h on this machine class: see
 `wrinkle_jax/assets/MODEL_CARD.md`) or `--steps`. Metrics go to `<run>/metrics.jsonl`; a
 checkpoint (`<run>/state.npz` + `state.json`: iterator position, config) is written every
@@ -44,6 +45,7 @@ from wrinkle_jax.evaluation import gram, patchsets, suite
 from wrinkle_jax.evaluation import methods as method_lib
 from wrinkle_jax.fileio import atomic_write_bytes, atomic_write_text
 from wrinkle_jax.nn import patchgan, vgg
+from wrinkle_jax.nn.unet import UNetConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 GAN = "patchgan"
@@ -209,7 +211,16 @@ def table_markdown(res: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main(argv=None) -> int:
+def config_from_args(args: argparse.Namespace) -> patchgan.GANConfig:
+    """The GAN configuration of the command line: the defaults give `patchgan.GANConfig()`
+    (the shipped model's generator U-Net) with only `--width` applied."""
+    net = (UNetConfig(width=args.width, residual=True) if args.plain_unet
+           else dataclasses.replace(patchgan.GANConfig().unet, width=args.width))
+    return patchgan.GANConfig(unet=net, l1_weight=args.l1_weight, disc_width=args.disc_width,
+                              learning_rate=args.lr, batch_size=args.batch)
+
+
+def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=str(ROOT / "data" / "patches"))
     ap.add_argument("--run", default=str(ROOT / "outputs" / "patchgan"))
@@ -224,16 +235,26 @@ def main(argv=None) -> int:
     ap.add_argument("--width", type=int, default=patchgan.GANConfig().unet.width,
                     help="generator width (default: the shipped model's)")
     ap.add_argument("--disc-width", type=int, default=patchgan.GANConfig.disc_width)
+    ap.add_argument("--plain-unet", action="store_true",
+                    help="generator: a plain residual U-Net (the input as its base, no unsharp "
+                         "base or high-pass) instead of the shipped model's")
+    ap.add_argument("--lr", type=float, default=patchgan.GANConfig.learning_rate,
+                    help="Adam learning rate of G and D")
+    ap.add_argument("--batch", type=int, default=patchgan.GANConfig.batch_size,
+                    help="patches per step")
     ap.add_argument("--train-scenes", default=None,
                     help="train on these scenes only (comma-separated; the paper's Fig. 9 "
                          "trained both networks on the long skirt: skirt_dance)")
     ap.add_argument("--fresh", action="store_true")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
     scenes = tuple(args.train_scenes.split(",")) if args.train_scenes else None
     out, run = Path(args.out), Path(args.run)
     out.mkdir(parents=True, exist_ok=True)
-    unet = dataclasses.replace(patchgan.GANConfig().unet, width=args.width)
-    config = patchgan.GANConfig(unet=unet, l1_weight=args.l1_weight, disc_width=args.disc_width)
+    config = config_from_args(args)
     got = train(config, Path(args.data), run, args.minutes, args.steps,
                 args.checkpoint_every, args.fresh, log=lambda s: print(s, flush=True),
                 train_scenes=scenes)

@@ -58,14 +58,17 @@ def pytest_unconfigure(config):
 # Makefile) hands files to the workers in collection order as they free up, so a long file
 # collected last would run alone at the end. (Without --no-loadscope-reorder xdist orders files
 # by their number of tests instead.) The order within a file is kept. Ranked by single-process
-# user CPU where measured in session 11 (test_train 116 s, test_sim_selfcollision 76 s,
-# test_patchgan 75 s, test_sim_textile 17 s), otherwise by the sum of each file's phases among
-# the 80 slowest of a 2-worker run (session 10).
+# user CPU where measured in session 13 on a loaded machine (test_train 89.7 s, test_patchgan
+# 47.4 s, test_sim_detail 31.9 s, test_cli_train 32.2 s before train.train placed its state),
+# test_sim_selfcollision by session 11 (76 s), test_notebooks by its wall time in a 2-worker
+# run (46 s; its CPU is in the kernels it starts), the others by the sum of their phases among
+# the 45 slowest of a 2-worker run (session 12).
 SLOW_FILES_FIRST = ("test_train.py", "test_sim_selfcollision.py", "test_patchgan.py",
-                    "test_sharpen.py", "test_fastconv.py", "test_unet.py", "test_sim_xpbd.py",
-                    "test_lift.py", "test_sim_detail.py", "test_notebooks.py",
-                    "test_cli_train.py", "test_eval_experiments.py", "test_frame_fn.py",
-                    "test_detail.py", "test_sim_colliders.py", "test_sim_textile.py")
+                    "test_notebooks.py", "test_sharpen.py", "test_sim_detail.py",
+                    "test_cli_train.py", "test_sim_xpbd.py", "test_lift.py", "test_fastconv.py",
+                    "test_unet.py", "test_vgg.py", "test_eval_experiments.py",
+                    "test_frame_fn.py", "test_sim_scenes.py", "test_detail.py",
+                    "test_sim_colliders.py", "test_sim_textile.py")
 
 
 def pytest_collection_modifyitems(config, items):

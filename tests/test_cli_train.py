@@ -26,28 +26,40 @@ RUN_OPTIONS = ("init_from", "material_gains", "eval_split", "export_steps", "min
                "train_scenes")
 
 
-@pytest.fixture
-def tiny_vgg(monkeypatch):
-    """The real VGG19 is 80 MB of weights: the command gets a tiny random one instead."""
-    tiny = vgg.init_vgg19(jax.random.key(0, impl="rbg"), widths=(4, 8, 8, 8, 8), num_convs=4,
+# The training runs of this file share one network and loss (`NET`), and the same VGG object
+# below: `train.cached_step` keys its compiled steps on the configuration (loop settings aside)
+# and the VGG object, so the file compiles one train step and one eval step, not one per test.
+NET = ["--width", "4", "--batch", "4", "--style-layers", "relu1_2", "--residual-base", "unsharp",
+       "--unsharp-sigma", "4"]
+
+
+@pytest.fixture(scope="module")
+def module_vgg():
+    return vgg.init_vgg19(jax.random.key(0, impl="rbg"), widths=(4, 8, 8, 8, 8), num_convs=4,
                           spec=vgg.VGGSpec("custom", "REFLECT"))
-    monkeypatch.setattr(vgg, "load_vgg19", lambda *a, **k: tiny)
-    return tiny
+
+
+@pytest.fixture
+def tiny_vgg(monkeypatch, module_vgg):
+    """The real VGG19 is 80 MB of weights: the command gets a tiny random one instead."""
+    monkeypatch.setattr(vgg, "load_vgg19", lambda *a, **k: module_vgg)
+    return module_vgg
 
 
 def test_train_enhancer_exports_a_model_file_that_load_enhancer_reads(
         tiny_patch_root, tmp_path, tiny_vgg, capsys):
     run, model = tmp_path / "run", tmp_path / "model.npz"
     args = ["train-enhancer", "--data", str(tiny_patch_root), "--out", str(run), "--steps", "2",
-            "--width", "4", "--batch", "4", "--style-layers", "relu1_2,relu2_1"]
+            *NET]
     assert cli.main([*args, "--export", str(model)]) == 0
     out = capsys.readouterr().out.strip().splitlines()
     assert json.loads(out[-1])["exported"] == str(model)
     assert json.loads("\n".join(out[:-1]))["step"] == 2  # the last metrics, then the export
     cfg, state = train.restore_run(run)
     # The shipped recipe, with the flags' changes only.
-    assert cfg.unet == dataclasses.replace(train.RECIPE.unet, width=4)
-    assert (cfg.steps, cfg.batch_size, cfg.style_layers) == (2, 4, ("relu1_2", "relu2_1"))
+    assert train.RECIPE.unet.residual_base == "unsharp"  # so only the width and sigma change
+    assert cfg.unet == dataclasses.replace(train.RECIPE.unet, width=4, unsharp_sigma=4.0)
+    assert (cfg.steps, cfg.batch_size, cfg.style_layers) == (2, 4, ("relu1_2",))
     assert cfg.w_c == train.RECIPE.w_c and cfg.relative_floor == train.RECIPE.relative_floor
     enh = wrinkle_jax.load_enhancer(model, conv_impl="im2col_f32")
     assert enh.config.unet == cfg.unet and enh.meta["steps"] == 2
@@ -116,9 +128,7 @@ def test_train_enhancer_run_options_reach_the_run(tiny_patch_root, tmp_path, tin
     warm-started from a 1-step run, with its own gains, on the one training scene, evaluated
     on the train split (the tiny set has no val split), exported as the average of two
     checkpoints."""
-    base = ["--data", str(tiny_patch_root), "--width", "4", "--batch", "4",
-            "--style-layers", "relu1_2", "--residual-base", "unsharp", "--unsharp-sigma", "4",
-            "--checkpoint-every", "1", "--eval-every", "2"]
+    base = ["--data", str(tiny_patch_root), *NET, "--checkpoint-every", "1", "--eval-every", "2"]
     donor = tmp_path / "donor"
     assert cli.main(["train-enhancer", "--out", str(donor), "--steps", "1", *base]) == 0
     capsys.readouterr()  # the donor's metrics

@@ -125,10 +125,15 @@ def test_discriminator_learns_to_tell_real_pairs_from_a_frozen_generator():
 def test_generator_exports_as_an_enhancer_that_reproduces_it(tmp_path):
     b = _batch(4)
     state = patchgan.create_gan_state(TINY, _key(5), SIZE)
-    leaves, tree = jax.tree_util.tree_flatten(state.g_params)
-    keys = jax.random.split(_key(6), len(leaves))
-    g = jax.tree_util.tree_unflatten(tree, [x + 0.05 * jax.random.normal(k, x.shape)
-                                            for x, k in zip(leaves, keys, strict=True)])
+
+    @jax.jit  # one program (op by op, each leaf shape compiled its own normal and add)
+    def perturb(g_params, key):
+        leaves, tree = jax.tree_util.tree_flatten(g_params)
+        keys = jax.random.split(key, len(leaves))
+        return jax.tree_util.tree_unflatten(tree, [x + 0.05 * jax.random.normal(k, x.shape)
+                                                   for x, k in zip(leaves, keys, strict=True)])
+
+    g = perturb(state.g_params, _key(6))
     cfg = TINY.enhancer_config(SIZE, 0.004, 0.03)
     assert cfg.materials == (patchgan.ANY_MATERIAL,)
     path = enhancer.save_enhancer(tmp_path / "gan.npz", g, cfg, dtype=np.float32)
@@ -189,8 +194,12 @@ def test_patchgan_script_trains_exports_and_scores(tmp_path, monkeypatch, tiny_p
         unet.UNetConfig(width=4, residual=True), patch_size=SIZE, texel_size=0.004))
     model_path = enhancer.save_enhancer(tmp_path / "model.npz", model.params, model.config)
     out = tmp_path / "out"
+    # The file's configuration (FAST), so the script's GAN step is the program the file has
+    # compiled already (the session's compilation cache holds it).
+    net = ["--width", "4", "--disc-width", "4", "--plain-unet", "--lr", "2e-3", "--batch", "4"]
+    assert script.config_from_args(script.build_parser().parse_args(net)) == FAST
     argv = ["--data", str(tiny_patch_root), "--run", str(tmp_path / "run"), "--out", str(out),
-            "--model", str(model_path), "--width", "4", "--disc-width", "4",
+            "--model", str(model_path), *net,
             "--train-scenes", "sheet", "--steps", "2", "--n", "4", "--n-seen", "4"]
     assert script.main(argv) == 0
     res = json.loads((out / "results.json").read_text())
@@ -203,3 +212,14 @@ def test_patchgan_script_trains_exports_and_scores(tmp_path, monkeypatch, tiny_p
     assert (out / "loss_curve.png").exists() and "patchgan" in (out / "table.md").read_text()
     assert script.main(argv[:-6] + ["--steps", "3", "--n", "4", "--n-seen", "4"]) == 0
     assert json.loads((out / "results.json").read_text())["steps"] == 3  # resumed, one more
+
+
+def test_patchgan_script_defaults_to_the_shipped_generator():
+    from experiments import patchgan as script
+
+    parse = script.build_parser().parse_args
+    assert script.config_from_args(parse([])) == patchgan.GANConfig()
+    got = script.config_from_args(parse(["--width", "4", "--disc-width", "8"]))
+    assert got == dataclasses.replace(
+        patchgan.GANConfig(), unet=dataclasses.replace(unet.RECIPE_UNET, width=4), disc_width=8)
+    assert got.unet.residual_base == "unsharp" and got.unet.residual_highpass > 0

@@ -374,6 +374,10 @@ def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.P
          "train_scenes_selected": None if train_scenes is None else list(train_scenes),
          "eval_split": eval_split, **_data_facts(train_set)}, indent=1))
 
+    # One placement for every start (fresh, warm-started or restored): the step returns its
+    # state replicated on the mesh, and a state placed otherwise is another input type to
+    # jit (its avals carry the mesh), so the step and the eval step would compile again.
+    state = jax.device_put(state, NamedSharding(mesh, P()))
     # Reused across calls (a resume compiles nothing new; see `cached_step`).
     step_fn = cached_step("train", config, vgg_params, mesh)
     eval_step = cached_step("eval", config, vgg_params)

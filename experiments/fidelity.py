@@ -53,14 +53,15 @@ from wrinkle_jax import (
     patches,
 )
 from wrinkle_jax.evaluation import cells as cell_lib
-from wrinkle_jax.evaluation import gram, patchsets, suite
+from wrinkle_jax.evaluation import energy, gram, patchsets, suite
 from wrinkle_jax.evaluation import methods as method_lib
 from wrinkle_jax.nn import vgg
 
 OUT = suite.RESULTS / "fidelity"
 SIGMA = detail.DEFAULT_SIGMA
 SWEEP = [(s, a) for s in (2.0, 4.0, 8.0, 16.0) for a in (0.5, 1.0, 2.0, 3.0)]
-ORACLES = ("oracle_detail", "oracle_downsampled", "oracle_next_frame")
+ORACLES = ("oracle_detail", "oracle_downsampled", "oracle_next_frame", "oracle_energy_gain")
+ENERGY_GAINS = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0)
 # + every model:
 OBJECT_SPACE = ("identity", "unsharp", "unsharp_card", "unsharp_material", "oracle_detail")
 BASELINES = ("unsharp", "unsharp_card", "unsharp_material")
@@ -411,8 +412,23 @@ def build_methods(args) -> tuple[dict, dict]:
             img = normalmap.to_rgb(patches.pad_to_patch(np.asarray(down), 128)[0])
             return patchsets.cut(np.asarray(img), p.origins, 128)
 
+        def oracle_energy_gain(p, e):
+            # Per patch, the unsharp gain whose 16-64 mm detail energy is closest to the
+            # fine target's (experiments.energy_oracle): the right AMOUNT of detail, known.
+            sigma = settings[p.material_id][0] if settings else s
+            outs = [np.asarray(evaluation.unsharp_mask(p.input, p.mask, sigma, g, order=1))
+                    for g in ENERGY_GAINS]
+            d_t, *d_o = detail.on_reference_branch_rgb(p.input, (p.target, *outs), p.mask,
+                                                       SIGMA)[1:]
+            level = evaluation.band_rms(np.asarray(d_t), p.mask)["16_64mm"]
+            bands = np.stack([evaluation.band_rms(np.asarray(d), p.mask)["16_64mm"]
+                              for d in d_o], 1)
+            pick = energy.matched_gain_choice(bands, level)
+            return np.stack(outs, 1)[np.arange(len(pick)), pick]
+
         methods.update({"oracle_detail": oracle_detail, "oracle_downsampled": oracle_down,
-                        "oracle_next_frame": lambda p, e: e["next"]})
+                        "oracle_next_frame": lambda p, e: e["next"],
+                        "oracle_energy_gain": oracle_energy_gain})
         sources.update({k: k for k in ORACLES})
     return methods, sources
 

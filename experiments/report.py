@@ -68,6 +68,8 @@ FIDELITY_METHODS = {
     "oracle_detail": "ceiling: coarse large scale + the fine patch's exact detail",
     "oracle_next_frame": "ceiling: the fine patch of the next frame",
     "oracle_downsampled": "D: fine map downsampled (fine large scale, no detail)",
+    "oracle_energy_gain": "ceiling of the amount: unsharp with the gain whose 16-64 mm energy "
+                          "matches the fine patch's",
     "detail_noise": "candidate, session 6: detail space + texel noise (not shipped)",
     "detail_bilinear": "candidate, session 7: + bilinear decoder, 4-texel noise (not shipped)",
     "detail_logratio": "candidate, session 9: per-material unsharp base, log-ratio style loss "
@@ -78,6 +80,8 @@ FIDELITY_METHODS = {
                              "training garments, chosen on the validation garment (not shipped)",
     "detail_bands_w3": "candidate, session 12: + band-energy loss (weight 3), chosen on the "
                        "validation garment (not shipped)",
+    "detail_garments9_s1590": "candidate, session 13: session 12's run warm-started on nine "
+                              "training scenes (not shipped)",
     "detail_bands_w10": "candidate, session 12: + band-energy loss (weight 10; not chosen, "
                         "not shipped)",
 }

@@ -21,6 +21,8 @@ coarse and fine simulations of each cell and scores, against the fine patch of t
   oracle_downsampled      the fine map downsampled as in the old training data (D): fine
                           large scale, no detail
   oracle_next_frame       the fine patch of the next frame (t + 1)
+  oracle_energy_gain      the unsharp mask at the gain (0-4) whose 16-64 mm detail energy is
+                          closest to the fine patch's: the ceiling of "the right amount"
 
 with the detail-only score (primary; `evaluation.score_patches(detail_sigma=...)`) and, for
 the non-oracle methods and oracle_detail, the paper's object-space score; plus the band RMS of

@@ -23,6 +23,7 @@ coarse and fine simulations of each cell and scores, against the fine patch of t
   oracle_next_frame       the fine patch of the next frame (t + 1)
   oracle_energy_gain      the unsharp mask at the gain (0-4) whose 16-64 mm detail energy is
                           closest to the fine patch's: the ceiling of "the right amount"
+  oracle_energy_gain_signed  the same with smoothing gains (-0.75 to -0.25) allowed too
 
 with the detail-only score (primary; `evaluation.score_patches(detail_sigma=...)`) and, for
 the non-oracle methods and oracle_detail, the paper's object-space score; plus the band RMS of
@@ -62,8 +63,10 @@ from wrinkle_jax.nn import vgg
 OUT = suite.RESULTS / "fidelity"
 SIGMA = detail.DEFAULT_SIGMA
 SWEEP = [(s, a) for s in (2.0, 4.0, 8.0, 16.0) for a in (0.5, 1.0, 2.0, 3.0)]
-ORACLES = ("oracle_detail", "oracle_downsampled", "oracle_next_frame", "oracle_energy_gain")
+ORACLES = ("oracle_detail", "oracle_downsampled", "oracle_next_frame", "oracle_energy_gain",
+           "oracle_energy_gain_signed")
 ENERGY_GAINS = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0)
+SMOOTHING_GAINS = (-0.75, -0.5, -0.25)  # amount < 0: n + a (n - blur n) moves n towards its blur
 # + every model:
 OBJECT_SPACE = ("identity", "unsharp", "unsharp_card", "unsharp_material", "oracle_detail")
 BASELINES = ("unsharp", "unsharp_card", "unsharp_material")
@@ -414,12 +417,12 @@ def build_methods(args) -> tuple[dict, dict]:
             img = normalmap.to_rgb(patches.pad_to_patch(np.asarray(down), 128)[0])
             return patchsets.cut(np.asarray(img), p.origins, 128)
 
-        def oracle_energy_gain(p, e):
+        def oracle_energy_gain(p, e, gains=ENERGY_GAINS):
             # Per patch, the unsharp gain whose 16-64 mm detail energy is closest to the
             # fine target's (experiments.energy_oracle): the right AMOUNT of detail, known.
             sigma = settings[p.material_id][0] if settings else s
             outs = [np.asarray(evaluation.unsharp_mask(p.input, p.mask, sigma, g, order=1))
-                    for g in ENERGY_GAINS]
+                    for g in gains]
             d_t, *d_o = detail.on_reference_branch_rgb(p.input, (p.target, *outs), p.mask,
                                                        SIGMA)[1:]
             level = evaluation.band_rms(np.asarray(d_t), p.mask)["16_64mm"]
@@ -430,7 +433,9 @@ def build_methods(args) -> tuple[dict, dict]:
 
         methods.update({"oracle_detail": oracle_detail, "oracle_downsampled": oracle_down,
                         "oracle_next_frame": lambda p, e: e["next"],
-                        "oracle_energy_gain": oracle_energy_gain})
+                        "oracle_energy_gain": oracle_energy_gain,
+                        "oracle_energy_gain_signed": lambda p, e: oracle_energy_gain(
+                            p, e, SMOOTHING_GAINS + ENERGY_GAINS)})
         sources.update({k: k for k in ORACLES})
     return methods, sources
 

@@ -70,6 +70,7 @@ FIDELITY_METHODS = {
     "oracle_downsampled": "D: fine map downsampled (fine large scale, no detail)",
     "oracle_energy_gain": "ceiling of the amount: unsharp with the gain whose 16-64 mm energy "
                           "matches the fine patch's",
+    "oracle_energy_gain_signed": "the same, smoothing gains (-0.75 to -0.25) allowed",
     "detail_noise": "candidate, session 6: detail space + texel noise (not shipped)",
     "detail_bilinear": "candidate, session 7: + bilinear decoder, 4-texel noise (not shipped)",
     "detail_logratio": "candidate, session 9: per-material unsharp base, log-ratio style loss "

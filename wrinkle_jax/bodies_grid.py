@@ -30,13 +30,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax.mesh_body import (
-    _ON_SURFACE,
     BodyError,
     BodyQuery,
     _closed_mesh_normals,
     closest_point_on_triangle,
+    feature_pseudo_normal,
+    signed_answer,
 )
-from wrinkle_jax.numerics import normalize, safe_norm
 
 _closest_point_jit = jax.jit(closest_point_on_triangle)
 
@@ -93,22 +93,12 @@ def grid_query(body: GridMeshBody, points) -> BodyQuery:
     k = jnp.argmin(d2, axis=1)
     rows = jnp.arange(points.shape[0])
     closest, reg, t = cp[rows, k], region[rows, k], cand[rows, k]
-    corner = jnp.clip(reg - 1, 0, 2)
-    edge_k = jnp.clip(reg - 4, 0, 2)
-    pseudo = jnp.where(
-        (reg == 0)[:, None], body.face_normals[t],
-        jnp.where(((reg >= 1) & (reg <= 3))[:, None],
-                  body.vertex_normals[body.faces[t, corner]],
-                  body.edge_normals[body.face_edges[t, edge_k]]))
-    v = points - closest
-    dist = safe_norm(v)
-    near_inside = jnp.sum(v * pseudo, -1) < 0
+    pseudo = feature_pseudo_normal(body.face_normals, body.vertex_normals, body.edge_normals,
+                                   body.faces, body.face_edges, t, reg)
+    near_inside = jnp.sum((points - closest) * pseudo, -1) < 0
     far = body.cell_far[flat] | outside_grid
     inside = jnp.where(far, body.cell_inside[flat] & ~outside_grid, near_inside)
-    sign = jnp.where(inside, -1.0, 1.0).astype(points.dtype)
-    on_surface = (dist <= _ON_SURFACE)[:, None]
-    normal = jnp.where(on_surface, normalize(pseudo), normalize(v) * sign[:, None])
-    return BodyQuery(sign * dist, closest, normal)
+    return signed_answer(points, closest, pseudo, inside)
 
 
 def _center_distances(c: np.ndarray, centroid: np.ndarray) -> np.ndarray:

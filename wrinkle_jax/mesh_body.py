@@ -537,21 +537,37 @@ def mesh_query(body: MeshBody, points) -> BodyQuery:
         return todo.at[idx].set(False, mode="drop"), best
 
     best = jax.lax.while_loop(lambda s: jnp.any(s[0]), round_, (~exact, best))[1]
-    # Sign and normal from the angle-weighted pseudo-normal of the nearest feature.
-    tri, reg = best.tri, best.region
-    corner = jnp.clip(reg - 1, 0, 2)
-    edge_k = jnp.clip(reg - 4, 0, 2)
-    pseudo = jnp.where(
-        (reg == 0)[:, None], body.face_normals[tri],
-        jnp.where(((reg >= 1) & (reg <= 3))[:, None],
-                  body.vertex_normals[t.faces[tri, corner]],
-                  body.edge_normals[t.face_edges[tri, edge_k]]))
-    v = points - best.closest
+    pseudo = feature_pseudo_normal(body.face_normals, body.vertex_normals, body.edge_normals,
+                                   t.faces, t.face_edges, best.tri, best.region)
+    return signed_answer(points, best.closest, pseudo)
+
+
+def feature_pseudo_normal(face_normals, vertex_normals, edge_normals, faces, face_edges, tri,
+                          region):
+    """(N, 3) angle-weighted pseudo-normal of the nearest feature: triangle `tri` (N,)'s face,
+    corner or edge by `region` (N,) of `closest_point_on_triangle` (0 face, 1-3 corners,
+    4-6 edges). The sign of (p - closest) . pseudo is the inside test (Baerentzen & Aanaes)."""
+    corner = jnp.clip(region - 1, 0, 2)
+    edge_k = jnp.clip(region - 4, 0, 2)
+    return jnp.where(
+        (region == 0)[:, None], face_normals[tri],
+        jnp.where(((region >= 1) & (region <= 3))[:, None],
+                  vertex_normals[faces[tri, corner]],
+                  edge_normals[face_edges[tri, edge_k]]))
+
+
+def signed_answer(points, closest, pseudo, inside=None) -> BodyQuery:
+    """The `BodyQuery` of points (N, 3) with nearest surface points `closest` (N, 3) and the
+    nearest feature's pseudo-normal (N, 3): inside where (p - closest) . pseudo < 0 unless
+    `inside` (N,) bool is given; on the surface the normal is the pseudo-normal."""
+    v = points - closest
     dist = safe_norm(v)
-    sign = jnp.where(jnp.sum(v * pseudo, -1) < 0, -1.0, 1.0).astype(points.dtype)
+    if inside is None:
+        inside = jnp.sum(v * pseudo, -1) < 0
+    sign = jnp.where(inside, -1.0, 1.0).astype(points.dtype)
     on_surface = (dist <= _ON_SURFACE)[:, None]
     normal = jnp.where(on_surface, normalize(pseudo), normalize(v) * sign[:, None])
-    return BodyQuery(sign * dist, best.closest, normal)
+    return BodyQuery(sign * dist, closest, normal)
 
 
 def mesh_query_stats(body: MeshBody, points) -> dict:

@@ -10,7 +10,7 @@ import numpy as np
 
 from wrinkle_jax.detail import BAND_SIGMAS
 
-__all__ = ["BAND_SIGMAS", "band_rms", "checker_rms"]
+__all__ = ["BAND_SIGMAS", "band_pass", "band_rms", "checker_rms"]
 
 
 def _masked_gauss(x, m, sigma):
@@ -20,6 +20,12 @@ def _masked_gauss(x, m, sigma):
     num = cv2.GaussianBlur(x * m[..., None], (k, k), sigma, borderType=cv2.BORDER_CONSTANT)
     den = cv2.GaussianBlur(m, (k, k), sigma, borderType=cv2.BORDER_CONSTANT)
     return num / np.maximum(den, 1e-8)[..., None]
+
+
+def band_pass(x, m, inner: float, outer: float) -> np.ndarray:
+    """G_inner(x) - G_outer(x) of one map (H, W, C) under its mask (H, W): masked normalized
+    Gaussians of radii `inner` and `outer` texels (inner 0 = x itself). float64."""
+    return _masked_gauss(x, m, inner) - _masked_gauss(x, m, outer)
 
 
 def band_rms(detail_rgb, mask, bands=BAND_SIGMAS) -> dict[str, np.ndarray]:
@@ -40,7 +46,7 @@ def band_rms(detail_rgb, mask, bands=BAND_SIGMAS) -> dict[str, np.ndarray]:
     for i in range(len(x)):
         inner = cv2.erode(m[i], np.ones((13, 13), np.uint8)) > 0
         for name, (a, b) in bands.items():
-            band = _masked_gauss(x[i], m[i], a) - _masked_gauss(x[i], m[i], b)
+            band = band_pass(x[i], m[i], a, b)
             out[name][i] = np.sqrt(np.mean(np.sum(band[inner] ** 2, -1))) if inner.any() else 0
     return out
 

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from wrinkle_jax.detail import BAND_SIGMAS
+from wrinkle_jax.evaluation.bands import band_pass
 from wrinkle_jax.mesh import Garment
 
 __all__ = ["face_values_to_texels", "local_band_energy", "masked_smooth",
@@ -54,13 +55,8 @@ def local_band_energy(detail_rgb, mask, band: str = "16_64mm", smooth: float = 1
     """
     x = np.asarray(detail_rgb, np.float64)[..., :2] * 2.0 - 1.0
     m = np.asarray(mask, np.float64)[..., 0]
-    inner, outer = BAND_SIGMAS[band]
-    resp = [masked_smooth(x[..., c], m, outer) for c in range(2)]
-    if inner > 0:
-        resp = [masked_smooth(x[..., c], m, inner) - r for c, r in enumerate(resp)]
-    else:
-        resp = [x[..., c] - r for c, r in enumerate(resp)]
-    return masked_smooth(resp[0] ** 2 + resp[1] ** 2, m, smooth)
+    resp = band_pass(x, m, *BAND_SIGMAS[band])
+    return masked_smooth(np.sum(resp ** 2, -1), m, smooth)
 
 
 def principal_stretches(vertices, garment: Garment) -> np.ndarray:

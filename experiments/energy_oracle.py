@@ -31,6 +31,7 @@ import numpy as np
 
 from wrinkle_jax import MATERIALS, data, detail, evaluation, meshio
 from wrinkle_jax.evaluation import energy, gram, patchsets, suite
+from wrinkle_jax.evaluation import methods as method_lib
 from wrinkle_jax.nn import vgg
 
 OUT = suite.RESULTS / "fidelity"
@@ -86,27 +87,22 @@ def fit_energy(args) -> np.ndarray:
 
 def gains(args, vgg_params) -> dict:
     coef = fit_energy(args)
-    best = json.loads((OUT / "unsharp_sweep_material.json").read_text())["best"]
-    mat_gain = {MATERIALS.index(m): float(dict(q.split("=") for q in k.split(","))["amount"])
-                for m, k in best.items()}
+    mat_gain = {m: amount for m, (_, amount) in method_lib.material_unsharp_settings().items()}
     ds = data.PatchDataset(args.data, args.split)
     scores, band_out, b_tgt, b_in, mats = [], [], [], {"16_64mm": [], "lt16mm": []}, []
     t0 = time.perf_counter()
     for mid, pick in _picks(ds, args.patches).items():
         b = ds.get(pick)
-        outs = {f"gain={g:g}": np.asarray(evaluation.unsharp_mask(
-            b["input"], b["mask"], UNSHARP_SIGMA, g, order=1), np.float32) * b["mask"]
-            for g in GAINS}
-        d_in, d_tgt, *d_outs = (np.asarray(x) for x in detail.on_reference_branch_rgb(
-            b["input"], (b["target"], *outs.values()), b["mask"], SIGMA))
+        sw = energy.gain_sweep(b["input"], b["target"], b["mask"], UNSHARP_SIGMA, GAINS, SIGMA)
+        d_in, d_tgt, *d_outs = sw["details"]
+        names = [f"gain={g:g}" for g in GAINS]
         losses = gram.method_losses(vgg_params, d_in, d_tgt, b["mask"],
-                                  dict(zip(outs, d_outs, strict=True)))
-        sc = [evaluation.scores_from_losses(losses["input"], losses[k]) for k in outs]
+                                  dict(zip(names, d_outs, strict=True)))
+        sc = [evaluation.scores_from_losses(losses["input"], losses[k]) for k in names]
         scores.append(np.stack([np.where(s["valid"], s["improvement_signed"], np.nan)
                                 for s in sc], 1))
-        band_out.append(np.stack([evaluation.band_rms(d, b["mask"])["16_64mm"]
-                                  for d in d_outs], 1))
-        b_tgt.append(evaluation.band_rms(d_tgt, b["mask"])["16_64mm"])
+        band_out.append(sw["band_out"])
+        b_tgt.append(sw["band_target"])
         for k, v in evaluation.band_rms(d_in, b["mask"]).items():
             b_in[k].append(v)
         mats.append(np.full(len(pick), mid))

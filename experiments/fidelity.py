@@ -140,13 +140,7 @@ def sweep_per_material(args, vgg_params) -> dict:
 def material_settings() -> dict[int, tuple[float, float]]:
     """Per-material (sigma, amount) of the val sweep (unsharp_sweep_material.json), by
     material id; empty when the sweep has not been run."""
-    per_mat = OUT / "unsharp_sweep_material.json"
-    if not per_mat.exists():
-        return {}
-    best = json.loads(per_mat.read_text())["best"]
-    return {MATERIALS.index(m): tuple(float(dict(q.split("=") for q in k.split(","))[x])
-                                      for x in ("sigma", "amount"))
-            for m, k in best.items()}
+    return method_lib.material_unsharp_settings(OUT / "unsharp_sweep_material.json")
 
 
 def load_model(spec: str) -> enhancer.Enhancer:
@@ -421,15 +415,9 @@ def build_methods(args) -> tuple[dict, dict]:
             # Per patch, the unsharp gain whose 16-64 mm detail energy is closest to the
             # fine target's (experiments.energy_oracle): the right AMOUNT of detail, known.
             sigma = settings[p.material_id][0] if settings else s
-            outs = [np.asarray(evaluation.unsharp_mask(p.input, p.mask, sigma, g, order=1))
-                    for g in gains]
-            d_t, *d_o = detail.on_reference_branch_rgb(p.input, (p.target, *outs), p.mask,
-                                                       SIGMA)[1:]
-            level = evaluation.band_rms(np.asarray(d_t), p.mask)["16_64mm"]
-            bands = np.stack([evaluation.band_rms(np.asarray(d), p.mask)["16_64mm"]
-                              for d in d_o], 1)
-            pick = energy.matched_gain_choice(bands, level)
-            return np.stack(outs, 1)[np.arange(len(pick)), pick]
+            sw = energy.gain_sweep(p.input, p.target, p.mask, sigma, gains, SIGMA)
+            pick = energy.matched_gain_choice(sw["band_out"], sw["band_target"])
+            return np.stack(sw["outputs"], 1)[np.arange(len(pick)), pick]
 
         methods.update({"oracle_detail": oracle_detail, "oracle_downsampled": oracle_down,
                         "oracle_next_frame": lambda p, e: e["next"],

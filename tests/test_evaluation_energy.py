@@ -96,3 +96,19 @@ def test_masked_smooth_keeps_constants_and_ignores_outside(sigma):
     x[mask == 0] = 100.0  # must not leak in
     out = energy.masked_smooth(x, mask, sigma)
     np.testing.assert_allclose(out[mask > 0], 3.0, rtol=1e-9)
+
+
+def test_gain_sweep_gain_zero_is_the_input_and_energy_grows_with_gain():
+    rgb, mask = _wave(16.0, 0.05, size=64)
+    rgb, mask = rgb[None].astype(np.float32), mask[None].astype(np.float32)
+    target, _ = _wave(16.0, 0.15, size=64)
+    sw = energy.gain_sweep(rgb, target[None].astype(np.float32), mask, 8.0, (0.0, 1.0, 2.0),
+                           8.0)
+    np.testing.assert_allclose(sw["outputs"][0], rgb, atol=1e-6)
+    b = sw["band_out"][0]
+    assert b.shape == (3,) and b[0] < b[1] < b[2]
+    # The target's wave is 3x the input's: its band energy is above every output's but the
+    # largest, and the matched choice is the strongest gain.
+    assert sw["band_target"][0] > b[1]
+    assert energy.matched_gain_choice(sw["band_out"], sw["band_target"])[0] == 2
+    assert len(sw["details"]) == 2 + 3

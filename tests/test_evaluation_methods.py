@@ -72,3 +72,18 @@ def test_wrong_material_swaps_the_table_materials_and_the_method_tells_the_model
     np.testing.assert_allclose(wrong, right(dataclasses.replace(ps, material_id=denim)),
                                atol=1e-6)
     assert np.abs(wrong - right(ps)).max() > 1e-3
+
+
+def test_material_unsharp_settings_reads_the_sweep_and_is_empty_without_it(tmp_path):
+    import json
+
+    from wrinkle_jax import MATERIALS
+    from wrinkle_jax.evaluation import methods as method_lib
+
+    p = tmp_path / "sweep.json"
+    assert method_lib.material_unsharp_settings(p) == {}
+    p.write_text(json.dumps({"best": {"denim_light": "sigma=16,amount=0.5",
+                                      "silk_charmeuse": "amount=2,sigma=8"}}))
+    got = method_lib.material_unsharp_settings(p)
+    assert got == {MATERIALS.index("denim_light"): (16.0, 0.5),
+                   MATERIALS.index("silk_charmeuse"): (8.0, 2.0)}

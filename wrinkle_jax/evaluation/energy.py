@@ -22,11 +22,13 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from wrinkle_jax import detail
 from wrinkle_jax.detail import BAND_SIGMAS
-from wrinkle_jax.evaluation.bands import band_pass
+from wrinkle_jax.evaluation.bands import band_pass, band_rms
+from wrinkle_jax.evaluation.baselines import unsharp_mask
 from wrinkle_jax.mesh import Garment
 
-__all__ = ["face_values_to_texels", "local_band_energy", "masked_smooth",
+__all__ = ["face_values_to_texels", "gain_sweep", "local_band_energy", "masked_smooth",
            "matched_gain_choice", "principal_stretches"]
 
 
@@ -95,3 +97,24 @@ def matched_gain_choice(band_out, level) -> np.ndarray:
     b = np.log(np.maximum(np.asarray(band_out, np.float64), 1e-9))
     t = np.log(np.maximum(np.asarray(level, np.float64), 1e-9))
     return np.abs(b - t[:, None]).argmin(1)
+
+
+def gain_sweep(inp, target, mask, sigma: float, gains, detail_sigma: float,
+               band: str = "16_64mm") -> dict:
+    """The order-1 unsharp mask of patches at several gains, with what matching needs.
+
+    Args:
+      inp, target: (N, S, S, 3) RGB-form patches; mask (N, S, S, 1). sigma: the unsharp
+        blur radius (texels); gains: G amounts (< 0 smooths); detail_sigma: the detail
+        representation's low-pass radius (`detail.on_reference_branch_rgb`, branch from
+        the input).
+    Returns:
+      {"outputs": G arrays (N, S, S, 3), "details": (input, target, *outputs) detail maps,
+       "band_out": (N, G) and "band_target": (N,) band RMS of those details in `band`}.
+    """
+    outs = [np.asarray(unsharp_mask(inp, mask, sigma, g, order=1), np.float32) for g in gains]
+    details = tuple(np.asarray(x) for x in detail.on_reference_branch_rgb(
+        inp, (target, *outs), mask, detail_sigma))
+    return {"outputs": outs, "details": details,
+            "band_out": np.stack([band_rms(d, mask)[band] for d in details[2:]], 1),
+            "band_target": band_rms(details[1], mask)[band]}

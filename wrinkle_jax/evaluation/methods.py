@@ -20,10 +20,11 @@ from wrinkle_jax import enhancer as enhancer_lib
 from wrinkle_jax.evaluation import baselines
 from wrinkle_jax.evaluation.cells import TABLE_MATERIALS
 from wrinkle_jax.evaluation.patchsets import PatchSet
-from wrinkle_jax.evaluation.suite import MODEL_CARD_RESULTS, file_digest, portable_path
+from wrinkle_jax.evaluation.suite import MODEL_CARD_RESULTS, RESULTS, file_digest, portable_path
 
-__all__ = ["DEFAULT_UNSHARP", "baseline_methods", "enhancer_method", "model_methods",
-           "run_model", "unsharp_setting", "wrong_material"]
+__all__ = ["DEFAULT_UNSHARP", "MATERIAL_SWEEP_RESULTS", "baseline_methods", "enhancer_method",
+           "material_unsharp_settings", "model_methods", "run_model", "unsharp_setting",
+           "wrong_material"]
 
 # Unsharp masking when no sweep result exists (the model card's sweep best on training patches).
 DEFAULT_UNSHARP = (8.0, 1.0)
@@ -47,6 +48,24 @@ def unsharp_setting(path: Path = MODEL_CARD_RESULTS, order: int = 1
         s, a = DEFAULT_UNSHARP
         return s, a, (f"default order={order},sigma={s:g},amount={a:g} "
                       f"(no sweep in {portable_path(path)})")
+
+
+# The per-material unsharp sweep on the val split (`python -m experiments.fidelity
+# sweep-material`): the base every material-conditioned model is paired against.
+MATERIAL_SWEEP_RESULTS = RESULTS / "fidelity" / "unsharp_sweep_material.json"
+
+
+def material_unsharp_settings(path: Path = MATERIAL_SWEEP_RESULTS
+                              ) -> dict[int, tuple[float, float]]:
+    """Per-material (sigma texels, amount) of the val sweep's best entries, by material id;
+    empty when the sweep has not been run."""
+    path = Path(path)
+    if not path.exists():
+        return {}
+    best = json.loads(path.read_text())["best"]
+    return {MATERIALS.index(m): tuple(float(dict(q.split("=") for q in k.split(","))[x])
+                                      for x in ("sigma", "amount"))
+            for m, k in best.items()}
 
 
 def enhancer_method(enh: enhancer_lib.Enhancer, batch_size: int = 16,

@@ -131,3 +131,28 @@ def test_parse_time_defaults_behave_as_argparse_defaults():
     got = recipe.config_from_args(ap.parse_args(["--batch", "2"]))  # --batch: --batch-size
     assert (got.unet.width, got.unet.upsample, got.batch_size) == (24, "nearest", 2)
     assert ap.parse_args(["--width", "8"]).width == 8
+
+
+def test_init_from_a_narrower_run_widens_it_and_refuses_other_differences():
+    import jax
+    import numpy as np
+
+    from wrinkle_jax.nn.widen import widen_params
+
+    base = train.TrainConfig(unet=unet.UNetConfig(width=2, residual=True))
+    wide = dataclasses.replace(base, unet=dataclasses.replace(base.unet, width=4))
+    old = train.create_train_state(base, jax.random.key(0, impl="rbg"), 16).params
+    other = dataclasses.replace(wide, unet=dataclasses.replace(wide.unet, residual=False))
+    with pytest.raises(recipe.RecipeError, match="more than"):
+        recipe._widened(old, base, other, 16, print)
+    with pytest.raises(recipe.RecipeError, match="more than"):  # narrowing
+        recipe._widened(old, wide, base, 16, print)
+    logged = []
+    got = recipe._widened(old, base, wide, 16, logged.append)
+    fresh = train.create_train_state(wide, jax.random.key(wide.seed, impl="rbg"), 16).params
+    want = widen_params(old, fresh)
+    for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want),
+                    strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert np.asarray(got["enc1"]["kernel"]).shape[-1] == 4
+    assert '"widened_from": 2' in logged[0]

@@ -227,7 +227,11 @@ def initial_params(cfg: train.TrainConfig, run: Path, data_root: Path,
                               "unsharp sigma/blur order differ from the flags")
         init = shipped.params
     if init_from:
-        init = train.restore_run(init_from)[1].params
+        old_cfg, state = train.restore_run(init_from)
+        init = state.params
+        if old_cfg.unet.width != cfg.unet.width:
+            from wrinkle_jax import data
+            init = _widened(init, old_cfg, cfg, data.PatchDataset(data_root).patch_size, log)
     if gains:
         if cfg.unet.residual_base != "unsharp":
             raise RecipeError("--material-gains needs --residual-base unsharp")
@@ -263,6 +267,24 @@ def train_from_args(cfg: train.TrainConfig, args: argparse.Namespace, data_root:
                        time_limit_s=None if args.minutes is None else 60 * args.minutes,
                        init_params=init, train_scenes=train_scenes(args),
                        eval_split=args.eval_split)
+
+
+def _widened(params, old_cfg, cfg, patch_size: int, log: Callable[[str], Any]):
+    """`--init-from` a narrower run: its network embedded in `cfg`'s width, computing the
+    same function (`nn.widen.widen_params`); any other architecture difference is an error."""
+    import jax
+
+    from wrinkle_jax import train
+    from wrinkle_jax.nn.widen import widen_params
+
+    if (old_cfg.unet.width > cfg.unet.width
+            or dataclasses.replace(old_cfg.unet, width=cfg.unet.width) != cfg.unet):
+        raise RecipeError("--init-from: the run's network differs from the flags in more than "
+                          f"a wider --width ({old_cfg.unet} vs {cfg.unet})")
+    fresh = train.create_train_state(cfg, jax.random.key(cfg.seed, impl="rbg"),
+                                     patch_size).params
+    log(json.dumps({"widened_from": old_cfg.unet.width, "width": cfg.unet.width}))
+    return widen_params(params, fresh)
 
 
 def material_gains(spec: str, sigma: float,

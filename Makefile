@@ -45,7 +45,7 @@ report: venv
 	$(PY) -m experiments.report
 
 lint: venv
-	$(VENV)/bin/ruff check wrinkle_jax tests benchmarks experiments
+	$(VENV)/bin/ruff check wrinkle_jax tests benchmarks experiments notebooks
 
 clean:
 	rm -rf $(VENV) outputs .pytest_cache .ruff_cache

@@ -115,7 +115,8 @@ def _add_frames_out(p) -> None:
 
 # The help lines of the sub-commands registered by other modules (sim/command.py,
 # classifier/cli.py), for their placeholders in a parser built for another sub-command. They
-# must match what those modules register (the top-level help is the same either way).
+# must match what those modules register (the top-level help is the same either way;
+# tests/test_cli_help.py compares the light parser's help with the full parser's).
 _OTHER_HELP = {
     "simulate": "simulate a cloth scene into an .npz sequence",
     "train-classifier": "train the material classifier on simulated sequences",

@@ -73,6 +73,11 @@ class Pattern:
       seams: tuple of Seam.
       drape: f(panel_index, local (N, 2) float64) -> (N, 3) float64 initial positions.
       landmarks: {name: tuple of (panel name, side index)} (e.g. "waist", "hem").
+      pin_targets: {landmark name: f(initial (P, 3) float64) -> (P, 3) float64}: where a
+        scene that pins this landmark attaches its vertices, in the rest pose of the body
+        frame it follows (meters; e.g. a skirt's waist closes onto the waistband ellipse).
+        A landmark not listed is pinned where `drape` put it. The pattern carries this, not
+        the scene, so every garment a pattern function builds is pinned the same way.
     """
 
     name: str
@@ -80,6 +85,7 @@ class Pattern:
     seams: tuple
     drape: Callable
     landmarks: dict
+    pin_targets: dict = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -10,7 +10,9 @@ flare), `circle_skirt` (6 gores, 288-degree flare, knee length), `pleated_skirt`
 seams) and `cape` (a 252-degree circular cape fastened at the neck); hanging panels pinned
 along their top edge: `shawl` (down the back from the shoulders), `long_shawl` (1.0 x 1.1 m,
 down to the calves) and `apron` (in front of the legs from the waist), and validation-only
-`tabard` (in front, from the shoulders). Coordinates: z up, the mannequin faces +y.
+`tabard` (in front, from the shoulders). Coordinates: z up, the mannequin faces +y. Each
+pattern says where a scene's pins attach its landmarks (`Pattern.pin_targets`: skirt waists
+onto the waistband, the cape's neck onto a ring; other landmarks stay in place).
 """
 
 from __future__ import annotations
@@ -45,6 +47,14 @@ from wrinkle_jax.sim.pattern_mesh import (  # noqa: F401
 
 WAIST_Z = 1.03          # meters: skirt waistband height on the mannequin
 WAIST_RADII = (0.152, 0.132)  # ellipse half-axes (x, y) of the waistband, meters
+
+
+def waist_ring_targets(initial: np.ndarray) -> np.ndarray:
+    """Waistband targets of a skirt's waist vertices: each at its own azimuth on the waist
+    ellipse (`WAIST_RADII`) at height `WAIST_Z`. initial (P, 3) -> (P, 3) meters."""
+    rx, ry = WAIST_RADII
+    ang = np.arctan2(initial[:, 1], initial[:, 0])
+    return np.stack([rx * np.cos(ang), ry * np.sin(ang), np.full(len(initial), WAIST_Z)], 1)
 
 
 def ellipse_perimeter(a: float, b: float) -> float:
@@ -149,7 +159,8 @@ def flared_skirt_pattern(length: float = 0.8, flare: float = math.pi, gores: int
 
     return Pattern(name, panels, seams, drape,
                    {"waist": tuple((f"gore{i}", 2) for i in range(gores)),
-                    "hem": tuple((f"gore{i}", 0) for i in range(gores))})
+                    "hem": tuple((f"gore{i}", 0) for i in range(gores))},
+                   pin_targets={"waist": waist_ring_targets})
 
 
 def wavy_ring(length: float, radius: float, waves: int, rx_scale=1.0, ry_scale=1.0,
@@ -204,9 +215,14 @@ def pleated_skirt_pattern(width: float = 1.8, length: float = 0.6, panels: int =
         xy = ring(i * pw + p[:, 0])
         return np.concatenate([xy, (WAIST_Z - length + p[:, 1])[:, None]], 1)
 
+    def waist_targets(initial):
+        xy = pleated_waist_targets(initial[:, :2], width, pleats)
+        return np.concatenate([xy, np.full((len(initial), 1), WAIST_Z)], 1)
+
     return Pattern("pleated_skirt", ps, seams, drape,
                    {"waist": tuple((f"panel{i}", 2) for i in range(panels)),
-                    "hem": tuple((f"panel{i}", 0) for i in range(panels))})
+                    "hem": tuple((f"panel{i}", 0) for i in range(panels))},
+                   pin_targets={"waist": waist_targets})
 
 
 def pleated_waist_targets(initial_xy: np.ndarray, width: float = 1.8, pleats: int = 16):
@@ -288,7 +304,12 @@ def cape_pattern(length: float = 0.55, angle: float = 1.4 * math.pi, z: float = 
     def drape(_, p):
         return np.stack([p[:, 0], p[:, 1], np.full(len(p), z)], 1)
 
-    return Pattern("cape", panels, (), drape, {"neck": (("cape", 2),), "hem": (("cape", 0),)})
+    def neck_targets(initial):
+        xy = cape_neck_targets(initial[:, :2], angle)
+        return np.concatenate([xy, np.full((len(initial), 1), CAPE_NECK_Z)], 1)
+
+    return Pattern("cape", panels, (), drape, {"neck": (("cape", 2),), "hem": (("cape", 0),)},
+                   pin_targets={"neck": neck_targets})
 
 
 def cape_neck_targets(initial_xy: np.ndarray, angle: float = 1.4 * math.pi) -> np.ndarray:

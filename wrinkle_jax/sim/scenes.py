@@ -71,7 +71,8 @@ class SceneConfig:
       name: scene id.
       garment: key of `patterns.GARMENTS`.
       motion: mannequin motion (`mannequin.MOTIONS`), or None for no body.
-      pins: "rings" (sheet), or a pattern landmark ("waist", "shoulders", "neck").
+      pins: "rings" (sheet), or a pattern landmark ("waist", "shoulders", "neck"); where its
+        vertices attach is the pattern's `pin_targets` (in place if it has none).
       attach_to: mannequin frame the pins follow ("pelvis", "chest") or None (static).
       balls: number of moving balls (0 = none; the solver then traces no sphere code).
       wind: WindSpec or None (still air; air drag is always on).
@@ -228,19 +229,11 @@ def _pins(scene: SceneConfig, pattern, mesh, frames, n_pre: int, attach_frames: 
         return pins, np.broadcast_to(x0[pins], (n,) + x0[pins].shape).astype(np.float32)
     pins = mesh.landmark_vertices(pattern, scene.pins)
     p0 = x0[pins]
-    if scene.garment in ("flared_skirt", "circle_skirt"):
-        rx, ry = patterns.WAIST_RADII
-        ang = np.arctan2(p0[:, 1], p0[:, 0])
-        target = np.stack([rx * np.cos(ang), ry * np.sin(ang), np.full(len(p0), patterns.WAIST_Z)],
-                          1)
-    elif scene.garment == "pleated_skirt":
-        xy = patterns.pleated_waist_targets(p0[:, :2])
-        target = np.concatenate([xy, np.full((len(p0), 1), patterns.WAIST_Z)], 1)
-    elif scene.garment == "cape":
-        xy = patterns.cape_neck_targets(p0[:, :2])
-        target = np.concatenate([xy, np.full((len(p0), 1), patterns.CAPE_NECK_Z)], 1)
-    else:  # dress shoulders, panel tops: stay where the pattern put them
-        target = p0
+    # The pattern says where its landmark attaches (skirt waists close onto the waistband,
+    # the cape's inner arc onto a ring around the neck); others (dress shoulders, panel
+    # tops) stay where the drape put them.
+    to_target = pattern.pin_targets.get(scene.pins)
+    target = p0 if to_target is None else to_target(p0)
     body_frames = frames[scene.attach_to]
     local = to_local(target, body_frames[0])
     world = attach_rigid(local, body_frames)

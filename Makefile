@@ -24,8 +24,15 @@ test: venv
 demo: venv
 	$(PY) -m wrinkle_jax.cli demo --out outputs/demo
 
+# bench_reference.py times the authors' PyTorch code beside ours: it runs only with
+# AUTHORS_REPO=PATH (their public repository) and torch installed (pip install -e .[reference]).
 bench: venv
-	@for f in benchmarks/bench_*.py; do echo "== $$f"; $(PY) $$f || exit 1; done
+	@for f in benchmarks/bench_*.py; do \
+	  if [ "$$f" = benchmarks/bench_reference.py ]; then \
+	    if [ -z "$(AUTHORS_REPO)" ]; then \
+	      echo "== $$f skipped (needs AUTHORS_REPO=PATH and torch)"; continue; fi; \
+	    echo "== $$f"; $(PY) $$f --authors-repo "$(AUTHORS_REPO)" || exit 1; continue; fi; \
+	  echo "== $$f"; $(PY) $$f || exit 1; done
 
 # The evaluation suite on the shipped model (hours on 2 cores; each step resumes or reuses
 # what is stored), then experiments/results/REPORT.md. The PatchGAN and sheet-only rows need

@@ -49,3 +49,20 @@ def test_method_losses_equal_score_patches_and_share_the_input_and_target_passes
     assert ident["valid"].all()
     np.testing.assert_array_equal(ident["improvement"], 0.0)
     np.testing.assert_allclose(oracle["improvement_signed"], 100.0, atol=1e-3)
+
+
+def test_pairwise_losses_equal_method_losses_for_every_pair(tiny_vgg):
+    a, mask = _rgb_patches(3, detail=0.2)
+    b, _ = _rgb_patches(4, seed=3, detail=0.5)
+    mb = np.resize(mask, (4, *mask.shape[1:]))
+    ga = gram.flat_grams(tiny_vgg, a, mask, batch_size=2)
+    gb = gram.flat_grams(tiny_vgg, b, mb, batch_size=2)
+    d = gram.pairwise_losses(ga, gb)
+    assert d.shape == (3, 4)
+    for j in range(4):  # column j: every a against target b[j]
+        tgt = np.repeat(b[j:j + 1], 3, 0)
+        ref = gram.method_losses(tiny_vgg, a, tgt, mask, {"a": a}, batch_size=2)["input"]
+        np.testing.assert_allclose(d[:, j], ref, rtol=1e-4, atol=1e-6 * ref.max())
+    # self-distances vanish up to the float32 cancellation of |a|^2 + |a|^2 - 2 a.a
+    np.testing.assert_allclose(np.diag(gram.pairwise_losses(ga, ga)), 0.0,
+                               atol=1e-5 * d.max())

@@ -17,7 +17,7 @@ from wrinkle_jax.evaluation.scores import EVAL_LAYERS
 from wrinkle_jax.evaluation.sets import upper_triangle
 from wrinkle_jax.nn import losses, vgg
 
-__all__ = ["gram_matrices", "method_losses", "set_features"]
+__all__ = ["flat_grams", "gram_matrices", "method_losses", "pairwise_losses", "set_features"]
 
 
 @functools.lru_cache(maxsize=8)
@@ -109,3 +109,39 @@ def set_features(vgg_params, images, mask, batch_size: int, counter: dict | None
         for name, v in upper_triangle({kk: np.asarray(g)[:k] for kk, g in grams.items()}).items():
             parts.setdefault(name, []).append(v)
     return {name: np.concatenate(v) for name, v in parts.items()}
+
+
+def flat_grams(vgg_params, images, mask, batch_size: int = 16, layers=EVAL_LAYERS
+               ) -> dict[str, np.ndarray]:
+    """Flattened normalized masked Grams of (N, S, S, 3) RGB-form images with (N, S, S, 1)
+    masks: layer -> (N, C_l * C_l) float32 (fixed batch shape, the last batch padded). The
+    rows feed `pairwise_losses`."""
+    parts: dict[str, list] = {name: [] for name in layers}
+    n = len(images)
+    for s in range(0, n, batch_size):
+        k = min(batch_size, n - s)
+        idx = np.resize(np.arange(s, s + k), batch_size)
+        grams = gram_matrices(vgg_params, np.asarray(images)[idx], np.asarray(mask)[idx], layers)
+        for name in layers:
+            parts[name].append(np.asarray(grams[name])[:k].reshape(k, -1))
+    return {name: np.concatenate(v) if v else np.zeros((0, 0), np.float32)
+            for name, v in parts.items()}
+
+
+def pairwise_losses(grams_a: dict[str, np.ndarray], grams_b: dict[str, np.ndarray]
+                    ) -> np.ndarray:
+    """(Na, Nb) style losses between every row of two `flat_grams` sets: entry (i, j) is the
+    loss `method_losses` would give for image i against target j (unit layer weights,
+    ||G_a - G_b||_F^2 / 4 summed over layers), from ||a||^2 + ||b||^2 - 2 a.b. Both sets are
+    first centred on b's mean row (distances do not change; Grams share a large common part,
+    whose cancellation would otherwise cost float32 digits); norms accumulate in float64;
+    clipped at 0 against rounding."""
+    total = 0.0
+    for name in sorted(grams_a):
+        centre = np.mean(np.asarray(grams_b[name], np.float64), axis=0)
+        a = (np.asarray(grams_a[name], np.float64) - centre).astype(np.float32)
+        b = (np.asarray(grams_b[name], np.float64) - centre).astype(np.float32)
+        na = np.einsum("ij,ij->i", a, a, dtype=np.float64)
+        nb = np.einsum("ij,ij->i", b, b, dtype=np.float64)
+        total = total + (na[:, None] + nb[None] - 2.0 * (a @ b.T).astype(np.float64)) / 4.0
+    return np.maximum(total, 0.0)

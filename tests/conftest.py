@@ -18,9 +18,12 @@ generation): test_sim_colliders' sphere/capsule drape fails at level 0 and passe
 
 from __future__ import annotations
 
+import json
 import os
+import resource
 import shutil
 import tempfile
+import time
 
 import jax
 import numpy as np
@@ -57,23 +60,63 @@ def pytest_unconfigure(config):
 # The longest files first: pytest-xdist (with --dist loadfile --no-loadscope-reorder, as in the
 # Makefile) hands files to the workers in collection order as they free up, so a long file
 # collected last would run alone at the end. (Without --no-loadscope-reorder xdist orders files
-# by their number of tests instead.) The order within a file is kept. Ranked by single-process
-# user CPU where measured in session 13 on a loaded machine (test_train 89.7 s, test_patchgan
-# 47.4 s, test_sim_detail 31.9 s, test_cli_train 32.2 s before train.train placed its state),
-# test_sim_selfcollision by session 11 (76 s), test_notebooks by its wall time in a 2-worker
-# run (46 s; its CPU is in the kernels it starts), the others by the sum of their phases among
-# the 45 slowest of a 2-worker run (session 12).
-SLOW_FILES_FIRST = ("test_train.py", "test_sim_selfcollision.py", "test_patchgan.py",
-                    "test_notebooks.py", "test_sharpen.py", "test_sim_detail.py",
-                    "test_cli_train.py", "test_sim_xpbd.py", "test_lift.py", "test_fastconv.py",
-                    "test_unet.py", "test_vgg.py", "test_eval_experiments.py",
-                    "test_frame_fn.py", "test_sim_scenes.py", "test_detail.py",
-                    "test_sim_colliders.py", "test_sim_textile.py")
+# by their number of tests instead.) The order within a file is kept. Ranked by per-file CPU
+# (process + reaped children, setup to teardown) in one 2-worker run of session 14 (main
+# 62c1bb6, WRINKLE_JAX_TEST_PROFILE below), every file of 10 s or more; test_notebooks by its
+# kernels' CPU measured alone (~41 s for the notebooks' code in one process, ~48 s with three
+# kernel start-ups; the kernels are not reaped children). Files not listed
+# follow in collection order. With these numbers, a greedy two-worker schedule ends 7.5 s of
+# CPU earlier than with the session-13 list (533 s against 541 s for the busier worker).
+SLOW_FILES_FIRST = ("test_train.py", "test_fastconv.py", "test_sharpen.py", "test_lift.py",
+                    "test_sim_selfcollision.py", "test_patchgan.py", "test_unet.py",
+                    "test_notebooks.py", "test_pipeline.py", "test_eval_experiments.py",
+                    "test_patches.py", "test_sim_xpbd.py", "test_sim_detail.py",
+                    "test_cli_train.py", "test_train_bands.py", "test_vgg.py",
+                    "test_classifier.py", "test_enhancer.py", "test_character.py",
+                    "test_normalmap.py", "test_losses.py", "test_bodies_mesh.py",
+                    "test_frame_fn.py", "test_sim_colliders.py", "test_mesh.py",
+                    "test_sim_textile.py", "test_hard_inputs.py", "test_cli.py",
+                    "test_detail.py", "test_bodies.py", "test_sim_scenes.py")
 
 
 def pytest_collection_modifyitems(config, items):
     rank = {name: i for i, name in enumerate(SLOW_FILES_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+
+
+# Opt-in profile: WRINKLE_JAX_TEST_PROFILE=<folder> writes <folder>/<worker>.json with, per test
+# file, [wall s, CPU s (process + reaped children), tests, first start, last end (epoch s)],
+# summed from setup to teardown of each test. Off by default (nothing is measured).
+_PROFILE_ENV = "WRINKLE_JAX_TEST_PROFILE"
+_profile: dict[str, list[float]] = {}
+
+
+def _cpu_seconds() -> float:
+    own, kids = (resource.getrusage(w) for w in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    if not os.environ.get(_PROFILE_ENV):
+        yield
+        return
+    t0, w0, c0 = time.time(), time.perf_counter(), _cpu_seconds()
+    yield
+    row = _profile.setdefault(item.path.name, [0.0, 0.0, 0, t0, t0])
+    row[0] += time.perf_counter() - w0
+    row[1] += _cpu_seconds() - c0
+    row[2] += 1
+    row[4] = time.time()
+
+
+def pytest_sessionfinish(session):
+    folder = os.environ.get(_PROFILE_ENV)
+    if folder and _profile:
+        os.makedirs(folder, exist_ok=True)
+        name = os.environ.get("PYTEST_XDIST_WORKER", "main")
+        with open(os.path.join(folder, f"{name}.json"), "w") as f:
+            json.dump(_profile, f, indent=1)
 
 
 def x64():

@@ -149,9 +149,12 @@ def test_unet_unsharp_base_starts_as_unsharp_mask():
     params["unsharp_amount"] = params["unsharp_amount"].at[2].set(0.0)
     got = np.asarray(model.apply({"params": params}, x, jnp.array([0, 2])))
     np.testing.assert_allclose(got[1], x[1], atol=1e-6)
+    # Raised while tracing: eval_shape traces init without running it (op by op, every
+    # parameter draw before the check compiles on its own).
     with pytest.raises(ValueError, match="residual_base"):
-        unet.CINUNet(unet.UNetConfig(width=4, residual=True, residual_base="blur")).init(
-            jax.random.key(0, impl="rbg"), x, jnp.array([0, 0]))
+        jax.eval_shape(unet.CINUNet(unet.UNetConfig(width=4, residual=True,
+                                                    residual_base="blur")).init,
+                       jax.random.key(0, impl="rbg"), x, jnp.array([0, 0]))
 
 
 def test_highpassed_residual_cannot_shift_orientation():

@@ -85,6 +85,8 @@ FIDELITY_METHODS = {
                               "training scenes (not shipped)",
     "detail_bands_w10": "candidate, session 12: + band-energy loss (weight 10; not chosen, "
                         "not shipped)",
+    "wide32_run9": "session 14: session 13's run at width 32 (widened from session 12's; "
+                   "not chosen, not shipped)",
 }
 
 

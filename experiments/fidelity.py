@@ -499,9 +499,11 @@ def main(argv=None) -> int:
     ap.add_argument("--patches", type=int, default=8)
     ap.add_argument("--ceilings", type=int, default=1)
     ap.add_argument("--val-out", default=None, help="val: write the JSON here")
-    ap.add_argument("--split", default="val", choices=("val", "valgarment"),
+    ap.add_argument("--split", default="val", choices=("val", "valgarment", "train"),
                     help="val: the pair data's split (val = last frames of the training scenes; "
-                         "valgarment = the validation-only garment, a proxy for unseen ones)")
+                         "valgarment = the validation-only garment, a proxy for unseen ones; "
+                         "train = the training patches themselves: the gain where it was "
+                         "learned)")
     ap.add_argument("--transplant", type=int, default=0,
                     help="val: also score the coarse input carrying fine detail from its own "
                          "target / other patches (`transplants`)")

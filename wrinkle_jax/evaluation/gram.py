@@ -92,21 +92,31 @@ def method_losses(vgg_params, inp, target, mask, outputs: dict[str, np.ndarray],
             for k, v in parts.items()}
 
 
+def _batched_grams(vgg_params, images, mask, batch_size: int, layers=EVAL_LAYERS,
+                   counter: dict | None = None):
+    """Yield the normalized masked Grams of consecutive batches of (N, S, S, 3) images:
+    layer -> (k, C_l, C_l) NumPy for the k real rows of each batch. Every VGG pass has the
+    fixed shape `batch_size` (the last batch padded), so it compiles once;
+    counter["vgg_passes"] accumulates batches."""
+    counter = {} if counter is None else counter
+    images, mask = np.asarray(images), np.asarray(mask)
+    for s in range(0, len(images), batch_size):
+        k = min(batch_size, len(images) - s)
+        idx = np.resize(np.arange(s, s + k), batch_size)
+        grams = gram_matrices(vgg_params, images[idx], mask[idx], layers)
+        counter["vgg_passes"] = counter.get("vgg_passes", 0) + 1
+        yield {name: np.asarray(g)[:k] for name, g in grams.items()}
+
+
 def set_features(vgg_params, images, mask, batch_size: int, counter: dict | None = None
                  ) -> dict[str, np.ndarray]:
     """Upper triangles of the normalized masked Grams (`gram_matrices` on
     `EVAL_LAYERS`) of (N, S, S, 3) RGB-form images with (N, S, S, 1) masks:
     layer -> (N, C_l (C_l + 1) / 2) float32. Fixed batch shape (the last batch padded);
     counter["vgg_passes"] accumulates batches."""
-    counter = {} if counter is None else counter
     parts: dict[str, list] = {}
-    n = len(images)
-    for s in range(0, n, batch_size):
-        k = min(batch_size, n - s)
-        idx = np.resize(np.arange(s, s + k), batch_size)
-        grams = gram_matrices(vgg_params, np.asarray(images)[idx], np.asarray(mask)[idx])
-        counter["vgg_passes"] = counter.get("vgg_passes", 0) + 1
-        for name, v in upper_triangle({kk: np.asarray(g)[:k] for kk, g in grams.items()}).items():
+    for grams in _batched_grams(vgg_params, images, mask, batch_size, counter=counter):
+        for name, v in upper_triangle(grams).items():
             parts.setdefault(name, []).append(v)
     return {name: np.concatenate(v) for name, v in parts.items()}
 
@@ -117,13 +127,9 @@ def flat_grams(vgg_params, images, mask, batch_size: int = 16, layers=EVAL_LAYER
     masks: layer -> (N, C_l * C_l) float32 (fixed batch shape, the last batch padded). The
     rows feed `pairwise_losses`."""
     parts: dict[str, list] = {name: [] for name in layers}
-    n = len(images)
-    for s in range(0, n, batch_size):
-        k = min(batch_size, n - s)
-        idx = np.resize(np.arange(s, s + k), batch_size)
-        grams = gram_matrices(vgg_params, np.asarray(images)[idx], np.asarray(mask)[idx], layers)
+    for grams in _batched_grams(vgg_params, images, mask, batch_size, layers):
         for name in layers:
-            parts[name].append(np.asarray(grams[name])[:k].reshape(k, -1))
+            parts[name].append(grams[name].reshape(len(grams[name]), -1))
     return {name: np.concatenate(v) if v else np.zeros((0, 0), np.float32)
             for name, v in parts.items()}
 

@@ -137,12 +137,6 @@ def sweep_per_material(args, vgg_params) -> dict:
     return got
 
 
-def material_settings() -> dict[int, tuple[float, float]]:
-    """Per-material (sigma, amount) of the val sweep (unsharp_sweep_material.json), by
-    material id; empty when the sweep has not been run."""
-    return method_lib.material_unsharp_settings(OUT / "unsharp_sweep_material.json")
-
-
 def load_model(spec: str) -> enhancer.Enhancer:
     """A `--model` path, optionally ``PATH@G``: the model with residual gain G
     (`UNetConfig.residual_gain`, an inference-time amplitude chosen on validation data)."""
@@ -159,7 +153,7 @@ def val_models(args, vgg_params) -> dict:
     read; the held-out scenes are never touched here. Texel-noise models get fixed
     pseudo-random patch origins (the val patches carry none)."""
     ds = data.PatchDataset(args.data, args.split)
-    settings = material_settings()
+    settings = method_lib.material_unsharp_settings()
     models = {}
     for spec in args.model:
         name, path = spec.split("=", 1)
@@ -383,7 +377,7 @@ def build_methods(args) -> tuple[dict, dict]:
     sources["unsharp_card"] = f"order=1,sigma={s1:g},amount={a1:g}"
     # Per-material gains from the val sweep (sweep-material): the base a material-conditioned
     # model starts from, so "model minus its own base" is measured, not assumed.
-    settings = material_settings()
+    settings = method_lib.material_unsharp_settings()
     if settings:
         methods["unsharp_material"] = lambda p, e: evaluation.unsharp_mask(
             p.input, p.mask, *settings[p.material_id], order=1)

@@ -230,7 +230,6 @@ def initial_params(cfg: train.TrainConfig, run: Path, data_root: Path,
         old_cfg, state = train.restore_run(init_from)
         init = state.params
         if old_cfg.unet.width != cfg.unet.width:
-            from wrinkle_jax import data
             init = _widened(init, old_cfg, cfg, data.PatchDataset(data_root).patch_size, log)
     if gains:
         if cfg.unet.residual_base != "unsharp":

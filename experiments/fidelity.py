@@ -268,8 +268,8 @@ def unsharp_best() -> tuple[float, float]:
     return float(kv["sigma"]), float(kv["amount"])
 
 
-def _cell_file(cell: cell_lib.Cell) -> Path:
-    return OUT / "cells" / f"{cell.scene.name}__{cell.material}.npz"
+def _cell_file(cell: cell_lib.Cell, root: Path = OUT) -> Path:
+    return root / "cells" / f"{cell.scene.name}__{cell.material}.npz"
 
 
 def _load_cell(path: Path) -> dict:
@@ -290,7 +290,7 @@ def _frames_digest(*frame_sets) -> str:
 def score_cell(cell: cell_lib.Cell, methods: dict, sources: dict, vgg_params, args) -> dict:
     """Scores of `methods` (name -> callable(PatchSet, extras) -> outputs) on one cell, merged
     into the cached ones (a method is recomputed only when its source changed)."""
-    path = _cell_file(cell)
+    path = _cell_file(cell, Path(args.score_dir))
     cached = _load_cell(path)
     frames = list(range(args.frame_offset, args.frames - 1, args.frame_stride))
     seqs = cell_lib.cell_sequences(cell, args.frames, log=lambda m: print(m, flush=True))
@@ -492,6 +492,10 @@ def main(argv=None) -> int:
                          "and fine detail are both near zero and every ratio degenerates)")
     ap.add_argument("--patches", type=int, default=8)
     ap.add_argument("--ceilings", type=int, default=1)
+    ap.add_argument("--score-dir", default=str(OUT),
+                    help="score/report: where the per-cell caches (cells/) and results.json "
+                         "live; another folder keeps a differently drawn patch set apart from "
+                         "the report's")
     ap.add_argument("--val-out", default=None, help="val: write the JSON here")
     ap.add_argument("--split", default="val", choices=("val", "valgarment", "train"),
                     help="val: the pair data's split (val = last frames of the training scenes; "
@@ -503,9 +507,10 @@ def main(argv=None) -> int:
                          "target / other patches (`transplants`)")
     args = ap.parse_args(argv)
     if args.command == "report":
-        cells = [_load_cell(p) for p in sorted((OUT / "cells").glob("*.npz"))]
+        root = Path(args.score_dir)
+        cells = [_load_cell(p) for p in sorted((root / "cells").glob("*.npz"))]
         summary = summarize([c for c in cells if c])
-        suite.write_json(OUT / "results.json", summary)
+        suite.write_json(root / "results.json", summary)
         print(json.dumps({k: {m: {s: v[s]["signed_median"] for s in ("detail", "object")
                                   if s in v} for m, v in r["methods"].items()}
                           for k, r in summary.items()}, indent=1))
@@ -531,7 +536,7 @@ def main(argv=None) -> int:
     for cell in cells:
         score_cell(cell, methods, sources, vgg_params, args)
         print(f"{cell.key} done at {time.perf_counter() - t0:.0f} s", flush=True)
-    return main(["report"])
+    return main(["report", "--score-dir", args.score_dir])
 
 
 if __name__ == "__main__":

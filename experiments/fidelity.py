@@ -301,6 +301,8 @@ def score_cell(cell: cell_lib.Cell, methods: dict, sources: dict, vgg_params, ar
     # the input's and the methods' losses must come from the same patches.
     fp = {"frames": frames, "patches_per_frame": args.patches, "sigma": SIGMA,
           "simulations": _frames_digest(fine.frames, coarse.frames)}
+    if not args.object_space:  # a detail-only cache is never mixed with a full one
+        fp["object_space"] = False
     if cached.get("fingerprint") != fp:
         cached = {}
     todo = {k: f for k, f in methods.items()
@@ -328,7 +330,7 @@ def score_cell(cell: cell_lib.Cell, methods: dict, sources: dict, vgg_params, ar
                                  {k: d[k] for k in outs})
         obj_names = [k for k in outs if k in OBJECT_SPACE or k not in ORACLES]
         obj = gram.method_losses(vgg_params, ps.input, ps.target, ps.mask,
-                                 {k: outs[k] for k in obj_names})
+                                 {k: outs[k] for k in obj_names}) if args.object_space else {}
         for k in [*outs, "input", "target"]:
             bands = evaluation.band_rms(d[k], ps.mask)
             img = {"input": ps.input, "target": ps.target, **outs}[k]
@@ -336,7 +338,7 @@ def score_cell(cell: cell_lib.Cell, methods: dict, sources: dict, vgg_params, ar
             got[k]["16_64mm"] += bands["16_64mm"].tolist()
             got[k]["checker"] += evaluation.checker_rms(img, ps.mask).tolist()
         got["input"]["detail"] += det["input"].tolist()
-        got["input"]["object"] += obj["input"].tolist()
+        got["input"]["object"] += obj["input"].tolist() if obj else []
         for k in outs:
             got[k]["detail"] += det[k].tolist()
             got[k]["object"] += obj[k].tolist() if k in obj else []
@@ -433,6 +435,8 @@ def summarize(cells: list[dict]) -> dict:
         res = {"cells": [c["cell"] for c in cs], "methods": {}}
         for space in ("detail", "object"):
             li = np.concatenate([c["loss_input"][space] for c in cs])
+            if not len(li):  # scored with --object-space 0
+                continue
             scores = {}
             for k in names:
                 lo = np.concatenate([c["methods"][k][space] for c in cs])
@@ -492,6 +496,11 @@ def main(argv=None) -> int:
                          "and fine detail are both near zero and every ratio degenerates)")
     ap.add_argument("--patches", type=int, default=8)
     ap.add_argument("--ceilings", type=int, default=1)
+    ap.add_argument("--object-space", type=int, default=1,
+                    help="score: 0 skips the paper's object-space score (half the VGG passes)")
+    ap.add_argument("--baselines", default=None,
+                    help="score: comma-separated non-model methods to keep (e.g. "
+                         "identity,unsharp_card,unsharp_material); default all")
     ap.add_argument("--score-dir", default=str(OUT),
                     help="score/report: where the per-cell caches (cells/) and results.json "
                          "live; another folder keeps a differently drawn patch set apart from "
@@ -528,6 +537,10 @@ def main(argv=None) -> int:
             suite.write_json(Path(args.val_out), got)
         return 0
     methods, sources = build_methods(args)
+    if args.baselines is not None:  # the models given with --model are always scored
+        keep_b = set(args.baselines.split(","))
+        methods = {k: f for k, f in methods.items()
+                   if k in keep_b or k in dict(m.split("=", 1) for m in args.model)}
     keep = set(args.scenes.split(",")) if args.scenes else None
     cells = [c for c in cell_lib.table_cells()
              if (args.cells == "all" or c.kind == "unseen garment")

@@ -72,7 +72,7 @@ from pathlib import Path
 
 import numpy as np
 
-from wrinkle_jax import evaluation, material_index, patches
+from wrinkle_jax import detail, evaluation, material_index, patches
 from wrinkle_jax.evaluation import cells as cell_lib
 from wrinkle_jax.evaluation import gram, patchscores, patchsets, suite
 from wrinkle_jax.evaluation import sets as set_lib
@@ -86,6 +86,33 @@ GROUPS = ("seen garment", "unseen garment")
 # the embedding change, so that a rerun recomputes instead of reusing them.
 METRIC = ("v1: upper-triangle Grams on EVAL_LAYERS / median layer norm over a+c; symmetric "
           "mean nearest-neighbour Chamfer; 2D spectral embedding at unit RMS; c at t + k//2")
+# The same on detail maps (issue 21's primary representation): each map's own large scale
+# rotated to +z before the Gram features, so the coarse and fine simulations' large-scale
+# divergence does not count.
+METRIC_DETAIL = METRIC + f"; detail maps (wrinkle_jax.detail, sigma {detail.DEFAULT_SIGMA:g})"
+FEATURES = ("object", "detail")
+
+
+def to_feature_space(space: str, a, mask_a, c, mask_c):
+    """The images whose Grams are the features, and the map of method outputs to them.
+
+    Args:
+      space: "object" (the maps themselves, the paper's) or "detail" (`wrinkle_jax.detail`:
+        each a and c patch on its own branch; a method's output b on its input's branch, as
+        `detail.on_reference_branch_rgb` pairs them in the detail-only score).
+      a, mask_a: (N_a, S, S, 3) RGB-form coarse patches and their (N_a, S, S, 1) masks.
+      c, mask_c: (N_c, S, S, 3) RGB-form fine patches and masks.
+    Returns:
+      (a', c', b_fn) with b_fn: (N_a, S, S, 3) RGB-form outputs on a -> their features' images.
+    """
+    if space == "object":
+        return a, c, lambda b: b
+    if space != "detail":
+        raise ValueError(f"unknown feature space {space!r}; expected one of {FEATURES}")
+    _, _, branch = detail.decompose(np.asarray(a) * 2.0 - 1.0, mask_a)
+    a_d = np.asarray(detail.to_detail_rgb(a, mask_a, branch=branch))
+    c_d = np.asarray(detail.to_detail_rgb(c, mask_c))
+    return a_d, c_d, lambda b: np.asarray(detail.to_detail_rgb(b, mask_a, branch=branch))
 
 
 # --------------------------------------------------------------------------------------------
@@ -116,7 +143,8 @@ def c_frame_indices(frame_indices: Iterable[int], frames: int, frame_stride: int
 
 def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg_params,
                   sampling: patchscores.Sampling, cell_seed=(0,),
-                  progress: Callable[[int, str], None] | None = None) -> dict:
+                  progress: Callable[[int, str], None] | None = None,
+                  space: str = "object") -> dict:
     """Sets a, c and every method's b of one fine/coarse sequence pair, and their distances.
 
     Args:
@@ -128,6 +156,8 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
       sampling: `evaluation.patchscores.Sampling` (a's frames and origins are exactly Table 1's).
       cell_seed: extra seed entropy for the patch draws (`evaluation.cells.Cell.patch_seed`).
       progress: called with (patches, what) after each set's features.
+      space: "object" or "detail": the images the Gram features are taken of
+        (`to_feature_space`).
     Returns:
       {"frame", "origin": (N_a,) int32 frames and (N_a, 2) origins of a (and every b),
        "frame_c", "origin_c": the same for c, "scales": layer -> float (`layer_scales` of a u c),
@@ -175,8 +205,10 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
         return f
 
     # 2. a u c: features, layer scales, distances.
-    ref = features(np.concatenate([inp, *(p.target for p in sets_c)]),
-                   np.concatenate([mask_ab, *(p.mask for p in sets_c)]), "a + c")
+    mask_c = np.concatenate([p.mask for p in sets_c])
+    feat_a, feat_c, feat_b = to_feature_space(space, inp, mask_ab,
+                                              np.concatenate([p.target for p in sets_c]), mask_c)
+    ref = features(np.concatenate([feat_a, feat_c]), np.concatenate([mask_ab, mask_c]), "a + c")
     scales = set_lib.layer_scales(ref)
     t0 = time.perf_counter()
     d2_ref = set_lib.scaled_sq_dists(ref, None, scales)
@@ -192,7 +224,7 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
             if progress is not None:
                 progress(n_a, f"{name} (= a)")
             continue
-        f_b = features(out, mask_ab, name)
+        f_b = features(feat_b(out), mask_ab, name)
         t0 = time.perf_counter()
         d2_method[name] = np.concatenate([set_lib.scaled_sq_dists(f_b, ref, scales),
                                           set_lib.scaled_sq_dists(f_b, None, scales)], axis=1)
@@ -414,7 +446,7 @@ def run(cells: list[cell_lib.Cell], sequences: dict, methods: dict, vgg_params,
         sampling: patchscores.Sampling, out: Path,
         fingerprint_of: Callable[[cell_lib.Cell], dict],
         fresh: bool = False, log: Callable[[str], None] = print,
-        sources: dict[str, str] | None = None) -> dict[str, dict]:
+        sources: dict[str, str] | None = None, space: str = "object") -> dict[str, dict]:
     """Evaluate (or reload from `<out>/cells/`) every cell, printing progress and an ETA.
 
     As `evaluation.patchscores.run`, stored cells are reused method by method
@@ -431,7 +463,7 @@ def run(cells: list[cell_lib.Cell], sequences: dict, methods: dict, vgg_params,
         coarse = cell_lib.load_first_frames(sequences[cell.key]["coarse"], sampling.frames)
         rec = cell_record(evaluate_cell(fine, coarse, cell.material,
                                         {k: methods[k] for k in names}, vgg_params, sampling,
-                                        cell.patch_seed, progress))
+                                        cell.patch_seed, progress, space))
         sig = {k: (round(v["embedded"]["dr_signed"], 1), round(v["full"]["dr_signed"], 1))
                for k, v in rec["methods"].items()}
         log(f"{cell.key}: signed DR (embedded, full) {sig}")
@@ -448,6 +480,9 @@ def main(argv=None) -> int:
     ap = suite.script_parser(__doc__)
     patchscores.add_cell_args(ap, suite.RESULTS / "table2", frame_stride_help=(
         "set a uses every k-th frame, set c the frames midway between (k >= 2)"))
+    ap.add_argument("--features", default="object", choices=FEATURES,
+                    help="object: Grams of the maps (the paper's); detail: of their detail maps "
+                         "(issue 21's primary representation; use another --out)")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -472,10 +507,12 @@ def main(argv=None) -> int:
           f"for each of {len(methods)} methods)", flush=True)
 
     def fingerprint_of(cell):
-        return st.fingerprint_of(cell, metric=METRIC)
+        return st.fingerprint_of(cell, metric=METRIC if args.features == "object"
+                                 else METRIC_DETAIL)
 
     records = run(cells, sequences, methods, vgg_params, sampling, out, fingerprint_of,
-                  args.fresh, log=lambda m: print(m, flush=True), sources=sources)
+                  args.fresh, log=lambda m: print(m, flush=True), sources=sources,
+                  space=args.features)
 
     # 3. Summaries.
     cells_out, groups = {}, {g: [] for g in GROUPS}
@@ -530,7 +567,8 @@ def main(argv=None) -> int:
                    "C2 = CD(b, c), dr = 100 |C1 - C2| / C1, dr_signed = 100 (C1 - C2) / C1; "
                    "embedded: 2D spectral embedding of a u b u c at unit RMS radius; full: "
                    "feature space",
-        "metric_version": METRIC,
+        "metric_version": METRIC if args.features == "object" else METRIC_DETAIL,
+        "feature_space": args.features,
         "sampling": dataclasses.asdict(sampling), "frames_c": frames_c,
         "sampling_text": sampling_text,
         "config": {"garments": args.garments.split(","), "materials": args.materials.split(","),

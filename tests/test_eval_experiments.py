@@ -268,6 +268,30 @@ def test_cell_comparison_finds_b_nearer_to_c_than_a_and_a_swap_reverses_it():
             assert shuffled[space][k] == pytest.approx(near[space][k], rel=1e-5)
 
 
+def test_table2_detail_features_remove_the_large_scale_and_pair_outputs_with_their_input():
+    rng = np.random.default_rng(0)
+    mask = np.ones((2, 24, 24, 1), np.float32)
+    mask[1, :, :6] = 0.0
+    tilt = np.array([0.5, -0.3, 0.8]) / np.linalg.norm([0.5, -0.3, 0.8])
+    flat = np.broadcast_to((tilt + 1.0) / 2.0, (2, 24, 24, 3)).astype(np.float32) * mask
+    bumpy = flat + mask * rng.normal(0.0, 0.03, flat.shape).astype(np.float32)
+    a_o, c_o, b_o = table2.to_feature_space("object", bumpy, mask, flat, mask)
+    assert a_o is bumpy and c_o is flat and b_o(flat) is flat
+    a_d, c_d, b_fn = table2.to_feature_space("detail", bumpy, mask, flat, mask)
+    # A tilted plane has no detail: its detail map is +z (RGB 0.5, 0.5, 1) inside the mask.
+    inside = mask[..., 0] > 0
+    np.testing.assert_allclose(c_d[inside], np.broadcast_to([0.5, 0.5, 1.0], c_d[inside].shape),
+                               atol=1e-5)
+    assert np.all(c_d[~inside] == 0)
+    # The bumps survive, the tilt does not: mean detail near +z, spread kept.
+    n = a_d[inside] * 2.0 - 1.0
+    assert abs(n[:, 2].mean() - 1.0) < 5e-3 and n[:, :2].std() > 0.02
+    # An output equal to the input maps to the input's own detail (same branch).
+    np.testing.assert_allclose(b_fn(bumpy), a_d, atol=1e-6)
+    with pytest.raises(ValueError, match="unknown feature space"):
+        table2.to_feature_space("tangent", bumpy, mask, flat, mask)
+
+
 def test_table2_main_uses_table1_patches_writes_results_and_resumes(tmp_path, monkeypatch,
                                                                       tiny_vgg, model):
     seqs = tmp_path / "seqs"

@@ -3,6 +3,7 @@ coarse input tell that amount? (Issue 21 diagnostic; validation data only.)
 
     python -m experiments.energy_oracle gains [--split valgarment] [--patches 32]
     python -m experiments.energy_oracle strain
+    python -m experiments.energy_oracle history
 
 `gains` scores the order-1 unsharp mask (sigma 16 texels) at several gains on `--patches`
 patches per material of `--split` (default: the validation garment), and compares, per patch:
@@ -19,7 +20,12 @@ the fine simulation's local 16-64 mm energy beyond the coarse map's own band ene
 (`energy.local_band_energy`, 16-texel average): R^2 of a per-material log-linear fit on the
 training scenes, evaluated on the validation garment, with and without the stretches.
 
-Writes `experiments/results/fidelity/energy_oracle_{gains,strain}.json`.
+`history` adds the coarse sequence's past (its 16-64 mm energy 3, 10 and 30 frames back, the
+peak over the last second, the local angular change of the coarse normals from t-1) to the
+same fits, and, as a reference of how persistent the fine detail is, the fine map's own energy
+1 and 10 frames back (oracles: no method has them).
+
+Writes `experiments/results/fidelity/energy_oracle_{gains,strain,history}.json`.
 """
 
 from __future__ import annotations
@@ -140,33 +146,107 @@ def gains(args, vgg_params) -> dict:
     return got
 
 
-def _texel_rows(scene: str, material: str, frames, stride: int = 12, inset: int = 12):
-    """Per sampled texel (every `stride`-th, >= `inset` texels inside both meshes): log fine
-    16-64 mm energy, log coarse 16-64 / < 16 mm energies, log s_min, log s_max."""
+def _load_scene(scene: str, material: str):
+    """Fine and coarse training-set sequences of one scene and material, their aligned pair,
+    and the texel selection (every 12th texel, >= 12 texels inside both meshes)."""
     import cv2
 
     root = suite.ROOT / "data" / "sequences" / scene
     fine = meshio.load_sequence(root / f"{material}_fine_s0.npz")
     coarse = meshio.load_sequence(root / f"{material}_coarse_s0.npz")
     pair = patchsets.aligned_pair(fine.garment, coarse.garment, 0.002)
-    m = pair.mask
-    keep = cv2.erode(m[..., 0], np.ones((2 * inset + 1,) * 2, np.uint8)) > 0
+    keep = cv2.erode(pair.mask[..., 0], np.ones((25, 25), np.uint8)) > 0
     grid = np.zeros_like(keep)
-    grid[::stride, ::stride] = True
-    sel = np.nonzero(keep & grid)
+    grid[::12, ::12] = True
+    return fine, coarse, pair, np.nonzero(keep & grid)
+
+
+def _bands(plan, frame, m) -> dict:
+    """Local 16-64 mm and < 16 mm energies (H, W) of one frame's detail map, and its unit
+    normals (H, W, 3)."""
+    n = patchsets.bake_map(plan, frame)
+    d = np.asarray(detail.to_detail_rgb(((n + 1.0) / 2.0 * m)[None], m[None], SIGMA))[0]
+    return {b: energy.local_band_energy(d, m, b) for b in ("16_64mm", "lt16mm")} | {"n": n}
+
+
+def _texel_rows(scene: str, material: str, frames):
+    """Per sampled texel: log fine 16-64 mm energy, log coarse 16-64 / < 16 mm energies,
+    log s_min, log s_max."""
+    fine, coarse, pair, sel = _load_scene(scene, material)
+    m = pair.mask
     out = []
     for f in frames:
-        maps = {}
-        for name, plan, seq in (("fine", pair.fine, fine), ("coarse", pair.coarse, coarse)):
-            rgb = (patchsets.bake_map(plan, seq.frames[f]) + 1.0) / 2.0 * m
-            d = np.asarray(detail.to_detail_rgb(rgb[None], m[None], SIGMA))[0]
-            maps[name] = {b: energy.local_band_energy(d, m, b) for b in ("16_64mm", "lt16mm")}
+        fb, cb = _bands(pair.fine, fine.frames[f], m), _bands(pair.coarse, coarse.frames[f], m)
         st = energy.principal_stretches(coarse.frames[f], coarse.garment)
         smin, smax = (energy.masked_smooth(energy.face_values_to_texels(pair.coarse, st[:, i]),
                                            m, 16.0) for i in (0, 1))
-        out.append(np.stack([maps["fine"]["16_64mm"][sel], maps["coarse"]["16_64mm"][sel],
-                             maps["coarse"]["lt16mm"][sel], smin[sel], smax[sel]], 1))
+        out.append(np.stack([fb["16_64mm"][sel], cb["16_64mm"][sel], cb["lt16mm"][sel],
+                             smin[sel], smax[sel]], 1))
     return np.concatenate(out)
+
+
+HISTORY_LAGS = (3, 10, 30)  # frames (30 fps) back for the coarse map's past band energy
+HISTORY_COLS = ("coarse 16-64 mm at t-3", "coarse 16-64 mm at t-10", "coarse 16-64 mm at t-30",
+                "coarse max 16-64 mm over t-30..t", "coarse normal change t-1 -> t (deg)",
+                "fine 16-64 mm at t-1 (oracle)", "fine 16-64 mm at t-10 (oracle)")
+
+
+def _history_rows(scene: str, material: str, frames):
+    """`_texel_rows` plus the coarse sequence's past, per sampled texel (HISTORY_COLS, all
+    positive: energies, the max over every 5th frame of the last 30, and the local mean angle
+    between the coarse normals of t-1 and t, 16-texel average) and two fine-past oracles."""
+    fine, coarse, pair, sel = _load_scene(scene, material)
+    m = pair.mask
+    base = _texel_rows(scene, material, frames)
+    out = []
+    for f in frames:
+        cb = _bands(pair.coarse, coarse.frames[f], m)
+        past = {lag: _bands(pair.coarse, coarse.frames[f - lag], m) for lag in
+                sorted({*HISTORY_LAGS, *range(5, 31, 5), 1})}
+        peak = np.max([past[k]["16_64mm"] for k in range(5, 31, 5)] + [cb["16_64mm"]], 0)
+        cosang = np.clip(np.sum(cb["n"] * past[1]["n"], -1), -1.0, 1.0)
+        turn = energy.masked_smooth(np.degrees(np.arccos(cosang)), m, 16.0)
+        fine_past = [_bands(pair.fine, fine.frames[f - lag], m)["16_64mm"] for lag in (1, 10)]
+        cols = [past[lag]["16_64mm"] for lag in HISTORY_LAGS] + [peak, turn, *fine_past]
+        out.append(np.stack([c[sel] for c in cols], 1))
+    return np.concatenate([base, np.concatenate(out)], 1)
+
+
+def history(args) -> dict:
+    """Does the coarse sequence's past tell the fine local 16-64 mm energy beyond the present
+    frame? Per-material log-linear fits on the training scenes, R^2 on the validation garment."""
+    rows, scene_of, mat_of = [], [], []
+    for scene, mat, frames in STRAIN_JOBS:
+        r = _history_rows(scene, mat, frames)
+        rows.append(r)
+        scene_of += [scene] * len(r)
+        mat_of += [MATERIALS.index(mat)] * len(r)
+        print(f"{scene}/{mat}: {len(r)} texels", flush=True)
+    a = np.concatenate(rows)
+    scene_of, mat_of = np.asarray(scene_of), np.asarray(mat_of)
+    ok = (a > 0).all(1)
+    la = np.log(np.where(ok[:, None], a, 1.0))
+    dummies = [(mat_of == m).astype(float) for m in np.unique(mat_of)]
+    sets = {"present (coarse bands)": [1, 2], "present + stretches": [1, 2, 3, 4],
+            "present + stretches + coarse past": [1, 2, 3, 4, 5, 6, 7, 8, 9],
+            "coarse past only": [5, 6, 7, 8, 9],
+            "oracle: fine at t-1": [10], "oracle: fine at t-10": [11]}
+    train, val = ok & (scene_of != VAL_SCENE), ok & (scene_of == VAL_SCENE)
+    got = {"jobs": [[s, m, list(f)] for s, m, f in STRAIN_JOBS], "n_train": int(train.sum()),
+           "n_val": int(val.sum()), "columns": ["fine 16-64 mm (target)", "coarse 16-64 mm",
+                                                "coarse < 16 mm", "s_min", "s_max",
+                                                *HISTORY_COLS],
+           "fits": {}}
+    for name, cols in sets.items():
+        x = np.stack([la[:, c] for c in cols] + dummies, 1)
+        coef, *_ = np.linalg.lstsq(x[train], la[train, 0], rcond=None)
+        r_tr, r_val = la[train, 0] - x[train] @ coef, la[val, 0] - x[val] @ coef
+        got["fits"][name] = {"train_r2": float(1 - r_tr.var() / la[train, 0].var()),
+                             "val_r2": float(1 - r_val.var() / la[val, 0].var()),
+                             "val_resid_sd_log": float(r_val.std()), "coef": coef.tolist()}
+        print(name, json.dumps({k: round(v, 3) for k, v in got["fits"][name].items()
+                                if k != "coef"}), flush=True)
+    return got
 
 
 def strain(args) -> dict:
@@ -211,7 +291,7 @@ def strain(args) -> dict:
 
 def main(argv=None) -> int:
     ap = suite.script_parser(__doc__)
-    ap.add_argument("command", choices=("gains", "strain"))
+    ap.add_argument("command", choices=("gains", "strain", "history"))
     ap.add_argument("--data", default=str(suite.ROOT / "data" / "pairs"))
     ap.add_argument("--split", default="valgarment")
     ap.add_argument("--patches", type=int, default=32)
@@ -221,7 +301,7 @@ def main(argv=None) -> int:
     if args.command == "gains":
         got = gains(args, vgg.load_vgg19())
     else:
-        got = strain(args)
+        got = strain(args) if args.command == "strain" else history(args)
     suite.write_json(OUT / f"energy_oracle_{args.command}.json", got)
     return 0
 

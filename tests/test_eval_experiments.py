@@ -562,3 +562,20 @@ def test_fidelity_summary_and_report_section():
     assert "| new | +70.0 (+70.0) | +30.0 [+30.0, +30.0] |  |  | +20.0 (+20.0) |" in text
     rows = report.fidelity_headline({"unseen garment": got})
     assert len(rows) == 1 and "**+70.0**" in rows[0] and "median +40.0" in rows[0]
+
+
+def test_report_ship_test_headline_states_the_paired_differences_of_the_stored_candidate():
+    def pd(med, lo, hi):
+        return {"n": 640, "median_diff": med, "median_diff_ci": [lo, hi]}
+
+    ship = {"unseen garment": {"methods": {
+        "identity": {"detail": {"n": 640}},
+        "unsharp_material": {"detail": {"vs_unsharp_card": pd(18.5, 15.5, 21.2)}},
+        "run7b": {"detail": {"n": 640, "vs_unsharp_material": pd(0.7, -2.9, 2.8),
+                             "vs_unsharp_card": pd(10.6, 7.1, 15.8)}}}}}
+    rows = report.ship_test_headline(ship)
+    assert len(rows) == 1  # one row per model, none for the baselines
+    assert "(run7b)" in rows[0] and "640 new held-out patches" in rows[0]
+    assert "+0.7 [-2.9, +2.8]" in rows[0] and "+10.6 [+7.1, +15.8]" in rows[0]
+    assert "+18.5 [+15.5, +21.2]" in rows[0]
+    assert report.ship_test_headline(None) == [] and report.ship_test_headline({}) == []

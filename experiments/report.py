@@ -424,6 +424,12 @@ def ship_test_headline(ship: dict | None) -> list[str]:
             f"{_ci(r.get('unsharp_material', {}).get('detail', {}).get('vs_unsharp_card'))}. "
             "The learned residual is indistinguishable from its base on unseen garments; "
             "nothing ships.")
+    shipped = r.get("shipped", {}).get("detail", {})
+    if shipped.get("vs_unsharp_material"):
+        rows.append(f"- Ship test, the shipped network on the same patches: median "
+                    f"{shipped['signed_median']:+.1f}; paired against the per-material unsharp "
+                    f"mask {_ci(shipped['vs_unsharp_material'])}, against the card's setting "
+                    f"{_ci(shipped.get('vs_unsharp_card'))}.")
     return rows
 
 

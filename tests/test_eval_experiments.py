@@ -579,3 +579,9 @@ def test_report_ship_test_headline_states_the_paired_differences_of_the_stored_c
     assert "+0.7 [-2.9, +2.8]" in rows[0] and "+10.6 [+7.1, +15.8]" in rows[0]
     assert "+18.5 [+15.5, +21.2]" in rows[0]
     assert report.ship_test_headline(None) == [] and report.ship_test_headline({}) == []
+    ship["unseen garment"]["methods"]["shipped"] = {"detail": {
+        "n": 640, "signed_median": 30.0, "vs_unsharp_material": pd(-9.0, -12.0, -6.0),
+        "vs_unsharp_card": pd(-1.0, -3.0, 1.0)}}
+    rows = report.ship_test_headline(ship)
+    assert len(rows) == 2 and "(run7b)" in rows[0]  # the shipped model is reported apart
+    assert "median +30.0" in rows[1] and "-9.0 [-12.0, -6.0]" in rows[1]

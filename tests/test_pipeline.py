@@ -82,7 +82,7 @@ def test_end_to_end_shapes_finite_unit_normals_and_timings(result, seq, model):
     assert p["per_frame"] > 0 and p["network"] == 4 * p["per_frame"]
     nb = -(-p["per_frame"] // BATCH)
     assert p["batches"] == 4 * nb and p["padding"] == 4 * (nb * BATCH - p["per_frame"])
-    assert p["stride"] == 16 and p["patch_size"] == 32
+    assert p["stride"] == 24 and p["patch_size"] == 32  # the default: 3/4 of the patch
     assert res.peak_buffered_frames == 4
 
 

@@ -165,7 +165,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
                        help="patches per U-Net call (frames per bake call in the bake-only demo)")
         p.add_argument("--chunk", type=int, default=4, help="frames per streamed chunk")
         p.add_argument("--stride", type=int, default=None,
-                       help="patch stride in texels (default: half a patch)")
+                       help="patch stride in texels (default: three quarters of a patch)")
         p.add_argument("--no-previews", action="store_true",
                        help="skip the preview PNGs and MP4 (faster)")
         p.set_defaults(func=_cmd_demo)
@@ -193,7 +193,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
                    help="mesh format of the detailed frames (default: %(default)s)")
     _add_frames_out(p)
     p.add_argument("--stride", type=int, default=None,
-                   help="patch stride in texels (default: half a patch)")
+                   help="patch stride in texels (default: three quarters of a patch)")
     p.add_argument("--batch", type=int, default=16,
                    help="patches per U-Net call (default: %(default)s)")
     p.add_argument("--chunk", type=int, default=4,

@@ -160,7 +160,8 @@ def _run_enhance(input_path: Path, out: Path, args, model: Path | None = None,
         t0 = time.perf_counter()
         size = enh.config.patch_size
         seq, sel, warnings, budget = validate.load_checked(
-            input_path, args, enh.config.texel_size, size, args.stride or size // 2,
+            input_path, args, enh.config.texel_size, size,
+            args.stride or pipeline.default_stride(size),
             not args.no_lift, template, pipeline.PipelineConfig().target_edge)
         load_s = time.perf_counter() - t0
         material, material_source = validate.choose_material(

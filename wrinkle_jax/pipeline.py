@@ -72,6 +72,7 @@ from wrinkle_jax.pipeline_setup import (  # noqa: F401
     _no_offsets,
     _noise_origins,
     _padded_mask,
+    default_stride,
     make_pipeline,
 )
 from wrinkle_jax.stages import (
@@ -94,8 +95,9 @@ from wrinkle_jax.stages import (
 
 __all__ = ["STAGES", "EnhanceResult", "EnhancedFrame", "FrameResult", "Pipeline",
            "PipelineConfig", "PipelineError", "bake_stage", "classify_material",
-           "enhance_frame", "enhance_sequence", "frame_fn", "iter_enhance", "lift_stage",
-           "make_pipeline", "merge_stage", "network_stage", "resolve_material", "tile_stage"]
+           "default_stride", "enhance_frame", "enhance_sequence", "frame_fn", "iter_enhance",
+           "lift_stage", "make_pipeline", "merge_stage", "network_stage", "resolve_material",
+           "tile_stage"]
 
 
 @dataclasses.dataclass(frozen=True)

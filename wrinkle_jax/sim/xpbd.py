@@ -9,7 +9,8 @@ length h = 1 / (fps * substeps):
      (f_aero is evaluated once per frame by default, made stable by an exact-decay factor)
   2. p = x + h v; pinned vertices are set on their kinematic tracks
   3. constraint projection, graph-coloured Gauss-Seidel (colours precomputed in NumPy, each
-     colour a vectorized gather/scatter with unique vertices), in this order:
+     colour a vectorized gather/scatter with unique vertices; a `lax.scan` runs over padded
+     runs of consecutive colours, `SimConfig.color_waste`), in this order:
        bending  C_e = sqrt(1 / (A_1 + A_2)) sum_k K_k x_k (3-vector, quadratic isometric
                 bending, Bergou et al. 2006, normalized so a cylinder of radius R stores
                 B / (2 R^2) per area), compliance 1 / B
@@ -122,9 +123,10 @@ class SimConfig:
 # --------------------------------------------------------------------------------------------
 
 
-# Padded constraints (see `_stack_colors`) name vertex V, one past the last: their gathers
-# clamp to a real vertex (finite values, never used) and their scatters are dropped, so a
-# padded colour moves exactly the vertices of its real constraints, by the same amounts.
+# Padded constraints (see `_stack_colors`) are no-ops twice over: their weights / directions
+# are zero, and they name vertex V, one past the last, so their gathers clamp to a real vertex
+# (finite values) and their scatters are dropped. A padded colour moves exactly the vertices
+# of its real constraints, by the same amounts (up to float32 rounding of the fused code).
 
 
 def _get(a, idx):

@@ -144,3 +144,98 @@ def test_aero_drag_opposes_motion():
     w2 = aero.wind_velocity(aero.make_wind(jax.random.PRNGKey(0)), x, 0.5)
     np.testing.assert_array_equal(np.asarray(w1), np.asarray(w2))
     assert float(jnp.mean(w1[:, 1])) > 0.3
+
+
+def test_color_groups_fewest_runs_within_budget():
+    import itertools
+
+    rng = np.random.default_rng(3)
+    cases = [[5, 5, 5], [9, 7, 3, 1], [1, 100, 1], [7]] + [
+        list(rng.integers(1, 60, size=rng.integers(1, 8))) for _ in range(30)]
+    for sizes in cases:
+        for waste in (0.0, 0.1, 0.4, 10.0):
+            runs = X.color_groups(sizes, waste)
+            # Consecutive runs covering every colour once, in order.
+            assert [a for a, _ in runs] == [0] + [b for _, b in runs[:-1]]
+            assert runs[-1][1] == len(sizes) and all(a < b for a, b in runs)
+            cost = sum(max(sizes[a:b]) * (b - a) for a, b in runs)
+            assert cost <= (1 + waste) * sum(sizes) + 1e-9
+            # No partition with fewer runs fits the budget (brute force over cut sets).
+            n = len(sizes)
+            for k in range(1, len(runs)):
+                for cuts in itertools.combinations(range(1, n), k - 1):
+                    edges = (0,) + cuts + (n,)
+                    c = sum(max(sizes[a:b]) * (b - a)
+                            for a, b in zip(edges[:-1], edges[1:], strict=True))
+                    assert c > (1 + waste) * sum(sizes)
+    assert X.color_groups([5, 5, 5], 0.0) == [(0, 3)]
+    assert X.color_groups([4, 2], 0.0) == [(0, 1), (1, 2)]
+    assert X.color_groups([], 0.1) == []
+
+
+def test_padded_color_scan_matches_colour_loop():
+    # The solver scans padded runs of colours; the reference projects colour by colour in
+    # Python. Padded constraints must be no-ops: vertices of no constraint stay bit-identical
+    # and every vertex matches the reference to float32 rounding (the loop and the unrolled
+    # code may fuse differently, e.g. into fused multiply-adds).
+    pat, m = _sheet(0.3, 0.03)
+    g = m.garment
+    model = X.build_cloth(g, m.landmark_vertices(pat, "top"))
+    nv = g.num_vertices
+    p0 = jnp.asarray(g.vertices) + 0.01 * jax.random.normal(jax.random.PRNGKey(1), (nv, 3))
+    w = model.free / (0.2 * model.vertex_area)
+    # Leave the last vertex (the clamp target of padded gathers) out of every constraint.
+    keep = nv - 1
+
+    def drop_last(c, names):
+        idx = np.asarray(getattr(c, names[0]))
+        ok = ~np.any(np.stack([np.asarray(getattr(c, k)).reshape(len(idx), -1) == keep
+                               for k in names], 0), axis=(0, 2))
+        return type(c)(**{f.name: jnp.asarray(np.asarray(getattr(c, f.name))[ok])
+                          for f in dataclasses.fields(c)})
+
+    kinds = {
+        "bend": ([drop_last(c, ["idx"]) for c in model.bend],
+                 lambda q, c, lam: X.project_bend(q, w, c, lam, 3.0),
+                 lambda c: jnp.zeros(c.weights.shape[:-1] + (3,))),
+        "stretch": ([drop_last(c, ["i", "j"]) for c in model.stretch],
+                    lambda q, c, lam: X.project_stretch(q, w, c, lam, 2.0, 1.1),
+                    lambda c: jnp.zeros(c.rest.shape)),
+        "limits": ([drop_last(c, ["i", "j"]) for c in model.limits],
+                   lambda q, c, lam: (X.project_limits(q, w, c), lam), lambda c: None),
+    }
+    # The solver sweeps stretch colours in both orders, the others forward only.
+    for (name, (colors, project, zeros)), reverse in zip(
+            list(kinds.items()) + [("stretch", kinds["stretch"])], (False,) * 3 + (True,),
+            strict=True):
+        sizes = [len(c.rest if name == "stretch" else c.weights if name == "bend"
+                     else c.max_dist) for c in colors]
+        assert len(set(sizes)) > 2, name  # unequal colours: the runs below are padded
+        touched = np.zeros(nv, bool)
+        for c in colors:
+            for f in ("i", "j", "idx"):
+                if hasattr(c, f):
+                    touched[np.asarray(getattr(c, f)).reshape(-1)] = True
+        assert not touched[keep]
+        # One run of every colour (padded to the largest) and one run per colour (no padding).
+        assert len(X._stack_colors(tuple(colors), nv, 100.0)) == 1
+        assert len(X._stack_colors(tuple(colors), nv, 0.0)) > 2
+
+        @jax.jit
+        def both(q, colors=tuple(colors), project=project, zeros=zeros, reverse=reverse):
+            ref = q
+            for c in (reversed(colors) if reverse else colors):
+                ref, _ = project(ref, c, zeros(c))
+            outs = []
+            for waste in (0.0, 100.0):
+                runs = X._stack_colors(colors, nv, waste)
+                outs.append(X._sweep(q, runs, [zeros(r) for r in runs], project, reverse)[0])
+            return ref, outs
+
+        ref, outs = both(p0)
+        ref = np.asarray(ref)
+        assert np.abs(ref - np.asarray(p0)).max() > 1e-3, name  # it did project
+        for out in map(np.asarray, outs):
+            np.testing.assert_array_equal(out[~touched], np.asarray(p0)[~touched])
+            # |p| < 2 m: float32 rounding is 2^-22 m per operation; a few operations differ.
+            np.testing.assert_allclose(out, ref, rtol=0, atol=4 * 2.0 ** -22, err_msg=name)

@@ -412,6 +412,48 @@ def build_cloth(garment: Garment, pinned=None, wind: aero.WindField | None = Non
         self_topo=selfcollision.self_topology(garment))
 
 
+def color_groups(sizes, max_waste: float = 0.15) -> list[tuple[int, int]]:
+    """Split a colour sequence into the fewest runs of consecutive colours whose padding wastes
+    at most `max_waste` of the work (pure Python, on static sizes).
+
+    The solver pads every colour of a run to the run's largest size and scans over the run, so
+    its traced program grows with the number of runs, not of colours; the colour order (the
+    Gauss-Seidel order) is kept.
+
+    Args:
+      sizes: constraint count of each colour, in solver order.
+      max_waste: allowed padded work over real work, minus 1 (0 = runs of equal size only).
+    Returns:
+      [(start, stop), ...] covering range(len(sizes)) in order.
+    """
+    sizes = [int(s) for s in sizes]
+    n = len(sizes)
+    if n == 0:
+        return []
+    budget = (1.0 + max_waste) * sum(sizes)
+    # cost[k][j]: least padded work of the first j colours in k runs (dynamic programming
+    # over run boundaries; n is a few tens).
+    inf = float("inf")
+    cost = [[inf] * (n + 1) for _ in range(n + 1)]
+    back = [[0] * (n + 1) for _ in range(n + 1)]
+    cost[0][0] = 0.0
+    for k in range(1, n + 1):
+        for j in range(1, n + 1):
+            top = 0
+            for i in range(j - 1, -1, -1):  # run = colours i .. j-1
+                top = max(top, sizes[i])
+                c = cost[k - 1][i] + top * (j - i)
+                if c < cost[k][j]:
+                    cost[k][j], back[k][j] = c, i
+        if cost[k][n] <= budget:
+            runs, j = [], n
+            for kk in range(k, 0, -1):
+                runs.append((back[kk][j], j))
+                j = back[kk][j]
+            return runs[::-1]
+    raise AssertionError("unreachable: n runs of one colour waste nothing")
+
+
 def model_summary(model: ClothModel) -> dict:
     """Sizes of a model: vertices, faces, constraints and colours."""
     return {

@@ -9,7 +9,8 @@ length h = 1 / (fps * substeps):
      (f_aero is evaluated once per frame by default, made stable by an exact-decay factor)
   2. p = x + h v; pinned vertices are set on their kinematic tracks
   3. constraint projection, graph-coloured Gauss-Seidel (colours precomputed in NumPy, each
-     colour a vectorized gather/scatter with unique vertices), in this order:
+     colour a vectorized gather/scatter with unique vertices; a `lax.scan` runs over padded
+     runs of consecutive colours, `SimConfig.color_waste`), in this order:
        bending  C_e = sqrt(1 / (A_1 + A_2)) sum_k K_k x_k (3-vector, quadratic isometric
                 bending, Bergou et al. 2006, normalized so a cylinder of radius R stores
                 B / (2 R^2) per area), compliance 1 / B
@@ -72,6 +73,7 @@ from wrinkle_jax.sim.cloth_model import (  # noqa: F401
     _uv_corner_geometry,
     build_cloth,
     color_constraints,
+    color_groups,
     fabric_params,
     model_summary,
     stretch_limits,
@@ -94,6 +96,10 @@ class SimConfig:
       (held constant over the frame with an exact-decay factor; 20x cheaper).
       self_collision: a `SelfCollisionConfig` (vertex-triangle thickness constraints after
       the constraint sweep, before the body contacts), or None (off: no code traced).
+      color_waste: the colours of a constraint kind are projected by a `lax.scan` over runs
+      of consecutive colours padded to a common size (`color_groups`); this bounds the padded
+      (wasted) work per kind, as a fraction of the real work. Larger: fewer runs, a smaller
+      program (faster compile), more padded work per substep. Results do not depend on it.
     """
 
     fps: float = 30.0
@@ -105,6 +111,7 @@ class SimConfig:
     collision_passes: int = 1
     aero_per_substep: bool = False
     self_collision: SelfCollisionConfig | None = None
+    color_waste: float = 0.25
 
     @property
     def h(self) -> float:
@@ -116,37 +123,49 @@ class SimConfig:
 # --------------------------------------------------------------------------------------------
 
 
+# Padded constraints (see `_stack_colors`) are no-ops twice over: their weights / directions
+# are zero, and they name vertex V, one past the last, so their gathers clamp to a real vertex
+# (finite values) and their scatters are dropped. A padded colour moves exactly the vertices
+# of its real constraints, by the same amounts (up to float32 rounding of the fused code).
+
+
+def _get(a, idx):
+    return a.at[idx].get(mode="clip")
+
+
 def project_stretch(p, w, c: StretchColor, lam, inv_k_h2, relax=1.0):
     """One Gauss-Seidel colour of strain constraints. inv_k_h2 = 1 / (k_s h^2); `relax` is
     the successive over-relaxation factor (1 = plain Gauss-Seidel)."""
-    d = p[c.j] - p[c.i]
+    d = _get(p, c.j) - _get(p, c.i)
     n = normalize(d)
     strain = (safe_norm(d) - c.rest) / c.rest
-    wi, wj = w[c.i], w[c.j]
+    wi, wj = _get(w, c.i), _get(w, c.j)
     at = c.inv_area * inv_k_h2
     dlam = relax * safe_div(-(strain + at * lam), (wi + wj) / (c.rest * c.rest) + at)
     corr = n * (dlam / c.rest)[:, None]
-    p = p.at[c.i].add(-wi[:, None] * corr).at[c.j].add(wj[:, None] * corr)
+    p = p.at[c.i].add(-wi[:, None] * corr, mode="drop").at[c.j].add(wj[:, None] * corr,
+                                                                     mode="drop")
     return p, lam + dlam
 
 
 def project_bend(p, w, c: BendColor, lam, inv_b_h2):
     """One colour of quadratic bending constraints (3-vector C per hinge). inv_b_h2 = 1/(B h^2)."""
-    cvec = jnp.einsum("nk,nkd->nd", c.weights, p[c.idx])
-    wk = w[c.idx]
+    cvec = jnp.einsum("nk,nkd->nd", c.weights, _get(p, c.idx))
+    wk = _get(w, c.idx)
     den = jnp.sum(wk * c.weights * c.weights, axis=1) + inv_b_h2
     dlam = -(cvec + inv_b_h2 * lam) / den[:, None]
     dx = (wk * c.weights)[..., None] * dlam[:, None, :]
-    return p.at[c.idx.reshape(-1)].add(dx.reshape(-1, 3)), lam + dlam
+    return p.at[c.idx.reshape(-1)].add(dx.reshape(-1, 3), mode="drop"), lam + dlam
 
 
 def project_limits(p, w, c: LimitColor):
     """One colour of unilateral distance limits (hard, inactive unless stretched)."""
-    d = p[c.j] - p[c.i]
+    d = _get(p, c.j) - _get(p, c.i)
     excess = jnp.maximum(safe_norm(d) - c.max_dist, 0.0)
-    wi, wj = w[c.i], w[c.j]
+    wi, wj = _get(w, c.i), _get(w, c.j)
     corr = normalize(d) * safe_div(excess, wi + wj)[:, None]
-    return p.at[c.i].add(wi[:, None] * corr).at[c.j].add(-wj[:, None] * corr)
+    return p.at[c.i].add(wi[:, None] * corr, mode="drop").at[c.j].add(-wj[:, None] * corr,
+                                                                      mode="drop")
 
 
 def project_attachments(p, a: Attachments, pin_idx):
@@ -154,6 +173,45 @@ def project_attachments(p, a: Attachments, pin_idx):
     d = p[a.vertex] - p[pin_idx[a.slot]]
     excess = jnp.maximum(safe_norm(d) - a.max_dist, 0.0)
     return p.at[a.vertex].add(-normalize(d) * excess[:, None])
+
+
+def _stack_colors(colors: tuple, num_vertices: int, max_waste: float) -> list:
+    """Runs of consecutive colours (`color_groups`), each stacked along a new leading axis and
+    padded to its largest colour with no-op constraints on vertex `num_vertices` (one past
+    the last; rest length 1, zero weights). Traced once per step; shapes are static."""
+    if not colors:
+        return []
+    sizes = [jax.tree_util.tree_leaves(c)[0].shape[0] for c in colors]
+    fills = {"i": num_vertices, "j": num_vertices, "idx": num_vertices, "rest": 1.0,
+             "inv_area": 0.0, "weights": 0.0, "max_dist": 1.0}
+    out = []
+    for a, b in color_groups(sizes, max_waste):
+        n = max(sizes[a:b])
+
+        def pad(name, arr, n=n):
+            arr = jnp.asarray(arr)
+            width = [(0, n - arr.shape[0])] + [(0, 0)] * (arr.ndim - 1)
+            return jnp.pad(arr, width, constant_values=fills[name])
+
+        fields = [f.name for f in dataclasses.fields(colors[a])]
+        out.append(type(colors[a])(**{
+            f: jnp.stack([pad(f, getattr(c, f)) for c in colors[a:b]]) for f in fields}))
+    return out
+
+
+def _sweep(p, runs, lams, project, reverse=False):
+    """One Gauss-Seidel sweep over stacked colour runs (`_stack_colors`): `project(p, colour,
+    lam) -> (p, lam)` applied colour by colour in order (or in reverse order), a `lax.scan`
+    per run so the traced program holds one projection per run, not per colour.
+    lams: per run (colours, n, ...) multipliers, or None entries for stateless constraints."""
+    new = list(lams)
+    order = range(len(runs))
+    for r in (reversed(order) if reverse else order):
+        def body(q, inputs):
+            c, lam = inputs
+            return project(q, c, lam)
+        p, new[r] = jax.lax.scan(body, p, (runs[r], lams[r]), reverse=reverse)
+    return p, new
 
 
 # --------------------------------------------------------------------------------------------
@@ -205,6 +263,58 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
         def rebuild(x):
             return selfcollision.build_candidates(x, model.faces, model.self_topo, sc)
 
+        # Colours stacked into padded runs once per step (static shapes). The loops over
+        # colours, stretch sweeps and iterations are XLA loops, so the compiled program does
+        # not grow with their counts (unrolled, it took 12-15 s to compile per garment).
+        nv = model.vertex_area.shape[0]
+        bend_runs = _stack_colors(model.bend, nv, config.color_waste)
+        stretch_runs = _stack_colors(model.stretch, nv, config.color_waste)
+        limit_runs = _stack_colors(model.limits, nv, config.color_waste)
+
+        def bend_one(q, c, lam):
+            return project_bend(q, w, c, lam, inv_b_h2)
+
+        def stretch_one(q, c, lam):
+            return project_stretch(q, w, c, lam, inv_k_h2, config.relax)
+
+        def limit_one(q, c, lam):
+            return project_limits(q, w, c), lam
+
+        def stretch_sweep(q, lam_s, reverse):
+            q, _ = _sweep(q, limit_runs, [None] * len(limit_runs), limit_one)
+            return _sweep(q, stretch_runs, lam_s, stretch_one, reverse)
+
+        def one_iteration(q, lam_b, lam_s):
+            q, lam_b = _sweep(q, bend_runs, lam_b, bend_one)
+            # Stretch converges slowest on fine meshes: extra (cheap) stretch-only sweeps.
+            # Long-range corrections first, local stretch last: the hard long-range
+            # projections leave local strain noise that the stretch sweep then smooths.
+            if model.attach is not None:
+                q = project_attachments(q, model.attach, model.pin_idx)
+            # Sweeps alternate the colour order (symmetric Gauss-Seidel): pairs in a loop.
+            def pair(_, carry):
+                q, lam_s = carry
+                q, lam_s = stretch_sweep(q, lam_s, False)
+                return stretch_sweep(q, lam_s, True)
+
+            pairs = config.stretch_sweeps // 2
+            if pairs == 1:
+                q, lam_s = pair(0, (q, lam_s))
+            elif pairs > 1:
+                q, lam_s = jax.lax.fori_loop(0, pairs, pair, (q, lam_s))
+            if config.stretch_sweeps % 2:
+                q, lam_s = stretch_sweep(q, lam_s, False)
+            return q, lam_b, lam_s
+
+        def constraint_iterations(q):
+            # XPBD multipliers start at zero every substep and carry across iterations.
+            lam_b = [jnp.zeros(r.weights.shape[:2] + (3,)) for r in bend_runs]
+            lam_s = [jnp.zeros(r.rest.shape) for r in stretch_runs]
+            if config.iterations == 1:
+                return one_iteration(q, lam_b, lam_s)[0]
+            return jax.lax.fori_loop(0, config.iterations,
+                                     lambda _, c: one_iteration(*c), (q, lam_b, lam_s))[0]
+
         def substep(carry, k):
             x, v, cand, overflow = carry
             if sc is not None:
@@ -233,24 +343,7 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
             if config.pre_collide:
                 moved = colliders.collide(p, x, c0, c1, params.offset, params.friction, passes=1)
                 p = jnp.where(free[:, None] > 0, moved, p)
-            lam_s = [jnp.zeros(c.rest.shape) for c in model.stretch]
-            lam_b = [jnp.zeros(c.weights.shape[:1] + (3,)) for c in model.bend]
-            for _ in range(config.iterations):
-                for m, c in enumerate(model.bend):
-                    p, lam_b[m] = project_bend(p, w, c, lam_b[m], inv_b_h2)
-                # Stretch converges slowest on fine meshes: extra (cheap) stretch-only sweeps.
-                # Long-range corrections first, local stretch last: the hard long-range
-                # projections leave local strain noise that the stretch sweep then smooths.
-                if model.attach is not None:
-                    p = project_attachments(p, model.attach, model.pin_idx)
-                for sweep in range(config.stretch_sweeps):
-                    for c in model.limits:
-                        p = project_limits(p, w, c)
-                    # Alternate the colour order (symmetric Gauss-Seidel).
-                    order = range(len(model.stretch))
-                    for m in (order if sweep % 2 == 0 else reversed(order)):
-                        p, lam_s[m] = project_stretch(p, w, model.stretch[m], lam_s[m], inv_k_h2,
-                                                      config.relax)
+            p = constraint_iterations(p)
             if sc is not None:
                 # After the cloth constraints (they would undo it).
                 for _ in range(sc.passes):

@@ -45,8 +45,19 @@ from wrinkle_jax.meshio import GarmentSequence, make_sequence, save_sequence
 from wrinkle_jax.sim import aero, mannequin, patterns, xpbd
 from wrinkle_jax.sim.colliders import Colliders, attach_rigid, blend_pins, to_local
 from wrinkle_jax.sim.materials import fabric
+from wrinkle_jax.sim.selfcollision import SelfCollisionConfig
 
 RESOLUTIONS = {"fine": 0.010, "coarse": 0.030}  # particle distance (PD), meters
+
+# Self-collision settings per resolution for the data-set scenes, measured with
+# experiments/self_collision_scenes.py (experiments/results/sim/README.md): thickness ~0.3-0.4
+# PD (vertex-triangle contacts only; thinner lets edges cross between contacts on coarse
+# meshes), candidates rebuilt every 4 substeps with a margin covering ~3 m/s over them.
+# Not yet the data set's default: the cost is far above the 1.5x target.
+SELF_COLLISION = {
+    "fine": SelfCollisionConfig(thickness=0.004, margin=0.014, rebuild_every=4),
+    "coarse": SelfCollisionConfig(thickness=0.009, margin=0.015, rebuild_every=4),
+}
 
 
 class SceneError(ValueError):

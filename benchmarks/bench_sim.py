@@ -1,6 +1,7 @@
 """Simulator benchmark: ms per frame (30 fps) per scene at PD 10 and 30 mm, speed against
 error over substep counts (constraint violation, energy drift, penetration depth), and the
-skirts' self-intersections; with --self-collision, ms/frame with and without it.
+skirts' self-intersections; with --self-collision, ms/frame with and without it per scene
+(the resolution's `scenes.SELF_COLLISION` setting) and their ratio.
 
     python benchmarks/bench_sim.py [--quick] [--part speed|substeps|intersect|all]
                                    [--scenes a,b] [--data data/sequences] [--self-collision]
@@ -26,7 +27,6 @@ from wrinkle_jax.sim import colliders as C
 from wrinkle_jax.sim import materials as M
 from wrinkle_jax.sim import patterns as P
 from wrinkle_jax.sim import scenes, xpbd
-from wrinkle_jax.sim.selfcollision import SelfCollisionConfig
 
 
 def bench_speed(scene_names, resolutions, frames: int, material: str = "silk_charmeuse",
@@ -36,8 +36,16 @@ def bench_speed(scene_names, resolutions, frames: int, material: str = "silk_cha
     for name in scene_names:
         for res in resolutions:
             setup = scenes.setup_scene(name, res, frames)
+            off_ms = None
             for sc in self_collision:
+                if sc == "default":  # the data-set scenes' setting for this resolution
+                    sc = scenes.SELF_COLLISION[res]
                 rows.append(_speed_row(setup, name, res, frames, material, sc))
+                if sc is None:
+                    off_ms = rows[-1]["ms_per_frame"]
+                elif off_ms:
+                    rows[-1]["ratio_to_off"] = round(rows[-1]["ms_per_frame"] / off_ms, 2)
+                rows[-1]["load_avg"] = [round(a, 2) for a in os.getloadavg()]
                 print(json.dumps(rows[-1]), file=sys.stderr, flush=True)  # progress
     return rows
 
@@ -178,7 +186,8 @@ def main(argv=None):
     ap.add_argument("--data", default="data/sequences", help="sequences for --part intersect")
     ap.add_argument("--scenes", default=",".join(scenes.SCENES))
     ap.add_argument("--self-collision", action="store_true",
-                    help="--part speed: also time each scene with self-collision (defaults)")
+                    help="--part speed: also time each scene with self-collision "
+                         "(scenes.SELF_COLLISION of the resolution; ratio_to_off per row)")
     args = ap.parse_args(argv)
     out = {"jax": jax.__version__, "devices": [str(d) for d in jax.devices()],
            "cpu_count": os.cpu_count(), "load_avg_start": os.getloadavg()}
@@ -186,7 +195,7 @@ def main(argv=None):
     if args.part in ("speed", "all"):
         out["speed"] = bench_speed(names, ["coarse"] if args.quick else ["coarse", "fine"],
                                    frames=10 if args.quick else 30,
-                                   self_collision=(None, SelfCollisionConfig())
+                                   self_collision=(None, "default")
                                    if args.self_collision else (None,))
     if args.part in ("substeps", "all"):
         out["substeps"] = bench_substeps([5, 10, 20] if args.quick else [5, 10, 20, 40, 80],

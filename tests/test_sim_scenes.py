@@ -134,3 +134,20 @@ def test_self_intersection_counter():
 
     g = grid_sheet(10, 10)
     assert len(intersect.intersecting_pairs(g.vertices, g.faces)) == 0
+
+
+def test_self_collision_settings_fit_every_scene():
+    # The named per-resolution settings must build a solver for every data-set scene
+    # (rebuild_every divides the substeps, else cloth_simulator raises), keep the thickness
+    # below half the particle distance (a flat sheet's non-adjacent vertex-triangle distances
+    # are >= ~0.8 PD: a thicker layer would push apart the rest shape) and have a margin that
+    # covers 2 m/s of relative motion over the substeps between rebuilds.
+    from wrinkle_jax.sim import xpbd
+
+    assert set(scenes.SELF_COLLISION) == set(scenes.RESOLUTIONS)
+    for res, sc in scenes.SELF_COLLISION.items():
+        assert 0 < sc.thickness < 0.5 * scenes.RESOLUTIONS[res]
+        for scene in scenes.SCENES.values():
+            config = xpbd.SimConfig(substeps=scene.substeps, self_collision=sc)
+            xpbd.cloth_simulator(config)  # raises when rebuild_every does not divide
+            assert sc.margin >= 2.0 * sc.rebuild_every * config.h

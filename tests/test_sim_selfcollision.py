@@ -66,7 +66,8 @@ def test_candidates_find_every_close_pair():
     x = np.asarray(scene.x0, np.float64)
     x[:, 2] += 0.004 * np.sin(17 * x[:, 0]) * np.cos(11 * x[:, 1])  # not exactly flat
     faces = np.asarray(scene.model.faces)
-    cfg = S.SelfCollisionConfig(thickness=0.004, margin=0.02, max_raw=256, max_contacts=32)
+    cfg = S.SelfCollisionConfig(thickness=0.004, margin=0.02, max_raw=256, max_contacts=32,
+                                max_box=128)
     cand = _build_candidates(jnp.asarray(x, jnp.float32), scene.model.faces,
                              scene.model.self_topo, cfg)
     assert np.asarray(cand.overflow).tolist() == [0, 0]
@@ -110,6 +111,18 @@ def test_overflow_is_counted_not_dropped():
                              tiny)
     raw, kept = np.asarray(cand.overflow)
     assert raw > 0 and kept > 0
+    # Box hits beyond max_box (never given the exact test) are counted too: with room for
+    # every cell entry and every close triangle, only the box stage can drop any.
+    roomy = S.SelfCollisionConfig(thickness=0.004, margin=0.02, max_raw=256, max_contacts=64,
+                                  max_box=64)
+    narrow = dataclasses.replace(roomy, max_box=2)
+    full, cut = (_build_candidates(jnp.asarray(scene.x0), scene.model.faces,
+                                   scene.model.self_topo, c) for c in (roomy, narrow))
+    assert np.asarray(full.overflow).tolist() == [0, 0]
+    n_full = np.asarray(full.valid).sum(1)
+    assert (n_full > 2).any()  # some vertex has more than 2 close triangles ...
+    assert np.asarray(cut.overflow)[1] >= np.maximum(n_full - 2, 0).sum()  # ... all counted
+    assert (np.asarray(cut.valid).sum(1) <= 2).all()
     # Through the solver: the state carries the running count.
     config = X.SimConfig(substeps=2, self_collision=tiny)
     init_fn, step_fn = X.cloth_simulator(config)

@@ -45,8 +45,21 @@ from wrinkle_jax.meshio import GarmentSequence, make_sequence, save_sequence
 from wrinkle_jax.sim import aero, mannequin, patterns, xpbd
 from wrinkle_jax.sim.colliders import Colliders, attach_rigid, blend_pins, to_local
 from wrinkle_jax.sim.materials import fabric
+from wrinkle_jax.sim.selfcollision import SelfCollisionConfig
 
 RESOLUTIONS = {"fine": 0.010, "coarse": 0.030}  # particle distance (PD), meters
+
+# Self-collision settings per resolution for the data-set scenes, measured with
+# experiments/self_collision_scenes.py (experiments/results/sim/README.md): thickness ~0.3-0.4
+# PD (vertex-triangle contacts only; thinner lets edges cross between contacts on coarse
+# meshes), candidates rebuilt every 4 substeps with a margin covering ~2 m/s over them.
+# Not the data set's default: measured on skirt_dance coarse 5.3 % -> 0 % intersecting faces,
+# fine 2.0 % -> 0.6 % (the fine row with margin 12 mm), but cape_walk coarse 2.9 % -> 55 %, and
+# 14-28x the cost per frame (target <= 1.5x).
+SELF_COLLISION = {
+    "fine": SelfCollisionConfig(thickness=0.004, margin=0.014, rebuild_every=4),
+    "coarse": SelfCollisionConfig(thickness=0.009, margin=0.015, rebuild_every=4),
+}
 
 
 class SceneError(ValueError):

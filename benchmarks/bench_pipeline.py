@@ -2,7 +2,7 @@
 
 Reported:
   * the per-frame budget of the default pipeline (the CLI's settings: batch 16, chunk 4,
-    stride half a patch, lifting on) by stage -- bake, tile, network, merge, lift, write -- in
+    stride 3/4 of a patch, lifting on) by stage -- bake, tile, network, merge, lift, write -- in
     ms/frame, on the demo skirt (`wrinkle_jax/assets/demo_skirt.npz`, what `make demo` runs),
     plus setup and compile once. "write" is what the CLI writes per frame (the 16-bit normal
     map PNG and the detailed OBJ, into a temporary folder; no previews);

@@ -25,6 +25,7 @@ alternating in one run (`wrinkle_jax.timing.alternate`), ms/frame and ratios.
 
 Usage: python benchmarks/bench_pipeline.py [--quick] [--frames N] [--no-lift] [--reps R]
        python benchmarks/bench_pipeline.py --network-sweep [--reps R] [--stride S]
+       python benchmarks/bench_pipeline.py --lift-sweep [--frames N]
   --quick: 4 frames (one chunk), no batch-size sweep (< 2 min on a quiet 2-core machine).
 """
 
@@ -207,6 +208,36 @@ def network_sweep(model, reps: int, chunk: int, batches=(4, 8, 16), frames_per_b
             "load_avg_1m": {"before": t.load_before, "after": t.load_after}}
 
 
+def lift_sweep(model, iters=(20, 3, 2, 1), frames: int = 12) -> dict:
+    """The lift stage of the CLI's pipeline (warm-started Gauss-Newton) on the demo frames for
+    each GN iteration cap: ms/frame (after a 4-frame warm-up with the same pipeline), the
+    iterations run, and how far the lifted vertices land from the first cap's (mm, RMS and
+    max over all frames and vertices). Caps run one after another, not alternating."""
+    import dataclasses
+
+    from wrinkle_jax.solvers import SolverConfig
+
+    seq = meshio.load_sequence(_demo_sequence_path())
+    material = seq.metadata.get("material") or "silk_charmeuse"
+    out, ref = {}, None
+    for k in iters:
+        cfg = pipeline.PipelineConfig(batch_size=16, warm_start=True,
+                                      solver=dataclasses.replace(SolverConfig(), max_iters=k))
+        pipe = pipeline.make_pipeline(seq.garment, model, cfg)
+        pipeline.enhance_sequence(seq, material, pipeline=pipe, config=cfg, frames=range(4))
+        load = os.getloadavg()[0]
+        res = pipeline.enhance_sequence(seq, material, pipeline=pipe, config=cfg,
+                                        frames=range(min(frames, len(seq))))
+        det = np.asarray(res.detailed_frames)
+        ref = det if ref is None else ref
+        d = 1e3 * np.linalg.norm(det - ref, axis=-1)
+        out[str(k)] = {"lift_ms_per_frame": round(1e3 * res.timings["lift"] / len(det), 1),
+                       "iterations_per_frame": res.lift_iterations / len(det),
+                       "vs_first_mm_rms": round(float(np.sqrt((d ** 2).mean())), 3),
+                       "vs_first_mm_max": round(float(d.max()), 3), "load_avg_1m": load}
+    return {"first": str(iters[0]), "frames": int(len(ref)), "caps": out}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true",
@@ -220,7 +251,14 @@ def main() -> None:
     ap.add_argument("--network-sweep", action="store_true",
                     help="only the network stage: batch size x frames per call, alternating")
     ap.add_argument("--stride", type=int, default=None, help="patch stride (--network-sweep)")
+    ap.add_argument("--lift-sweep", action="store_true",
+                    help="only the lift: Gauss-Newton iteration caps 20, 3, 2, 1 (warm start)")
     args = ap.parse_args()
+    if args.lift_sweep:
+        model, which = load_model()
+        print(json.dumps({"benchmark": "pipeline_lift_sweep", "model": which,
+                          **lift_sweep(model, frames=args.frames)}, indent=2))
+        return
     if args.network_sweep:
         model, which = load_model()
         print(json.dumps({"benchmark": "pipeline_network_sweep", "model": which,

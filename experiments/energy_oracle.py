@@ -169,20 +169,23 @@ def _bands(plan, frame, m) -> dict:
     return {b: energy.local_band_energy(d, m, b) for b in ("16_64mm", "lt16mm")} | {"n": n}
 
 
-def _texel_rows(scene: str, material: str, frames):
-    """Per sampled texel: log fine 16-64 mm energy, log coarse 16-64 / < 16 mm energies,
-    log s_min, log s_max."""
-    fine, coarse, pair, sel = _load_scene(scene, material)
+def _present_row(fine, coarse, pair, sel, f):
+    """Frame f's columns per sampled texel (fine 16-64 mm energy, coarse 16-64 / < 16 mm
+    energies, s_min, s_max; (N, 5)) and the coarse frame's `_bands`."""
     m = pair.mask
-    out = []
-    for f in frames:
-        fb, cb = _bands(pair.fine, fine.frames[f], m), _bands(pair.coarse, coarse.frames[f], m)
-        st = energy.principal_stretches(coarse.frames[f], coarse.garment)
-        smin, smax = (energy.masked_smooth(energy.face_values_to_texels(pair.coarse, st[:, i]),
-                                           m, 16.0) for i in (0, 1))
-        out.append(np.stack([fb["16_64mm"][sel], cb["16_64mm"][sel], cb["lt16mm"][sel],
-                             smin[sel], smax[sel]], 1))
-    return np.concatenate(out)
+    fb, cb = _bands(pair.fine, fine.frames[f], m), _bands(pair.coarse, coarse.frames[f], m)
+    st = energy.principal_stretches(coarse.frames[f], coarse.garment)
+    smin, smax = (energy.masked_smooth(energy.face_values_to_texels(pair.coarse, st[:, i]),
+                                       m, 16.0) for i in (0, 1))
+    return np.stack([fb["16_64mm"][sel], cb["16_64mm"][sel], cb["lt16mm"][sel], smin[sel],
+                     smax[sel]], 1), cb
+
+
+def _texel_rows(scene: str, material: str, frames):
+    """Per sampled texel: fine 16-64 mm energy, coarse 16-64 / < 16 mm energies, s_min,
+    s_max (`_present_row`), frames stacked."""
+    loaded = _load_scene(scene, material)
+    return np.concatenate([_present_row(*loaded, f)[0] for f in frames])
 
 
 HISTORY_LAGS = (3, 10, 30)  # frames (30 fps) back for the coarse map's past band energy
@@ -197,10 +200,9 @@ def _history_rows(scene: str, material: str, frames):
     between the coarse normals of t-1 and t, 16-texel average) and two fine-past oracles."""
     fine, coarse, pair, sel = _load_scene(scene, material)
     m = pair.mask
-    base = _texel_rows(scene, material, frames)
     out = []
     for f in frames:
-        cb = _bands(pair.coarse, coarse.frames[f], m)
+        present, cb = _present_row(fine, coarse, pair, sel, f)
         past = {lag: _bands(pair.coarse, coarse.frames[f - lag], m) for lag in
                 sorted({*HISTORY_LAGS, *range(5, 31, 5), 1})}
         peak = np.max([past[k]["16_64mm"] for k in range(5, 31, 5)] + [cb["16_64mm"]], 0)
@@ -208,22 +210,27 @@ def _history_rows(scene: str, material: str, frames):
         turn = energy.masked_smooth(np.degrees(np.arccos(cosang)), m, 16.0)
         fine_past = [_bands(pair.fine, fine.frames[f - lag], m)["16_64mm"] for lag in (1, 10)]
         cols = [past[lag]["16_64mm"] for lag in HISTORY_LAGS] + [peak, turn, *fine_past]
-        out.append(np.stack([c[sel] for c in cols], 1))
-    return np.concatenate([base, np.concatenate(out)], 1)
+        out.append(np.concatenate([present, np.stack([c[sel] for c in cols], 1)], 1))
+    return np.concatenate(out)
+
+
+def _gather(row_fn):
+    """`row_fn(scene, material, frames)` over STRAIN_JOBS: stacked rows, and per row its scene
+    name and material id."""
+    rows, scene_of, mat_of = [], [], []
+    for scene, mat, frames in STRAIN_JOBS:
+        r = row_fn(scene, mat, frames)
+        rows.append(r)
+        scene_of += [scene] * len(r)
+        mat_of += [MATERIALS.index(mat)] * len(r)
+        print(f"{scene}/{mat}: {len(r)} texels", flush=True)
+    return np.concatenate(rows), np.asarray(scene_of), np.asarray(mat_of)
 
 
 def history(args) -> dict:
     """Does the coarse sequence's past tell the fine local 16-64 mm energy beyond the present
     frame? Per-material log-linear fits on the training scenes, R^2 on the validation garment."""
-    rows, scene_of, mat_of = [], [], []
-    for scene, mat, frames in STRAIN_JOBS:
-        r = _history_rows(scene, mat, frames)
-        rows.append(r)
-        scene_of += [scene] * len(r)
-        mat_of += [MATERIALS.index(mat)] * len(r)
-        print(f"{scene}/{mat}: {len(r)} texels", flush=True)
-    a = np.concatenate(rows)
-    scene_of, mat_of = np.asarray(scene_of), np.asarray(mat_of)
+    a, scene_of, mat_of = _gather(_history_rows)
     ok = (a > 0).all(1)
     la = np.log(np.where(ok[:, None], a, 1.0))
     dummies = [(mat_of == m).astype(float) for m in np.unique(mat_of)]
@@ -250,15 +257,7 @@ def history(args) -> dict:
 
 
 def strain(args) -> dict:
-    rows, scene_of, mat_of = [], [], []
-    for scene, mat, frames in STRAIN_JOBS:
-        r = _texel_rows(scene, mat, frames)
-        rows.append(r)
-        scene_of += [scene] * len(r)
-        mat_of += [MATERIALS.index(mat)] * len(r)
-        print(f"{scene}/{mat}: {len(r)} texels", flush=True)
-    a = np.concatenate(rows)
-    scene_of, mat_of = np.asarray(scene_of), np.asarray(mat_of)
+    a, scene_of, mat_of = _gather(_texel_rows)
     ok = (a[:, :3] > 0).all(1) & (a[:, 3:] > 0).all(1)
     y = np.log(np.where(ok, a[:, 0], 1.0))
 

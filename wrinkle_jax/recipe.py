@@ -108,6 +108,11 @@ def add_recipe_args(ap: argparse.ArgumentParser) -> None:
                     help="1: the log of the per-patch relative style loss (median-seeking)")
     ap.add_argument("--band-weight", type=float, default=lambda r, u: r.band_weight,
                     help="weight of the detail band-energy term (train.TrainConfig.band_weight)")
+    ap.add_argument("--bank-weight", type=float, default=lambda r, u: r.bank_weight,
+                    help="weight of the set-level term: distance to the nearest fine Gram of "
+                         "the material (train.TrainConfig.bank_weight)")
+    ap.add_argument("--bank-size", type=int, default=lambda r, u: r.bank_size,
+                    help="fine training patches per material in that term's bank")
     ap.add_argument("--residual-base", default=lambda r, u: u.residual_base,
                     choices=("input", "unsharp"))
     ap.add_argument("--unsharp-sigma", type=float, default=lambda r, u: u.unsharp_sigma,
@@ -154,7 +159,8 @@ def config_from_args(args: argparse.Namespace) -> train.TrainConfig:
         normalize_channels=bool(args.normalize_channels),
         relative_floor=args.relative_floor if args.relative_floor > 0 else None,
         relative_log=bool(args.relative_log), band_weight=args.band_weight,
-        batch_size=args.batch_size, keep_checkpoints=args.keep_checkpoints,
+        bank_weight=args.bank_weight, bank_size=args.bank_size, batch_size=args.batch_size,
+        keep_checkpoints=args.keep_checkpoints,
         eval_batches=args.eval_batches)
 
 

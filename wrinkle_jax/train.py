@@ -44,7 +44,7 @@ from wrinkle_jax import detail
 from wrinkle_jax import metrics as metrics_lib
 from wrinkle_jax.data import BatchIterator, PatchDataset
 from wrinkle_jax.fileio import atomic_write_text
-from wrinkle_jax.nn import losses
+from wrinkle_jax.nn import gram_bank, losses
 from wrinkle_jax.numerics import safe_div
 
 # The config and state, and the checkpoints / run restore / export, live in their own modules;
@@ -86,19 +86,37 @@ def loss_images(config: TrainConfig, batch: dict, out):
                                           config.unet.detail_sigma)
 
 
-def loss_fn(params, batch, vgg_params, config: TrainConfig):
+def loss_fn(params, batch, vgg_params, config: TrainConfig, bank=None):
     """Scalar objective and per-sample parts (content, style, total; band with
-    `band_weight`)."""
+    `band_weight`; "bank" with `bank_weight`: the distance of each output's Gram features to
+    the nearest fine patch of its material in `bank`, a `nn.gram_bank.GramBank`)."""
+    from wrinkle_jax.nn import vgg
+
     inp, out, target = loss_images(config, batch, _forward(config, params, batch))
+    out_f = None
+    if config.bank_weight > 0:
+        if bank is None:
+            raise ValueError("bank_weight > 0 needs a bank (nn.gram_bank.GramBank)")
+        layers = tuple(sorted(set(config.style_layers) | {config.content_layer}
+                              | set(bank.layers)))
+        out_f = vgg.features(vgg_params, out, layers=layers, pool=config.pool,
+                             conv_impl=config.vgg_conv_impl)
     total, parts = losses.enhancer_loss(
         vgg_params, out, inp, target, batch["mask"],
         style_layers=config.style_layers, content_layer=config.content_layer,
         w_c=config.w_c, w_s=config.w_s, pool=config.pool,
         normalize_channels=config.normalize_channels, conv_impl=config.vgg_conv_impl,
-        relative_floor=config.relative_floor, relative_log=config.relative_log)
+        relative_floor=config.relative_floor, relative_log=config.relative_log,
+        out_features=out_f)
     if config.band_weight > 0:
         band = losses.band_loss(out, target, batch["mask"])
         parts = {**parts, "band": band, "total": parts["total"] + config.band_weight * band}
+        total = jnp.mean(parts["total"])
+    if config.bank_weight > 0:
+        x = gram_bank.feature_vectors(out_f, batch["mask"], bank)
+        near = gram_bank.nearest_distance(x, batch["material"], jnp.asarray(bank.vectors),
+                                          jnp.asarray(bank.material))
+        parts = {**parts, "bank": near, "total": parts["total"] + config.bank_weight * near}
         total = jnp.mean(parts["total"])
     return total, parts
 
@@ -116,21 +134,26 @@ def shard_batch(batch: dict, mesh: jax.sharding.Mesh) -> dict:
             for k, v in batch.items()}
 
 
-def make_train_step(config: TrainConfig, vgg_params, mesh: jax.sharding.Mesh | None = None):
-    """The jitted `(state, batch) -> (state, metrics)` step, data parallel over `mesh`."""
+def make_train_step(config: TrainConfig, vgg_params, mesh: jax.sharding.Mesh | None = None,
+                    bank=None):
+    """The jitted `(state, batch) -> (state, metrics)` step, data parallel over `mesh`
+    (`bank`: see `loss_fn`)."""
     mesh = data_mesh() if mesh is None else mesh
     tx = optimizer(config)
     replicated = NamedSharding(mesh, P())
     vgg_params = jax.device_put(vgg_params, replicated)
+    if bank is not None:
+        bank = dataclasses.replace(bank, vectors=jax.device_put(bank.vectors, replicated),
+                                   material=jax.device_put(bank.material, replicated))
 
     def step(state: TrainState, batch: dict):
         (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-            state.params, batch, vgg_params, config)
+            state.params, batch, vgg_params, config, bank)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         out = {"loss": loss, "content": jnp.mean(parts["content"]),
                "style": jnp.mean(parts["style"]), "grad_norm": optax.tree.norm(grads),
-               **({"band": jnp.mean(parts["band"])} if "band" in parts else {})}
+               **{k: jnp.mean(parts[k]) for k in ("band", "bank") if k in parts}}
         return TrainState(state.step + 1, params, opt_state), out
 
     batch_sharding = NamedSharding(mesh, P("data"))
@@ -196,7 +219,7 @@ _LOOP_ONLY = ("batch_size", "steps", "seed", "eval_every", "eval_batches", "chec
 
 
 def cached_step(kind: str, config: TrainConfig, vgg_params,
-                mesh: jax.sharding.Mesh | None = None):
+                mesh: jax.sharding.Mesh | None = None, bank=None):
     """`make_train_step(config, vgg_params, mesh)` (kind "train") or `make_eval_step(config,
     vgg_params)` (kind "eval"), built once per (config, VGG params object, mesh) and then
     returned again (least recently used entries are dropped past `_STEP_CACHE_SIZE`); configs
@@ -206,12 +229,12 @@ def cached_step(kind: str, config: TrainConfig, vgg_params,
     mesh = data_mesh() if mesh is None and kind == "train" else mesh
     config = dataclasses.replace(
         config, **{f: TrainConfig.__dataclass_fields__[f].default for f in _LOOP_ONLY})
-    key = (kind, config, id(vgg_params), mesh)
+    key = (kind, config, id(vgg_params), mesh, id(bank))
     hit = _STEP_CACHE.pop(key, None)
     if hit is None:
-        fn = (make_train_step(config, vgg_params, mesh) if kind == "train"
+        fn = (make_train_step(config, vgg_params, mesh, bank) if kind == "train"
               else make_eval_step(config, vgg_params))
-        hit = (vgg_params, fn)
+        hit = ((vgg_params, bank), fn)
     _STEP_CACHE[key] = hit  # (re)inserted last: dicts keep insertion order, oldest first
     while len(_STEP_CACHE) > _STEP_CACHE_SIZE:
         del _STEP_CACHE[next(iter(_STEP_CACHE))]
@@ -312,6 +335,34 @@ def plot_curves(metrics_path: Path, out_png: Path) -> None:
     atomic_write_bytes(out_png, buf.getvalue())
 
 
+def training_bank(config: TrainConfig, dataset: PatchDataset, vgg_params,
+                  path: str | os.PathLike | None = None) -> gram_bank.GramBank:
+    """The fine-target bank of the `bank_weight` term: `config.bank_size` random training
+    patches per material (seeded by `config.seed`), their targets in the loss's
+    representation (`loss_images`), Gram features on `config.style_layers`. Loaded from `path`
+    if it exists (a resumed run keeps its bank), else built and saved there."""
+    if path is not None and Path(path).exists():
+        return gram_bank.load_bank(path)
+    rng = np.random.default_rng([config.seed, 7])
+    rows = []
+    for m in np.unique(dataset.materials):
+        idx = np.flatnonzero(dataset.materials == m)
+        rows.append(np.sort(rng.choice(idx, min(config.bank_size, len(idx)), replace=False)))
+    idx = np.concatenate(rows)
+    images, masks = [], []
+    for i in range(0, len(idx), 64):
+        batch = dataset.get(idx[i:i + 64])
+        _, target, _ = loss_images(config, batch, batch["target"])
+        images.append(np.asarray(target))
+        masks.append(np.asarray(batch["mask"]))
+    bank = gram_bank.build_bank(vgg_params, np.concatenate(images), np.concatenate(masks),
+                                dataset.materials[idx], config.style_layers,
+                                conv_impl=config.vgg_conv_impl)
+    if path is not None:
+        gram_bank.save_bank(path, bank)
+    return bank
+
+
 def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.PathLike,
           resume: bool = False, vgg_params=None, progress: bool = True,
           time_limit_s: float | None = None, init_params=None,
@@ -378,8 +429,10 @@ def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.P
     # state replicated on the mesh, and a state placed otherwise is another input type to
     # jit (its avals carry the mesh), so the step and the eval step would compile again.
     state = jax.device_put(state, NamedSharding(mesh, P()))
+    bank = (training_bank(config, train_set, vgg_params, out_dir / "bank.npz")
+            if config.bank_weight > 0 else None)
     # Reused across calls (a resume compiles nothing new; see `cached_step`).
-    step_fn = cached_step("train", config, vgg_params, mesh)
+    step_fn = cached_step("train", config, vgg_params, mesh, bank)
     eval_step = cached_step("eval", config, vgg_params)
     # Fixed held-out patches spread over the whole split (all held-out sequences), not its head.
     n_eval = min(len(held_set), config.eval_batches * config.batch_size)

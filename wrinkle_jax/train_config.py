@@ -42,6 +42,10 @@ class TrainConfig:
       band_weight: weight of the band-energy term (`nn.losses.band_loss`: log band RMS of the
         output's detail against the target's, < 16 mm and 16-64 mm); 0 leaves it out. Needs
         ``unet.detail_sigma`` > 0 (the bands are those of detail maps).
+      bank_weight: weight of the set-level term (`nn.gram_bank`): each output's distance, in
+        Table 2's scaled Gram-feature space, to the nearest of `bank_size` fine training
+        targets of its material; 0 leaves it out.
+      bank_size: fine patches per material in that bank.
       zero_init_output: with a residual U-Net, start the output conv at zero so the untrained
         network is the identity (improvement 0) instead of input + random noise, whose style
         loss starts ~40x above the input's.
@@ -69,6 +73,8 @@ class TrainConfig:
     relative_floor: float | None = None
     relative_log: bool = False
     band_weight: float = 0.0
+    bank_weight: float = 0.0
+    bank_size: int = 128
     seed: int = 0
     eval_every: int = 50
     eval_batches: int = 4

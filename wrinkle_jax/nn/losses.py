@@ -174,7 +174,8 @@ def content_loss(out_feats, inp_feats, mask, layer=DEFAULT_CONTENT_LAYER):
 def enhancer_loss(vgg_params, out_images, inp_images, target_images, mask,
                   style_layers=DEFAULT_STYLE_LAYERS, content_layer=DEFAULT_CONTENT_LAYER,
                   w_c=1.0, w_s=1e4, layer_weights=None, pool="avg", normalize_channels=False,
-                  conv_impl="xla", relative_floor=None, relative_log=False):
+                  conv_impl="xla", relative_floor=None, relative_log=False,
+                  out_features=None):
     """Training objective of the enhancer: ``w_c content(out, inp) + w_s style(out, target)``.
 
     With `relative_floor` set, the style term of each patch is divided by the input's own style
@@ -206,6 +207,8 @@ def enhancer_loss(vgg_params, out_images, inp_images, target_images, mask,
         input's features then run to the deepest style layer too).
       relative_log: with `relative_floor`, the log-ratio form (see above; zero when the output
         equals the input).
+      out_features: the output's VGG features if the caller already has them (layer -> (N,
+        h, w, C), at least the style and content layers, same `pool` and `conv_impl`).
 
     Returns:
       (total, parts): total is the batch mean of the per-sample objective (scalar float32);
@@ -213,8 +216,8 @@ def enhancer_loss(vgg_params, out_images, inp_images, target_images, mask,
     """
     style_layers = (style_layers,) if isinstance(style_layers, str) else tuple(style_layers)
     out_layers = tuple(sorted(set(style_layers) | {content_layer}))
-    out_f = vgg.features(vgg_params, out_images, layers=out_layers, pool=pool,
-                         conv_impl=conv_impl)
+    out_f = (vgg.features(vgg_params, out_images, layers=out_layers, pool=pool,
+                          conv_impl=conv_impl) if out_features is None else out_features)
     inp_layers = out_layers if relative_floor is not None else (content_layer,)
     inp_f = vgg.features(vgg_params, jax.lax.stop_gradient(inp_images), layers=inp_layers,
                          pool=pool, conv_impl=conv_impl)

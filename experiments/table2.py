@@ -75,6 +75,7 @@ import numpy as np
 from wrinkle_jax import detail, evaluation, material_index, patches
 from wrinkle_jax.evaluation import cells as cell_lib
 from wrinkle_jax.evaluation import gram, patchscores, patchsets, suite
+from wrinkle_jax.evaluation import methods as method_lib
 from wrinkle_jax.evaluation import sets as set_lib
 from wrinkle_jax.fileio import atomic_write_bytes
 from wrinkle_jax.nn import vgg
@@ -483,6 +484,9 @@ def main(argv=None) -> int:
     ap.add_argument("--features", default="object", choices=FEATURES,
                     help="object: Grams of the maps (the paper's); detail: of their detail maps "
                          "(issue 21's primary representation; use another --out)")
+    ap.add_argument("--oracles", action="store_true",
+                    help="also score the ceilings that read the fine simulation of the scored "
+                         "frame (`evaluation.methods.oracle_methods`)")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -500,6 +504,10 @@ def main(argv=None) -> int:
     sources, unsharp, unsharp_src, net_timings = (st.sources, st.unsharp, st.unsharp_text,
                                                   st.net_timings)
     sim_s = st.sim_s
+    if args.oracles:
+        oracles = method_lib.oracle_methods()
+        methods.update(oracles)
+        sources.update({k: k for k in oracles})
     vgg_params = vgg.load_vgg19()
     n_max = len(cells) * len(sampling.frame_indices) * sampling.patches_per_frame
     print(f"{len(cells)} cells x {len(sampling.frame_indices)} frames x "

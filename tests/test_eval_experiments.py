@@ -586,3 +586,25 @@ def test_report_ship_test_headline_states_the_paired_differences_of_the_stored_c
     rows = report.ship_test_headline(ship)
     assert len(rows) == 2 and "(run7b)" in rows[0]  # the shipped model is reported apart
     assert "median +30.0" in rows[1] and "-9.0 [-12.0, -6.0]" in rows[1]
+
+
+def test_report_table2_detail_headline_gives_means_medians_and_the_oracles_as_ceilings():
+    def cell(group, model, oracle):
+        def m(e, f):
+            return {"embedded": {"dr_signed": e}, "full": {"dr_signed": f}}
+        return {"group": group, "methods": {"identity": m(0.0, 0.0), "model": m(*model),
+                                            "oracle fine": m(*oracle)}}
+
+    t2d = {"methods": ["identity", "model", "oracle fine"],
+           "by_group": {"unseen garment": {"model": {}}},
+           "cells": {"a": cell("unseen garment", (10.0, -2.0), (40.0, 1.0)),
+                     "b": cell("unseen garment", (-100.0, -4.0), (20.0, 3.0)),
+                     "c": cell("unseen garment", (30.0, 0.0), (30.0, 5.0)),
+                     "d": cell("seen garment", (99.0, 99.0), (99.0, 99.0))}}
+    rows = report.table2_detail_headline(t2d)
+    assert len(rows) == 1 and "3 unseen-garment cells" in rows[0]
+    assert "model -20.0 (+10.0) / -2.0 (-2.0)" in rows[0]  # mean (median) over cells
+    head, ceilings = rows[0].split("Ceilings")
+    assert "oracle fine" not in head and "identity" not in head
+    assert "oracle fine +30.0 (+30.0) / +3.0 (+3.0)" in ceilings
+    assert report.table2_detail_headline(None) == []

@@ -87,3 +87,24 @@ def test_material_unsharp_settings_reads_the_sweep_and_is_empty_without_it(tmp_p
     got = method_lib.material_unsharp_settings(p)
     assert got == {MATERIALS.index("denim_light"): (16.0, 0.5),
                    MATERIALS.index("silk_charmeuse"): (8.0, 2.0)}
+
+
+def test_oracles_return_the_fine_patch_and_the_coarse_large_scale_with_its_detail():
+    fine, coarse = sheet_pair(1)
+    pair = patchsets.aligned_pair(fine.garment, coarse.garment, TEXEL)
+    mask = np.asarray(patches.pad_to_patch(pair.mask, PATCH)[0])
+    origins, _ = patchsets.candidate_origins(mask, PATCH, PATCH // 2, 0.1)
+    ps = patchsets.aligned_patches(pair, fine.frames[0], coarse.frames[0], origins[:3], PATCH, 4)
+    oracles = method_lib.oracle_methods()
+    np.testing.assert_array_equal(oracles["oracle fine"](ps), ps.target * ps.mask)
+    out = oracles["oracle coarse + fine detail"](ps)
+    inside = ps.mask[..., 0] > 0
+    np.testing.assert_allclose(np.linalg.norm(out[inside] * 2 - 1, axis=-1), 1.0, atol=1e-5)
+    assert not out[~inside].any()
+    # It is neither map: the coarse large scale with the fine detail...
+    assert np.abs(out - ps.target)[inside].max() > 1e-3
+    assert np.abs(out - ps.input)[inside].max() > 1e-3
+    # ...and a patch carrying its own detail is returned unchanged.
+    same = dataclasses.replace(ps, input=ps.target)
+    np.testing.assert_allclose(oracles["oracle coarse + fine detail"](same), ps.target * ps.mask,
+                               atol=2e-4)

@@ -15,7 +15,7 @@ import cv2
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax import MATERIALS, material_index
+from wrinkle_jax import MATERIALS, detail, material_index
 from wrinkle_jax import enhancer as enhancer_lib
 from wrinkle_jax.evaluation import baselines
 from wrinkle_jax.evaluation.cells import TABLE_MATERIALS
@@ -23,8 +23,8 @@ from wrinkle_jax.evaluation.patchsets import PatchSet
 from wrinkle_jax.evaluation.suite import MODEL_CARD_RESULTS, RESULTS, file_digest, portable_path
 
 __all__ = ["DEFAULT_UNSHARP", "MATERIAL_SWEEP_RESULTS", "baseline_methods", "enhancer_method",
-           "material_unsharp_settings", "model_methods", "run_model", "unsharp_setting",
-           "wrong_material"]
+           "material_unsharp_settings", "model_methods", "oracle_methods", "run_model",
+           "unsharp_setting", "wrong_material"]
 
 # Unsharp masking when no sweep result exists (the model card's sweep best on training patches).
 DEFAULT_UNSHARP = (8.0, 1.0)
@@ -131,6 +131,23 @@ def baseline_methods(settings: dict[int, tuple[float, float]]
                                                             up=cv2.INTER_LANCZOS4),
     }
 
+
+
+def oracle_methods() -> dict[str, Callable[[PatchSet], np.ndarray]]:
+    """Ceilings that read the fine simulation of the scored frame (no method can): each
+    (PatchSet) -> (K, S, S, 3) RGB-form outputs, masked.
+
+    "oracle fine": the aligned fine patch itself (fine large scale and detail);
+    "oracle coarse + fine detail": the coarse patch's large scale carrying its aligned fine
+    patch's detail (`detail.transplant_rgb`), what a perfect detail enhancer would output.
+    """
+    def fine(p):
+        return baselines.identity(p.target, p.mask)
+
+    def transplant(p):
+        return np.asarray(detail.transplant_rgb(p.input, p.target, p.mask, p.mask), np.float32)
+
+    return {"oracle fine": fine, "oracle coarse + fine detail": transplant}
 
 
 def model_methods(specs: list[str], batch_size: int) -> tuple[dict, dict]:

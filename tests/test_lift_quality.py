@@ -130,3 +130,53 @@ def test_reference_distance_and_penetrations(sheet):
 def test_empty_map_is_an_error(sheet):
     with pytest.raises(ValueError, match="no garment texel"):
         lq.lift_quality(sheet["flat"], jnp.zeros_like(sheet["nstar"]), sheet["plan"])
+
+
+def _bench_pipeline():
+    import importlib.util
+    import pathlib
+
+    path = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "bench_pipeline.py"
+    spec = importlib.util.spec_from_file_location("bench_pipeline", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)  # not __main__: parses no arguments
+    return mod
+
+
+def _setting(ms, angle, p90=None, band=None, inside=None):
+    angle = np.asarray(angle, float)
+    p90 = 2 * angle if p90 is None else np.asarray(p90, float)
+    band = np.full_like(angle, 0.9) if band is None else np.asarray(band, float)
+    return {"lift_ms_per_frame": ms, "per_frame": {
+        "angle_mean_deg": list(angle), "angle_p90_deg": list(p90),
+        "band_ratio_16_64mm": list(band),
+        "inside": [None] * len(angle) if inside is None else list(inside)}}
+
+
+def test_choose_lift_rule_on_known_sweeps():
+    """The lift choice rule (`bench_pipeline.choose_lift`): noise = |mean(D - T)| + 2 SE of
+    the default's paired difference with its cold twin; a cheaper setting within that noise
+    (or better) on every scene wins, one outside it on any scene is rejected, the band ratio
+    counts both ways."""
+    b = _bench_pipeline()
+    d, t = b.CHOICE_DEFAULT, b.CHOICE_TWIN
+    base = np.array([1.0, 1.2, 1.1, 1.3])
+    # D - T = (0.01, 0.03, 0.01, 0.03): mean 0.02, sample SD sqrt(4e-4 / 3) = 0.01155,
+    # SE = SD / 2 -> angle noise 0.02 + 0.01155 = 0.0315.
+    twin = base - np.array([0.01, 0.03, 0.01, 0.03])
+    scene = {d: _setting(100, base), t: _setting(120, twin),
+             "within": _setting(40, base + 0.03),           # worse by 0.03 <= 0.0315
+             "outside": _setting(10, base + 0.035),         # worse by 0.035 > 0.0315
+             "better": _setting(60, base - 0.5),            # better: one-sided
+             "band_off": _setting(5, base, band=np.full(4, 0.7))}  # band moved by 0.2
+    sweeps = [{"scene": "a", "settings": scene}, {"scene": "b", "settings": scene}]
+    out = b.choose_lift(sweeps)
+    v = out["verdicts"]
+    assert v["_noise_a"]["angle_mean_deg"] == pytest.approx(0.02 + np.sqrt(4e-4 / 3), abs=1e-4)
+    assert v["within"]["qualifies"] and v["better"]["qualifies"]
+    assert not v["outside"]["qualifies"] and not v["band_off"]["qualifies"]
+    assert out["chosen"] == "within"  # the cheapest qualifying on the last scene
+    # Outside the noise on one scene only is enough to reject it.
+    other = dict(scene, within=_setting(40, base + 0.2))
+    out = b.choose_lift([{"scene": "a", "settings": scene}, {"scene": "b", "settings": other}])
+    assert not out["verdicts"]["within"]["qualifies"] and out["chosen"] == "better"

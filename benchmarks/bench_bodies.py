@@ -6,7 +6,9 @@ CPU milliseconds, the 1-minute load average before and after):
   * `torus`: a bent torus (1,536 triangles: a thin tube whose halves nearly touch), where the
     previous form (`bodies_grid.grid_mesh_body`, NumPy) still builds: old against new in one
     alternating run, build (per pose) and query (`--points` random points around the body),
-    with ratios new / old.
+    with ratios new / old; both forms' distances against the exact signed distance (brute
+    force over every triangle, sign from the winding number); and the query again on points
+    near the surface (vertices jittered by 5 mm: what a garment lift asks).
   * `makehuman` (when the assets are fetched: `wrinkle-jax assets fetch makehuman`): the
     skinned MakeHuman body (26,756 triangles) on walk-cycle poses; the template once, then
     per pose the jitted build and the query of the LBS skirt helper subdivided to the lifted
@@ -42,6 +44,39 @@ def bend(v, angle=2.4):
                      r * (1 - np.cos(a)) + z * np.cos(a)], 1).astype(np.float32)
 
 
+def exact_signed_distance(vertices, faces, points, chunk: int = 500) -> np.ndarray:
+    """Signed distance by brute force, independent of both query forms: the nearest point of
+    every triangle (`closest_point_on_triangle`) and the sign from the generalized winding
+    number (solid angles / 4 pi, inside where |w| > 1/2). O(points x triangles)."""
+    tri = jnp.asarray(np.asarray(vertices)[np.asarray(faces)], jnp.float32)
+
+    @jax.jit
+    def run(p):
+        cp, _ = bodies.closest_point_on_triangle(p[:, None], tri[None, :, 0], tri[None, :, 1],
+                                                 tri[None, :, 2])
+        d = jnp.sqrt(jnp.min(jnp.sum((p[:, None] - cp) ** 2, -1), 1))
+        a, b, c = (tri[None, :, k] - p[:, None] for k in range(3))
+        la, lb, lc = (jnp.linalg.norm(x, axis=-1) for x in (a, b, c))
+        det = jnp.sum(a * jnp.cross(b, c), -1)
+        den = (la * lb * lc + jnp.sum(a * b, -1) * lc + jnp.sum(b * c, -1) * la
+               + jnp.sum(c * a, -1) * lb)
+        w = jnp.sum(2 * jnp.arctan2(det, den), 1) / (4 * jnp.pi)
+        return jnp.where(jnp.abs(w) > 0.5, -d, d)
+
+    pts = jnp.asarray(points, jnp.float32)
+    return np.concatenate([np.asarray(run(pts[i:i + chunk]))
+                           for i in range(0, len(pts), chunk)])
+
+
+def _errors(d: np.ndarray, exact: np.ndarray) -> dict:
+    e = np.abs(d - exact)
+    near = np.abs(exact) < 0.02
+    return {"max_abs_error_m": float(e.max()),
+            "max_abs_error_within_2cm_m": float(e[near].max()) if near.any() else 0.0,
+            "exact_distance_at_worst_m": float(exact[e.argmax()]),
+            "sign_errors": int(((d < 0) != (exact < 0)).sum())}
+
+
 def torus_case(reps: int, n_points: int) -> dict:
     import trimesh
 
@@ -65,11 +100,26 @@ def torus_case(reps: int, n_points: int) -> dict:
                               "old": lambda: old_q(old_body, pts)}, reps=reps)
     d_new = np.asarray(new_q(new_body, pts).distance)
     d_old = np.asarray(old_q(old_body, pts).distance)
+    exact = exact_signed_distance(posed, faces, pts)
+    # Points near the surface (what a garment lift queries): surface vertices jittered by
+    # 5 mm (normal distribution per axis).
+    near = jnp.asarray(posed[rng.integers(0, len(posed), n_points)]
+                       + rng.normal(0.0, 0.005, (n_points, 3)), jnp.float32)
+    query_near = timing.alternate({"new": lambda: new_q(new_body, near),
+                                   "old": lambda: old_q(old_body, near)}, reps=reps)
+    exact_near = exact_signed_distance(posed, faces, near)
     return {"triangles": len(faces), "points": n_points, "template_ms": round(1e3 * template_s),
             "build": build.to_json("old"), "query": query.to_json("old"),
             "new_query_paths": bodies.mesh_query_stats(new_body, pts),
             "max_abs_distance_difference_m": float(np.abs(d_new - d_old).max()),
-            "sign_disagreements": int(((d_new < 0) != (d_old < 0)).sum())}
+            "sign_disagreements": int(((d_new < 0) != (d_old < 0)).sum()),
+            "against_exact": {"new": _errors(d_new, exact), "old": _errors(d_old, exact)},
+            "near_surface": {
+                "query": query_near.to_json("old"),
+                "new_query_paths": bodies.mesh_query_stats(new_body, near),
+                "against_exact": {
+                    "new": _errors(np.asarray(new_q(new_body, near).distance), exact_near),
+                    "old": _errors(np.asarray(old_q(old_body, near).distance), exact_near)}}}
 
 
 def makehuman_case(reps: int, old: bool) -> dict | None:

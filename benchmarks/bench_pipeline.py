@@ -23,9 +23,18 @@ With --network-sweep (alone): the network stage on one chunk of demo frames for 
 sizes 4, 8, 16 x 1 or 4 frames per network call (`PipelineConfig.frames_per_batch`),
 alternating in one run (`wrinkle_jax.timing.alternate`), ms/frame and ratios.
 
+With --lift-sweep (alone): the lift stage of the streaming pipeline on the demo skirt or on
+dress_dance (simulated coarse, capsule body) for subdivision (None: 10 mm edges; "auto":
+texel-based) x warm start x Gauss-Newton iteration cap (20, 5, 3, 2, 1): lift ms/frame and
+the quality of every lifted frame against the shipped model's N* it followed
+(`wrinkle_jax.lift_quality`), see `lift_sweep`. --choose-lift applies the rule that picked
+the pipeline's default lift (`choose_lift`) to the sweeps' JSON files.
+
 Usage: python benchmarks/bench_pipeline.py [--quick] [--frames N] [--no-lift] [--reps R]
        python benchmarks/bench_pipeline.py --network-sweep [--reps R] [--stride S]
-       python benchmarks/bench_pipeline.py --lift-sweep [--frames N]
+       python benchmarks/bench_pipeline.py --lift-sweep [--scene demo|dress_dance] [--frames N]
+           [--partial PATH]
+       python benchmarks/bench_pipeline.py --choose-lift DEMO.json DRESS_DANCE.json
   --quick: 4 frames (one chunk), no batch-size sweep (< 2 min on a quiet 2-core machine).
 """
 
@@ -35,6 +44,7 @@ import argparse
 import json
 import os
 import platform
+import sys
 import tempfile
 import time
 from collections.abc import Mapping
@@ -208,34 +218,176 @@ def network_sweep(model, reps: int, chunk: int, batches=(4, 8, 16), frames_per_b
             "load_avg_1m": {"before": t.load_before, "after": t.load_after}}
 
 
-def lift_sweep(model, iters=(20, 3, 2, 1), frames: int = 12) -> dict:
-    """The lift stage of the CLI's pipeline (warm-started Gauss-Newton) on the demo frames for
-    each GN iteration cap: ms/frame (after a 4-frame warm-up with the same pipeline), the
-    iterations run, and how far the lifted vertices land from the first cap's (mm, RMS and
-    max over all frames and vertices). Caps run one after another, not alternating."""
+LIFT_CAPS = (20, 5, 3, 2, 1)  # the reference (cap 20, cold start) first
+SWEEP_SCENES = ("demo", "dress_dance")
+
+
+def sweep_scene(name: str, frames: int):
+    """(coarse sequence, material, body: None or frame index -> body) of a sweep scene: the
+    demo skirt (no body), or a `sim.scenes` scene simulated coarse (seed 1, silk charmeuse, as
+    experiments/timing.py) with the mannequin's capsules as the body."""
+    if name == "demo":
+        seq = meshio.load_sequence(_demo_sequence_path())
+        return seq, seq.metadata.get("material") or "silk_charmeuse", None
+    from wrinkle_jax import bodies
+    from wrinkle_jax.sim import scenes
+
+    material = "silk_charmeuse"
+    seq = scenes.simulate(scenes.get_scene(name), material, "coarse", frames=frames, seed=1)
+    if "capsule_ends" not in seq.tracks:
+        return seq, material, None
+    ends, radii = np.asarray(seq.tracks["capsule_ends"]), np.asarray(seq.tracks["capsule_radii"])
+    return seq, material, (lambda t: bodies.primitive_body(
+        capsules=(ends[t, :, 0], ends[t, :, 1], radii)))
+
+
+def _mean(rows: list, key: str, sub: str | None = None) -> float | None:
+    vals = [r[key] if sub is None else r[key][sub] for r in rows]
+    return None if any(v is None for v in vals) else round(float(np.mean(vals)), 4)
+
+
+def lift_sweep(model, scene: str = "demo", frames: int = 12, caps=LIFT_CAPS,
+               warm=(False, True), subdivisions=(None, "auto"), partial: str | None = None
+               ) -> dict:
+    """The lift stage of the streaming pipeline for every subdivision x warm start x GN
+    iteration cap, timed and measured against its goal (`lift_quality`).
+
+    Per setting: a pipeline is built and compiled (batch 16, chunk 4, 4 frames per network
+    call, as the CLI), 2 frames are enhanced as a warm-up, then `frames` frames are enhanced
+    and their lift timed (ms/frame, the body push-out included); every lifted frame is then
+    measured against the N* it was lifted from (`lift_quality`: angles, band energies, rim,
+    penetrations) and against the reference setting's solution of the same subdivision
+    (cap 20, cold start: converged to the solver's tolerance from p0). Settings run one
+    after another (not alternating); the 1-minute load average is recorded beside each.
+    A subdivision setting that gives the same level as an earlier one is not run again
+    ("levels" says which). `partial`: a path rewritten with the results so far after each
+    setting.
+    """
     import dataclasses
 
+    from wrinkle_jax import lift_quality as lq
     from wrinkle_jax.solvers import SolverConfig
 
-    seq = meshio.load_sequence(_demo_sequence_path())
-    material = seq.metadata.get("material") or "silk_charmeuse"
-    out, ref = {}, None
-    for k in iters:
-        cfg = pipeline.PipelineConfig(batch_size=16, warm_start=True,
-                                      solver=dataclasses.replace(SolverConfig(), max_iters=k))
-        pipe = pipeline.make_pipeline(seq.garment, model, cfg)
-        pipeline.enhance_sequence(seq, material, pipeline=pipe, config=cfg, frames=range(4))
-        load = os.getloadavg()[0]
-        res = pipeline.enhance_sequence(seq, material, pipeline=pipe, config=cfg,
-                                        frames=range(min(frames, len(seq))))
-        det = np.asarray(res.detailed_frames)
-        ref = det if ref is None else ref
-        d = 1e3 * np.linalg.norm(det - ref, axis=-1)
-        out[str(k)] = {"lift_ms_per_frame": round(1e3 * res.timings["lift"] / len(det), 1),
-                       "iterations_per_frame": res.lift_iterations / len(det),
-                       "vs_first_mm_rms": round(float(np.sqrt((d ** 2).mean())), 3),
-                       "vs_first_mm_max": round(float(d.max()), 3), "load_avg_1m": load}
-    return {"first": str(iters[0]), "frames": int(len(ref)), "caps": out}
+    seq, material, body_fn = sweep_scene(scene, frames)
+    sel = list(range(min(frames, len(seq))))
+    out, refs, plans, levels = {}, {}, {}, {}
+    for sub in subdivisions:
+        level = pipeline.make_pipeline(seq.garment, model, pipeline.PipelineConfig(
+            subdivision=sub), compile=False).subdivision.levels
+        if level in levels.values():  # the same mesh as another setting: the same runs
+            levels[str(sub)] = level
+            continue
+        levels[str(sub)] = level
+        for w in warm:
+            for k in caps:
+                cfg = pipeline.PipelineConfig(
+                    batch_size=16, chunk_size=4, frames_per_batch=4, warm_start=w,
+                    subdivision=sub, solver=dataclasses.replace(SolverConfig(), max_iters=k))
+                pipe = pipeline.make_pipeline(seq.garment, model, cfg, body_fn)
+                pipeline.enhance_sequence(seq, material, pipeline=pipe, frames=sel[:2],
+                                          keep=False)
+                load = os.getloadavg()[0]
+                cpu0 = time.process_time()
+                res = pipeline.enhance_sequence(seq, material, pipeline=pipe, frames=sel)
+                cpu = time.process_time() - cpu0
+                det = np.asarray(res.detailed_frames)
+                if sub not in plans:
+                    plans[sub] = (lq.quality_plan(pipe.fine_garment, res.layout),
+                                  lq.rim_topology(np.asarray(pipe.fine_garment.faces),
+                                                  det.shape[1]))
+                plan, rim = plans[sub]
+                refs.setdefault(sub, det)
+                rows = []
+                for j, t in enumerate(sel):
+                    p0 = pipe.subdivision.apply(jnp.asarray(seq.frames[t], jnp.float32))
+                    q = lq.lift_quality(det[j], res.normal_maps[j], plan, vertices0=p0,
+                                        reference=refs[sub][j], rim=rim,
+                                        body=None if body_fn is None else body_fn(t))
+                    rows.append(q.as_dict())
+                name = f"sub={sub}_warm={int(w)}_cap={k}"
+                out[name] = {
+                    "subdivision": sub, "warm_start": w, "max_iters": k,
+                    "vertices": int(det.shape[1]),
+                    "lift_ms_per_frame": round(1e3 * res.timings["lift"] / len(det), 1),
+                    "iterations_per_frame": (res.lift_iterations / len(det)) if w else None,
+                    "load_avg_1m": round(load, 2),
+                    # Process CPU time of all stages (the network's is the same in every
+                    # setting): less sensitive to the machine's other load than wall time.
+                    "cpu_ms_per_frame_all_stages": round(1e3 * cpu / len(det), 1),
+                    "mean_over_frames": {
+                        **{key: _mean(rows, key) for key in (
+                            "angle_median_deg", "angle_mean_deg", "angle_p90_deg",
+                            "vs_reference_mm_rms", "vs_reference_mm_max", "inside",
+                            "rim_mm_rms", "rim_mm_max", "rim_ragged_mm_rms",
+                            "interior_mm_rms")},
+                        **{f"band_ratio_{b}": _mean(rows, "band_ratio", b)
+                           for b in rows[0]["band_ratio"]}},
+                    "per_frame": {key: [round(float(r[key]), 4) for r in rows] for key in (
+                        "angle_mean_deg", "angle_p90_deg")} | {
+                        "band_ratio_16_64mm": [round(r["band_ratio"]["16_64mm"], 4)
+                                               for r in rows],
+                        "inside": [r["inside"] for r in rows]},
+                }
+                if partial is not None:  # progress survives an interrupted sweep
+                    Path(partial).write_text(json.dumps(out, indent=1))
+                print(f"# {scene} {name}: lift {out[name]['lift_ms_per_frame']} ms/frame, "
+                      f"angle mean {out[name]['mean_over_frames']['angle_mean_deg']} deg, "
+                      f"load {load:.2f}", file=sys.stderr, flush=True)
+    return {"scene": scene, "material": material, "body": body_fn is not None,
+            "frames": len(sel), "reference": "cap 20, cold start, same subdivision",
+            "levels": levels,
+            "settings": out}
+
+
+CHOICE_DEFAULT = "sub=None_warm=1_cap=20"  # the CLI's lift before the sweep
+CHOICE_TWIN = "sub=None_warm=0_cap=20"     # the same, cold started: the noise of convergence
+ONE_SIDED = ("angle_mean_deg", "angle_p90_deg", "inside")  # lower is fine
+TWO_SIDED = ("band_ratio_16_64mm",)
+
+
+def _paired(settings: dict, a: str, b: str, key: str) -> np.ndarray:
+    x = np.asarray(settings[a]["per_frame"][key], np.float64)
+    return x - np.asarray(settings[b]["per_frame"][key], np.float64)
+
+
+def choose_lift(sweeps: list, default: str = CHOICE_DEFAULT, twin: str = CHOICE_TWIN) -> dict:
+    """The cheapest lift setting whose quality is within noise of the default's, on every
+    scene (the rule, fixed before the sweep was read):
+
+    noise_q = |mean_f(q_default - q_twin)| + 2 SE_f(q_default - q_twin) per scene, the twin
+    being the default cold started (both converge to the solver's tolerance). A setting
+    qualifies when mean_f(q_S - q_default) <= noise_q for the one-sided quantities (angle
+    mean and p90, penetrating vertices: lower is fine) and |.| <= noise_q for the 16-64 mm
+    band ratio, on every scene. The choice: the qualifying setting with the lowest lift
+    ms/frame on the last scene (the timing scene); the default when none does.
+    """
+    verdicts: dict = {}
+    for sweep in sweeps:
+        st = sweep["settings"]
+        f = len(st[default]["per_frame"]["angle_mean_deg"])
+        keys = [k for k in ONE_SIDED + TWO_SIDED
+                if all(v is not None for v in st[default]["per_frame"][k])]
+        noise = {}
+        for k in keys:
+            d = _paired(st, default, twin, k)
+            se = d.std(ddof=1) / np.sqrt(f) if f > 1 else 0.0
+            noise[k] = abs(d.mean()) + 2 * se
+        for name in st:
+            diff = {k: float(_paired(st, name, default, k).mean()) for k in keys}
+            ok = all(diff[k] <= noise[k] if k in ONE_SIDED else abs(diff[k]) <= noise[k]
+                     for k in keys)
+            v = verdicts.setdefault(name, {"qualifies": True, "scenes": {}})
+            v["qualifies"] &= ok
+            v["scenes"][sweep["scene"]] = {
+                "ok": ok, "diff_to_default": {k: round(x, 4) for k, x in diff.items()},
+                "lift_ms_per_frame": st[name]["lift_ms_per_frame"]}
+        verdicts["_noise_" + sweep["scene"]] = {k: round(float(x), 4) for k, x in noise.items()}
+    timing_scene = sweeps[-1]["scene"]
+    ok = [n for n, v in verdicts.items() if not n.startswith("_") and v["qualifies"]]
+    best = min(ok, key=lambda n: verdicts[n]["scenes"][timing_scene]["lift_ms_per_frame"],
+               default=default)
+    return {"default": default, "twin": twin, "chosen": best, "timing_scene": timing_scene,
+            "verdicts": verdicts}
 
 
 def main() -> None:
@@ -252,12 +404,28 @@ def main() -> None:
                     help="only the network stage: batch size x frames per call, alternating")
     ap.add_argument("--stride", type=int, default=None, help="patch stride (--network-sweep)")
     ap.add_argument("--lift-sweep", action="store_true",
-                    help="only the lift: Gauss-Newton iteration caps 20, 3, 2, 1 (warm start)")
+                    help="only the lift: subdivision x warm start x Gauss-Newton iteration cap, "
+                         "timed and measured (lift_quality)")
+    ap.add_argument("--scene", default="demo", choices=SWEEP_SCENES,
+                    help="--lift-sweep scene: the demo skirt or dress_dance (simulated coarse, "
+                         "capsule body)")
+    ap.add_argument("--partial", default=None,
+                    help="--lift-sweep: rewrite this JSON file with the results so far")
+    ap.add_argument("--choose-lift", nargs="+", metavar="SWEEP_JSON", default=None,
+                    help="apply the lift choice rule (choose_lift) to --lift-sweep outputs "
+                         "(the timing scene last)")
     args = ap.parse_args()
+    if args.choose_lift:
+        sweeps = [json.loads(Path(p).read_text()) for p in args.choose_lift]
+        print(json.dumps(choose_lift(sweeps), indent=2))
+        return
     if args.lift_sweep:
         model, which = load_model()
         print(json.dumps({"benchmark": "pipeline_lift_sweep", "model": which,
-                          **lift_sweep(model, frames=args.frames)}, indent=2))
+                          "load_avg_1m_before": os.getloadavg()[0],
+                          **lift_sweep(model, args.scene, frames=args.frames,
+                                       partial=args.partial),
+                          "load_avg_1m_after": os.getloadavg()[0]}, indent=2))
         return
     if args.network_sweep:
         model, which = load_model()

@@ -17,7 +17,9 @@ Everything is measured on this machine in this process, nothing is estimated:
     recorded to show the timed run did not compile.
   * pipeline (`pipeline.enhance_sequence` on the timed coarse frames, material given, lifting
     with the mannequin's capsules as the body, as the paper's lifting resolves
-    interpenetration): the pipeline is built and compiled once ("setup_s", "compile_s"), a
+    interpenetration; the lift warm-started from the previous frame, as the CLI runs it;
+    its setting was kept by the quality sweep of `benchmarks/bench_pipeline.py --lift-sweep`,
+    experiments/results/lift/): the pipeline is built and compiled once ("setup_s", "compile_s"), a
     first chunk is enhanced as a warm-up, then all `--frames` frames are timed; ms/frame per
     stage (bake, tile, network, merge, lift) = stage seconds / frames.
 
@@ -109,7 +111,9 @@ def time_pipeline(seq, enh: enhancer_lib.Enhancer, material: str, body=None, lif
       {"frames", "ms_per_frame": {stage: ms}, "ms_per_frame_total", "setup_s", "compile_s",
        "warmup_s", "warmup_frames", "patches_per_frame", "detailed_vertices", "map_shape"}.
     """
-    config = pipeline.PipelineConfig(batch_size=batch_size, chunk_size=chunk_size, lift=lift)
+    # The lift as the CLI runs it: warm-started from the previous frame.
+    config = pipeline.PipelineConfig(batch_size=batch_size, chunk_size=chunk_size, lift=lift,
+                                     warm_start=True)
     pipe = pipeline.make_pipeline(seq.garment, enh, config, body)
     warm = list(range(min(chunk_size, len(seq))))
     t0 = time.perf_counter()
@@ -123,6 +127,8 @@ def time_pipeline(seq, enh: enhancer_lib.Enhancer, material: str, body=None, lif
             "warmup_s": warmup_s, "warmup_frames": len(warm),
             "patches_per_frame": pipe.num_patches, "batch_size": batch_size,
             "chunk_size": chunk_size, "lift": lift, "body": body is not None,
+            "lift_warm_start": True, "lift_max_iters": config.solver.max_iters,
+            "lift_iterations_per_frame": res.lift_iterations / n,
             "detailed_vertices": (None if pipe.fine_garment is None
                                   else int(pipe.fine_garment.num_vertices)),
             "map_shape": list(pipe.shape)}

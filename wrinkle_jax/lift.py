@@ -22,6 +22,9 @@ unrolled. The result is exact at a stationary point: tighten `tol` / `cg_tol` wh
 must be accurate (the default settings favour speed per frame).
 
 Interpenetration (`resolve_penetration`): see its docstring. Without a body nothing is traced.
+
+How well a lift met its goal (its mesh re-baked against N*, detail bands, rim, penetrations):
+`wrinkle_jax.lift_quality`.
 """
 
 from __future__ import annotations

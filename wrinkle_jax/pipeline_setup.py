@@ -41,6 +41,15 @@ class PipelineError(ValueError):
     """Bad pipeline input (unknown material, a garment that covers no texel, ...)."""
 
 
+# The pipeline's lift: Gauss-Newton capped at 3 iterations per frame. Sweep
+# (experiments/results/lift/lift_sweep_{demo,dress_dance}_s16.json, shipped model's maps, 12
+# frames, lift_quality against N*): against the solver's own stop (cap 20; 8 iterations/frame
+# warm on the demo, 4 on dress_dance) cap 3 changes the mean angle to N* by +0.004 deg of 1.58
+# (demo, warm; +0.007 cold) and -0.006 of 2.43 (dress_dance), band ratios by < 0.002, no body
+# penetrations, 0.6-0.8 mm RMS from the converged mesh, at 3/8 of the demo's iterations.
+LIFT_SOLVER = lift_lib.SolverConfig(max_iters=3)
+
+
 @dataclasses.dataclass(frozen=True)
 class PipelineConfig:
     """Static settings of the pipeline (hashable).
@@ -68,7 +77,9 @@ class PipelineConfig:
         (default: until the mean edge is at most `target_edge`), "auto" (no finer than the
         map's detail: edges of at least `lift.TEXELS_PER_EDGE` texels of the model's texel
         size, `lift.texel_subdivision_level`), or an int >= 0 (exactly that many levels).
-      weights, solver: the lift's energy weights and solver settings (see `lift.lift`).
+      weights, solver: the lift's energy weights and solver settings (see `lift.lift`);
+        `solver` defaults to `LIFT_SOLVER` (3 Gauss-Newton iterations per frame, ~0.7 mm from
+        a converged solve): pass a tighter one when gradients through the lift must be exact.
       warm_start: start each frame's lift from the previous streamed frame's solution,
         carried in the coarse surface's local frames (`stages._lift_warm`): fewer solver
         iterations on an animation (the CLI turns it on; benchmarks/bench_lift.py
@@ -90,7 +101,7 @@ class PipelineConfig:
     subdivision_scheme: str = "midpoint"
     subdivision: int | str | None = None
     weights: lift_lib.LiftWeights = lift_lib.LiftWeights()
-    solver: lift_lib.SolverConfig = lift_lib.SolverConfig()
+    solver: lift_lib.SolverConfig = LIFT_SOLVER
     warm_start: bool = False
     resolve: lift_lib.ResolveConfig = lift_lib.ResolveConfig()
     phi: float = 5e3

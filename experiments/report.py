@@ -61,7 +61,8 @@ COMMANDS = {
     "ship_test": "see experiments/results/fidelity/ship_test_s15/README.md",
     "table2_detail": ("python -m experiments.table2 --features detail --garments dress,cape "
                       "--frame-stride 20 --out experiments/results/table2_detail --extra "
-                      "run7b=experiments/results/fidelity/detail_bands_w3.npz --oracles"),
+                      "run7b=experiments/results/fidelity/detail_bands_w3.npz --extra "
+                      "run10=experiments/results/fidelity/detail_bank_w25.npz --oracles"),
 }
 
 # Method names of experiments.fidelity, in table order, with what they are.

@@ -11,6 +11,7 @@ import re
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from wrinkle_jax.sim import contact_scenes as CS
 from wrinkle_jax.sim import intersect
@@ -60,14 +61,17 @@ def test_off_by_default():
     assert not re.search(r"\bsort\[", jaxprs[0]) and re.search(r"\bsort\[", jaxprs[1])
 
 
-def test_candidates_find_every_close_pair():
-    # A folded strip part-way through its fall: brute force over all vertex-triangle pairs.
+@pytest.mark.parametrize("exclusion", [0.0, 0.05])
+def test_candidates_find_every_close_pair(exclusion):
+    # A folded strip part-way through its fall: brute force over all vertex-triangle pairs;
+    # with a rest exclusion, every close pair except those of one panel whose rest centroid
+    # is nearer than it.
     scene = CS.folded_sheet(pd=0.03, frames=1)
     x = np.asarray(scene.x0, np.float64)
     x[:, 2] += 0.004 * np.sin(17 * x[:, 0]) * np.cos(11 * x[:, 1])  # not exactly flat
     faces = np.asarray(scene.model.faces)
     cfg = S.SelfCollisionConfig(thickness=0.004, margin=0.02, max_raw=256, max_contacts=32,
-                                max_box=128)
+                                max_box=128, rest_exclusion=exclusion)
     cand = _build_candidates(jnp.asarray(x, jnp.float32), scene.model.faces,
                              scene.model.self_topo, cfg)
     assert np.asarray(cand.overflow).tolist() == [0, 0]
@@ -77,12 +81,21 @@ def test_candidates_find_every_close_pair():
     d = np.sqrt(np.asarray(d2))
     reach = cfg.thickness + cfg.margin
     close = (d < 0.99 * reach) & ~(faces[None] == np.arange(len(x))[:, None, None]).any(-1)
+    topo = scene.model.self_topo
+    centre = np.asarray(topo.face_uv).mean(1)
+    rest = np.linalg.norm(np.asarray(topo.uv)[:, None] - centre[None], axis=-1)
+    own = np.asarray(topo.face_panel)[None] == np.asarray(topo.panel)[:, None]
+    excluded = own & (rest < exclusion)
+    if exclusion:
+        assert (close & excluded).sum() > 100 and (close & ~excluded).sum() > 100
+    close &= ~excluded
     found = np.zeros_like(close)
     t, ok = np.asarray(cand.tri), np.asarray(cand.valid)
     rows = np.repeat(np.arange(len(x))[:, None], t.shape[1], 1)
     found[rows[ok], t[ok]] = True
     assert close.sum() > 100  # the two layers are 2 cm apart: every vertex has partners
     assert not (close & ~found).any()
+    assert not (found & excluded).any()
     assert not (found & (d > 1.01 * reach)).any()
 
 
@@ -128,9 +141,19 @@ def test_overflow_is_counted_not_dropped():
     init_fn, step_fn = X.cloth_simulator(config)
     d = jax.tree_util.tree_map(lambda a: a[0], scene.drives)
     d1 = jax.tree_util.tree_map(lambda a: a[1], scene.drives)
-    state = jax.jit(step_fn)(scene.model, X.fabric_params(M.fabric("silk_charmeuse")),
-                             init_fn(scene.model, scene.x0), d, d1)
-    assert np.asarray(state.self_overflow).min() > 0
+    params = X.fabric_params(M.fabric("silk_charmeuse"))
+    state = jax.jit(step_fn)(scene.model, params, init_fn(scene.model, scene.x0), d, d1)
+    over = np.asarray(state.self_overflow)
+    assert over[:2].min() > 0 and over[2] == 0  # the flat list holds V x K: nothing lost there
+    # A flat contact list shorter than the close pairs counts the rest in its own slot.
+    short = dataclasses.replace(roomy, pairs_per_vertex=0.01)
+    init_fn, step_fn = X.cloth_simulator(X.SimConfig(substeps=2, self_collision=short))
+    state = jax.jit(step_fn)(scene.model, params, init_fn(scene.model, scene.x0), d, d1)
+    n_close = int(n_full.sum())
+    m = S.max_pairs(len(scene.x0), short)
+    assert m < n_close
+    # Rebuilt at both substeps from nearly the rest pose: about 2 x (close - m) lost.
+    assert np.asarray(state.self_overflow)[2] >= n_close - m
 
 
 def _layers_ordered(x, lower, upper, reach=0.01):
@@ -149,7 +172,7 @@ def test_two_sheets_do_not_pass_through():
     scene = CS.two_sheets(pd=0.02, size=0.2, frames=24)
     state, xs = _run(scene, X.SimConfig(self_collision=CFG))
     assert np.isfinite(xs).all()
-    assert np.asarray(state.self_overflow).tolist() == [0, 0]
+    assert np.asarray(state.self_overflow).tolist() == [0, 0, 0]
     assert _pairs(xs, scene.model.faces, every=3) == [0] * 8
     g = scene.mesh.garment
     upper = np.zeros(len(scene.x0), bool)
@@ -167,7 +190,7 @@ def test_folded_sheet_stays_intersection_free():
     config = dataclasses.replace(CFG, max_contacts=32)
     state, xs = _run(scene, X.SimConfig(self_collision=config))
     assert np.isfinite(xs).all()
-    assert np.asarray(state.self_overflow).tolist() == [0, 0]
+    assert np.asarray(state.self_overflow).tolist() == [0, 0, 0]
     assert _pairs(xs, scene.model.faces, every=3) == [0] * 8
     upper = scene.x0[:, 2] > scene.x0[:, 2].min() + 0.015  # the top layer (2 cm fold)
     assert _layers_ordered(xs[-1], ~upper, upper)

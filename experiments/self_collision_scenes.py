@@ -2,7 +2,8 @@
 
     python -m experiments.self_collision_scenes [--scenes a,b] [--resolutions fine,coarse]
         [--frames 90] [--every 6] [--material silk_charmeuse] [--thickness MM] [--margin MM]
-        [--rebuild-every N] [--max-raw R] [--max-contacts K] [--out PATH] [--log PATH]
+        [--rebuild-every N] [--max-raw R] [--max-contacts K] [--max-box B]
+        [--rest-exclusion MM] [--pairs-per-vertex P] [--out PATH] [--log PATH]
 
 For each scene of `sim.scenes` and resolution, simulates the pre-roll and the first `--frames`
 frames of the motion twice in one process, with self-collision off and on (the same frames,
@@ -58,7 +59,8 @@ def run_pair(setup, material, sc, chunk):
     """Simulate the setup's drives with self-collision off and on, alternating chunks.
 
     Returns: frames (T, V, 3) of each run (returned frames only), ms/frame of each run after
-    the first chunk, and the final overflow [cell entries, contacts] of the 'on' run.
+    the first chunk, and the final overflow [cell entries, box hits or contacts, flat-list
+    contacts] of the 'on' run.
     """
     params = xpbd.fabric_params(M.fabric(material))
     sub, sweeps = setup.scene.substeps, setup.scene.stretch_sweeps
@@ -110,6 +112,9 @@ def main(argv=None) -> None:
     ap.add_argument("--rebuild-every", type=int)
     ap.add_argument("--max-raw", type=int)
     ap.add_argument("--max-contacts", type=int)
+    ap.add_argument("--max-box", type=int)
+    ap.add_argument("--rest-exclusion", type=float, help="mm")
+    ap.add_argument("--pairs-per-vertex", type=float)
     ap.add_argument("--out", default=str(ROOT / "experiments" / "results" / "sim"
                                          / "self_collision_scenes.json"))
     ap.add_argument("--log", default=None, help="JSON lines, one per row (default OUT.log)")
@@ -119,7 +124,11 @@ def main(argv=None) -> None:
                               ("margin", args.margin and args.margin * 1e-3),
                               ("rebuild_every", args.rebuild_every),
                               ("max_raw", args.max_raw),
-                              ("max_contacts", args.max_contacts)) if v is not None}
+                              ("max_contacts", args.max_contacts),
+                              ("max_box", args.max_box),
+                              ("rest_exclusion", None if args.rest_exclusion is None
+                               else args.rest_exclusion * 1e-3),
+                              ("pairs_per_vertex", args.pairs_per_vertex)) if v is not None}
     # Rows of other scenes / resolutions already in --out are kept (runs can be split).
     out = Path(args.out)
     rows = json.loads(out.read_text())["rows"] if out.exists() else []

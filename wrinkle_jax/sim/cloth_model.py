@@ -143,8 +143,9 @@ class Drive:
 @dataclasses.dataclass(frozen=True)
 class ClothState:
     """Positions (V, 3) m and velocities (V, 3) m/s; with self-collision also
-    self_overflow (2,) int32, candidates dropped since `init_fn` (see
-    `selfcollision.Candidates.overflow`), else None."""
+    self_overflow (3,) int32, candidates dropped since `init_fn`: the two counts of
+    `selfcollision.Candidates.overflow`, then contacts beyond the flat list
+    (`SelfCollisionConfig.pairs_per_vertex`); else None."""
 
     x: Any
     v: Any

@@ -56,9 +56,20 @@ RESOLUTIONS = {"fine": 0.010, "coarse": 0.030}  # particle distance (PD), meters
 # Not the data set's default: measured on skirt_dance coarse 5.3 % -> 0 % intersecting faces,
 # fine 2.0 % -> 0.6 % (the fine row with margin 12 mm), but cape_walk coarse 2.9 % -> 55 %, and
 # 14-28x the cost per frame (target <= 1.5x).
+# Session 16: same-panel pairs nearer at rest than reach + ~0.6 PD (a triangle's
+# circumradius) are excluded, so a flat layer adds no candidates (rest pose, skirt_dance:
+# 0.31 coarse / 1.0 fine candidates per vertex, from 2.7 / 30); the projections run over a flat
+# list of one (coarse) or two (fine) contacts per vertex; the coarse cell reads cover the rest
+# pose's fullest cell (94 entries; fine 280 at rest, more in motion). Measured (60 frames,
+# results/sim/README.md): coarse met (skirt_dance 0.06 %, cape_walk 0.03 % intersecting faces),
+# fine not (skirt_dance 1.1 %, candidates still dropped), and 6-9x the cost: not the default.
 SELF_COLLISION = {
-    "fine": SelfCollisionConfig(thickness=0.004, margin=0.014, rebuild_every=4),
-    "coarse": SelfCollisionConfig(thickness=0.009, margin=0.015, rebuild_every=4),
+    "fine": SelfCollisionConfig(thickness=0.004, margin=0.014, rebuild_every=4, max_raw=512,
+                                max_box=64, max_contacts=16, rest_exclusion=0.024,
+                                pairs_per_vertex=2.0),
+    "coarse": SelfCollisionConfig(thickness=0.009, margin=0.015, rebuild_every=4, max_raw=128,
+                                  max_box=16, max_contacts=8, rest_exclusion=0.042,
+                                  pairs_per_vertex=1.0),
 }
 
 

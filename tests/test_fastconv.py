@@ -73,15 +73,24 @@ def _np_deconv_torch(x, w):
     return full[1:-1, 1:-1]
 
 
+def _normal(seed, shape, scale=1.0, offset=0.0):
+    """Standard normal test data, float32. NumPy's generator, not jax.random: each new shape
+    of an op-by-op `jax.random.normal` compiles its own threefry program (~1 s of CPU each)."""
+    rng = np.random.default_rng(seed)
+    return jnp.asarray(offset + scale * rng.standard_normal(shape), jnp.float32)
+
+
 def _grads(f, *args):
-    """f(*args) and the gradients w.r.t. all args of sum(f(*args) * cotangent), in one jit."""
+    """f(*args) and the gradients w.r.t. all args of sum(f(*args) * cotangent), in one jit;
+    the cotangent is a fixed standard normal draw of the output's shape."""
+    cotangent = _normal(7, jax.eval_shape(f, *args).shape)
 
     @jax.jit
-    def run(*a):
+    def run(ct, *a):
         y, vjp = jax.vjp(f, *a)
-        return y, vjp(jax.random.normal(jax.random.PRNGKey(7), y.shape))
+        return y, vjp(ct)
 
-    return run(*args)
+    return run(cotangent, *args)
 
 
 DTYPES = [jnp.float32, jnp.bfloat16]
@@ -95,9 +104,8 @@ DTYPES = [jnp.float32, jnp.bfloat16]
     (3, 32, "REFLECT"),   # VGG's first conv: output-side input gradient
 ])
 def test_conv3x3_matches_xla(c_in, c_out, padding):
-    k1, k2 = jax.random.split(jax.random.PRNGKey(c_in * 10 + c_out))
-    x = jax.random.normal(k1, (2, 6, 10, c_in))
-    k = jax.random.normal(k2, (3, 3, c_in, c_out)) / np.sqrt(9 * c_in)
+    x = _normal(c_in * 10 + c_out, (2, 6, 10, c_in))
+    k = _normal(c_in * 10 + c_out + 1, (3, 3, c_in, c_out), 1 / np.sqrt(9 * c_in))
     ref, (rx, rk) = _grads(lambda x, k: _xla_conv3x3(x, k, padding), x, k)
     for dtype in DTYPES:
         y, (gx, gk) = _grads(lambda x, k, dtype=dtype: fastconv.conv3x3(
@@ -119,9 +127,8 @@ def test_conv3x3_bias_and_docstring_values():
 
 @pytest.mark.parametrize("c_in,c_out", [(5, 7), (8, 3)])
 def test_conv_transpose_matches_flax_and_torch_semantics(c_in, c_out):
-    k1, k2 = jax.random.split(jax.random.PRNGKey(c_in + c_out))
-    x = jax.random.normal(k1, (2, 5, 6, c_in))
-    k = jax.random.normal(k2, (4, 4, c_in, c_out)) / np.sqrt(4 * c_in)
+    x = _normal(c_in + c_out, (2, 5, 6, c_in))
+    k = _normal(c_in + c_out + 100, (4, 4, c_in, c_out), 1 / np.sqrt(4 * c_in))
     ref, (rx, rk) = _grads(_xla_deconv, x, k)
     # PyTorch semantics: the U-Net stores the torch weight flipped, as (kH, kW, in, out).
     w_torch = np.asarray(k)[::-1, ::-1].transpose(2, 3, 0, 1).astype(np.float64)
@@ -142,10 +149,9 @@ def _plain_instance_norm(x, scale, shift, eps=1e-5):
 
 @pytest.mark.parametrize("offset", [0.0, 30.0])  # |mean| / std up to 30
 def test_instance_norm_matches_two_pass(offset):
-    k1, k2, k3 = jax.random.split(jax.random.PRNGKey(3), 3)
-    x = jax.random.normal(k1, (3, 8, 8, 5)) + offset
-    scale = 1 + 0.3 * jax.random.normal(k2, (3, 5))
-    shift = 0.3 * jax.random.normal(k3, (3, 5))
+    x = _normal(3, (3, 8, 8, 5), offset=offset)
+    scale = _normal(4, (3, 5), 0.3, 1.0)
+    shift = _normal(5, (3, 5), 0.3)
     y, grads = _grads(lambda *a: jax.nn.relu(fastconv.instance_norm(*a)), x, scale, shift)
     ref, rgrads = _grads(lambda *a: jax.nn.relu(_plain_instance_norm(*a)), x, scale, shift)
     y_relu = jax.jit(lambda *a: fastconv.instance_norm(*a, relu=True))(x, scale, shift)
@@ -196,12 +202,11 @@ def test_flop_counts():
 def net():
     model = unet.UNetConfig(width=4, input_norm="imagenet", residual=True).module(3)
     params = unet.init_params(model, jax.random.key(0, impl="rbg"), patch_size=32)
-    k1, k2 = jax.random.split(jax.random.key(1, impl="rbg"))
-    for name in ("cin1", "cin2", "cin3", "cin4"):
+    for i, name in enumerate(("cin1", "cin2", "cin3", "cin4")):
         c = params[name]["scale"].shape[1]
-        params[name] = {"scale": 1 + 0.5 * jax.random.normal(k1, (3, c)),
-                        "shift": 0.5 * jax.random.normal(k2, (3, c))}
-    x = jax.random.uniform(jax.random.PRNGKey(2), (2, 32, 48, 3))
+        params[name] = {"scale": _normal(10 + i, (3, c), 0.5, 1.0),
+                        "shift": _normal(20 + i, (3, c), 0.5)}
+    x = jnp.asarray(np.random.default_rng(2).uniform(size=(2, 32, 48, 3)), jnp.float32)
     m = jnp.array([0, 2])
     ref = jax.jit(model.apply)({"params": params}, x, m)
     ref_grad = jax.jit(jax.grad(_sq_loss(model, x, m)))(params)
@@ -266,10 +271,10 @@ def test_unet_fast_form_with_torch_weights():
 
 
 def test_cin_fused_matches_plain():
-    x = jax.random.normal(jax.random.PRNGKey(4), (2, 8, 8, 6))
+    x = _normal(4, (2, 8, 8, 6))
     m = jnp.array([1, 0])
     plain = unet.CIN(num_materials=2)
-    params = plain.init(jax.random.PRNGKey(0), x, m)
+    params = plain.init(jax.random.key(0, impl="rbg"), x, m)
     params = jax.tree_util.tree_map(lambda a: a + 0.1 * jnp.arange(a.size).reshape(a.shape),
                                     params)
     y = jax.jit(unet.CIN(num_materials=2, fused=True).apply)(params, x, m)

@@ -203,11 +203,9 @@ def test_mask_shape_mismatch_is_reported():
 # --- enhancer_loss with a tiny random VGG ------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def tiny_vgg():
-    # Identity input map keeps random-network activations O(1).
-    return vgg.init_vgg19(jax.random.PRNGKey(0), widths=(4, 8, 8, 8, 8),
-                          spec=vgg.VGGSpec("custom", "REFLECT"))
+# `tiny_vgg` is the session fixture of tests/conftest.py: 16 convs of widths (4, 8, 8, 8, 8),
+# identity input map (keeps random-network activations O(1)), rbg key (a threefry init compiled
+# a draw per kernel shape: 6.3 s of CPU against 1.6 s), built once per worker.
 
 
 def test_enhancer_loss(tiny_vgg):

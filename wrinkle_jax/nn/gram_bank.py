@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wrinkle_jax.evaluation import sets as set_lib
 from wrinkle_jax.nn import losses, vgg
 
 __all__ = ["GramBank", "build_bank", "feature_vectors", "load_bank", "nearest_distance",
@@ -119,11 +120,11 @@ def build_bank(vgg_params, images, mask, material, layers, batch_size: int = 8,
         img[:k], m[:k] = images[i:i + k], mask[i:i + k]
         for j, b in enumerate(blocks(img, m)):
             parts[j].append(np.asarray(b)[:k])
-    cat = [np.concatenate(p) for p in parts]
-    scales = np.array([np.median(np.linalg.norm(b, axis=1)) for b in cat], np.float32)
-    scales = np.where(scales > 0, scales, 1.0).astype(np.float32)
-    v = np.concatenate([b / s for b, s in zip(cat, scales, strict=True)], axis=1)
-    return GramBank(v.astype(np.float32), np.asarray(material, np.int32), layers, scales)
+    flat = {name: np.concatenate(p) for name, p in zip(layers, parts, strict=True)}
+    scales = set_lib.layer_scales(flat)  # Table 2's own scaling and concatenation
+    v = set_lib.scaled_features(flat, scales).astype(np.float32)
+    return GramBank(v, np.asarray(material, np.int32), layers,
+                    np.array([scales[name] for name in layers], np.float32))
 
 
 def save_bank(path: str | Path, bank: GramBank) -> None:

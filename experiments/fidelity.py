@@ -152,7 +152,8 @@ def val_models(args, vgg_params) -> dict:
     model - unsharp_material (95 % bootstrap). This is what checkpoint and recipe choices
     read; the held-out scenes are never touched here. Texel-noise models get fixed
     pseudo-random patch origins (the val patches carry none)."""
-    ds = data.PatchDataset(args.data, args.split)
+    scenes = args.val_scenes.split(",") if args.val_scenes else None
+    ds = data.PatchDataset(args.data, args.split, scenes=scenes)
     settings = method_lib.material_unsharp_settings()
     models = {}
     for spec in args.model:
@@ -200,7 +201,8 @@ def val_models(args, vgg_params) -> dict:
             scores[k].append(np.where(sc["valid"], sc["improvement_signed"], np.nan))
         mats += [mat] * len(pick)
     mats = np.asarray(mats)
-    got = {"split": args.split, "patches_per_material": int(args.sweep_patches),
+    got = {"split": args.split, "scenes": scenes,
+           "patches_per_material": int(args.sweep_patches),
            "detail_sigma": SIGMA, "models": {k: suite.portable_path(p.split("=", 1)[1])
                                              for k, p in zip(models, args.model, strict=True)},
            "methods": {}}
@@ -511,6 +513,9 @@ def main(argv=None) -> int:
                          "valgarment = the validation-only garment, a proxy for unseen ones; "
                          "train = the training patches themselves: the gain where it was "
                          "learned)")
+    ap.add_argument("--val-scenes", default=None,
+                    help="val: only these scenes of the split (comma-separated), e.g. the "
+                         "training scenes a model saw against those it did not")
     ap.add_argument("--transplant", type=int, default=0,
                     help="val: also score the coarse input carrying fine detail from its own "
                          "target / other patches (`transplants`)")

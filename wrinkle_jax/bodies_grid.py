@@ -33,6 +33,7 @@ from wrinkle_jax.mesh_body import (
     BodyError,
     BodyQuery,
     _closed_mesh_normals,
+    _outward_mesh,
     closest_point_on_triangle,
     feature_pseudo_normal,
     signed_answer,
@@ -131,17 +132,7 @@ def grid_mesh_body(vertices, faces, cell_size: float | None = None, max_candidat
       BodyError: the mesh is not closed/manifold, has non-finite coordinates, or a cell near
         the surface needs more candidates than allowed (pass a smaller `cell_size`).
     """
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    if v.ndim != 2 or v.shape[1] != 3 or not np.isfinite(v).all():
-        raise BodyError(f"mesh body vertices must be finite (Nv, 3), got {v.shape}")
-    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0 or f.min() < 0 or f.max() >= len(v):
-        raise BodyError(f"mesh body faces must be (T, 3) indices into {len(v)} vertices")
-    p = v[f]
-    volume = np.sum(p[:, 0] * np.cross(p[:, 1], p[:, 2])) / 6.0
-    if volume < 0:
-        f = f[:, ::-1].copy()
-        p = v[f]
+    v, f, p = _outward_mesh(vertices, faces)
     fn, vn, en, fe = _closed_mesh_normals(v, f)
     edge_len = np.linalg.norm(p - np.roll(p, 1, axis=1), axis=2).mean()
     lo, hi = v.min(0), v.max(0)

@@ -186,6 +186,23 @@ def closest_point_on_triangle(p, a, b, c):
     return closest, region
 
 
+def _outward_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Checked float64 vertices (V, 3), int64 faces (T, 3) wound so the signed volume is
+    positive (faces outward), and the (T, 3, 3) triangle corners. Raises BodyError on
+    non-finite or malformed input (closedness is checked by `_closed_mesh_normals`)."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    if v.ndim != 2 or v.shape[1] != 3 or not np.isfinite(v).all():
+        raise BodyError(f"mesh body vertices must be finite (Nv, 3), got {v.shape}")
+    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0 or f.min() < 0 or f.max() >= len(v):
+        raise BodyError(f"mesh body faces must be (T, 3) indices into {len(v)} vertices")
+    p = v[f]
+    if np.sum(p[:, 0] * np.cross(p[:, 1], p[:, 2])) < 0:  # signed volume: face outward
+        f = f[:, ::-1].copy()
+        p = v[f]
+    return v, f, p
+
+
 def _closed_mesh_normals(v: np.ndarray, f: np.ndarray):
     """Face normals, angle-weighted vertex pseudo-normals, edge pseudo-normals, face edges."""
     p = v[f]
@@ -296,16 +313,7 @@ def mesh_template(vertices, faces, cell_size: float | None = None, cluster_size:
     Raises:
       BodyError: non-finite or malformed input, or a mesh that is not closed and manifold.
     """
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    if v.ndim != 2 or v.shape[1] != 3 or not np.isfinite(v).all():
-        raise BodyError(f"mesh body vertices must be finite (Nv, 3), got {v.shape}")
-    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0 or f.min() < 0 or f.max() >= len(v):
-        raise BodyError(f"mesh body faces must be (T, 3) indices into {len(v)} vertices")
-    p = v[f]
-    if np.sum(p[:, 0] * np.cross(p[:, 1], p[:, 2])) < 0:  # signed volume: face outward
-        f = f[:, ::-1].copy()
-        p = v[f]
+    v, f, p = _outward_mesh(vertices, faces)
     _, _, en, fe = _closed_mesh_normals(v, f)
     clusters = _cluster_triangles(p.mean(1), int(cluster_size))
     cp = p.astype(np.float32)[clusters]

@@ -52,13 +52,13 @@ def candidate_families() -> list[tuple[str, ...]]:
 
 def _seq_features(path: Path, cfg: cal.MotionConfig, skinned: bool = False) -> np.ndarray:
     with np.load(path) as z:
-        frames, caps = z["frames"], z["capsule_ends"]
-        topo = motion.make_topology(z["faces"], z["uvs"], z["uv_faces"])
-        fps = float(z["fps"])
+        arrays = {k: z[k] for k in z.files if k != "metadata"}
+    topo = motion.make_topology(arrays["faces"], arrays["uvs"], arrays["uv_faces"])
+    frames = arrays["frames"]
     if skinned:
-        frames = motion.follow_body_rigidly(frames[0], caps)
-    return motion.sequence_features(frames, motion.body_reference(caps), topo, fps,
-                                    cfg.window, cfg.stride)
+        frames = motion.follow_body_rigidly(frames[0], arrays["capsule_ends"])
+    return motion.sequence_features(frames, motion.reference_track(arrays), topo,
+                                    float(arrays["fps"]), cfg.window, cfg.stride)
 
 
 def build_cache(train_root: Path, heldout_root: Path, cache: Path, cfg) -> list[dict]:

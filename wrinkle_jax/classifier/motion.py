@@ -103,6 +103,20 @@ def body_reference(capsule_ends) -> np.ndarray:
     return c.reshape(c.shape[0], -1, 3).mean(axis=1)
 
 
+def reference_track(arrays) -> np.ndarray | None:
+    """The reference point per frame of a sequence's arrays (a dict-like of `.npz` arrays).
+
+    The body's capsules (`body_reference`) when present; else the mean of the pinned points
+    (``pins`` (T, P, 3): a sheet held in the wind has no body, its pins drive it); else None.
+    Returns (T, 3) meters or None.
+    """
+    if "capsule_ends" in arrays:
+        return body_reference(arrays["capsule_ends"])
+    if "pins" in arrays and np.asarray(arrays["pins"]).size:
+        return np.asarray(arrays["pins"], np.float64).mean(axis=1)
+    return None
+
+
 def power_spectrum(signal, fps: float):
     """Power spectrum of a real signal along time, Hann-windowed, mean removed.
 

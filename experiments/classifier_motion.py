@@ -77,7 +77,7 @@ def build_cache(train_root: Path, heldout_root: Path, cache: Path, cfg) -> list[
         if not src.exists():
             print(f"missing {src}", flush=True)
             continue
-        dst = cache / split / sc / f"{m}.npy"
+        dst = cache / f"d{motion.FEATURE_DIM}" / split / sc / f"{m}.npy"
         if not dst.exists():
             t0 = time.perf_counter()
             f = _seq_features(src, cfg, skinned)

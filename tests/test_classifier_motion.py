@@ -78,6 +78,13 @@ def test_stretch_of_uniformly_scaled_sheet():
     # log strain log(1.05) on every side, no spread over edges or time.
     np.testing.assert_allclose(f[:4], np.log(1.05), atol=1e-6)
     np.testing.assert_allclose(f[4:], 0.0, atol=1e-6)
+    # Stretch only the hanging direction (z) by 3 %: vertical sides strain, horizontal not.
+    sag = np.repeat(verts[None], 10, 0) * np.array([1.0, 1.0, 1.03])
+    g = motion.window_features(sag, ref, topo, 30.0)[motion.family_slices()["sag"]]
+    assert g[0] == pytest.approx(np.log(1.03), abs=1e-6)        # vertical sides
+    assert g[1] == pytest.approx(0.0, abs=1e-6)                 # horizontal sides
+    assert 0.0 < g[2] < np.log(1.03)                            # diagonals: in between
+    assert g[3] == pytest.approx(np.log(1.03), abs=1e-6)        # vertical - horizontal
 
 
 def test_dihedral_angle_of_folded_pair():

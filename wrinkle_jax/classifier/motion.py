@@ -16,7 +16,9 @@ measurements, grouped in families so each can be scored alone:
   * ``stretch``: edge lengths against their rest lengths (the UV layout, meters):
     log-strain statistics over edges and over time;
   * ``curvature``: dihedral angles between neighbouring faces (fold sharpness) and how fast
-    they change.
+    they change;
+  * ``sag``: log-strain of hanging (near-vertical) sides against horizontal and diagonal
+    ones, and of the top third against the bottom third (the weight a side carries).
 
 Conventions: positions in meters, z up (gravity along -z, as in `wrinkle_jax.sim`), time in
 seconds. Every feature is a function of distances, speeds, heights and times only, so it is
@@ -31,7 +33,7 @@ import dataclasses
 
 import numpy as np
 
-FAMILIES = ("kinematic", "spectral", "lag", "stretch", "curvature")
+FAMILIES = ("kinematic", "spectral", "lag", "stretch", "curvature", "sag")
 # Band edges (Hz) of the spectral family: below the body's stride rate, around it, the first
 # harmonics and the fast flutter a light fabric adds.
 BANDS_HZ = (0.0, 1.0, 2.0, 3.5, 6.0, 10.0, 16.0)
@@ -208,6 +210,29 @@ def _stretch(x, topo):
                      np.percentile(per_edge, 10), per_edge.std(), s.std(axis=0).mean()])
 
 
+def _sag(x, topo):
+    """Strain of sides by their 3D direction: hanging (vertical) sides carry the weight below
+    them, so their stretch against the horizontal sides' is mass per area x g / stiffness."""
+    if topo.rest_lengths is None:
+        return np.zeros(6)
+    ce = topo.corner_edges
+    ok = np.isfinite(topo.rest_lengths)
+    d = x[:, ce[ok, 0]] - x[:, ce[ok, 1]]                                      # (W, S, 3)
+    length = np.linalg.norm(d, axis=-1)
+    s = np.log(length / topo.rest_lengths[ok] + _EPS)
+    up = np.abs(d[..., 2]) / (length + _EPS)                                   # |cos| to z
+    vert, horiz = up > 0.8, up < 0.3
+    diag = ~(vert | horiz)
+    height = 0.5 * (x[:, ce[ok, 0], 2] + x[:, ce[ok, 1], 2])
+    lo, hi = np.quantile(height, [1 / 3, 2 / 3], axis=1, keepdims=True)
+
+    def mean(mask):
+        return float((s * mask).sum() / max(mask.sum(), 1))
+
+    return np.array([mean(vert), mean(horiz), mean(diag), mean(vert) - mean(horiz),
+                     mean(vert & (height >= hi)), mean(vert & (height <= lo))])
+
+
 def dihedral_angles(x, topo: Topology) -> np.ndarray:
     """Unsigned angles (radians) between the normals of the two faces of each interior edge.
 
@@ -233,7 +258,7 @@ def _curvature(x, topo, fps):
 
 
 FAMILY_DIMS = {"kinematic": 8, "spectral": len(BANDS_HZ), "lag": 5, "stretch": 6,
-               "curvature": 5}
+               "curvature": 5, "sag": 6}
 
 
 def family_slices() -> dict:
@@ -266,7 +291,8 @@ def window_features(frames, ref, topo: Topology, fps: float) -> np.ndarray:
                          f"{x.shape} and {r.shape}")
     x_rel = x - r[:, None, :]
     return np.concatenate([_kinematic(x_rel, r, fps), _spectral(x_rel, fps),
-                           _lag(x, r, fps), _stretch(x, topo), _curvature(x, topo, fps)])
+                           _lag(x, r, fps), _stretch(x, topo), _curvature(x, topo, fps),
+                           _sag(x, topo)])
 
 
 def window_starts(num_frames: int, window: int, stride: int) -> np.ndarray:

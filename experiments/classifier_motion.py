@@ -128,7 +128,10 @@ def evaluate(model: cal.MotionClassifier, entries: list[dict]) -> dict:
         rows.append({"scene": e["scene"], "material": e["material"], "label": e["label"],
                      "pred": int(probs.argmax()), "confidence": r.confidence,
                      "abstained": r.abstained, "reason": r.reason, "novelty": r.novelty,
-                     "probs": probs.tolist()})
+                     "probs": probs.tolist(), "group": r.group,
+                     "group_confidence": r.group_confidence})
+    g_ans = np.array([r["group"] is not None for r in rows])
+    g_ok = np.array([r["group"] == cal.GROUPS[r["material"]] for r in rows])
     y = np.array([r["label"] for r in rows])
     p = np.array([r["pred"] for r in rows])
     ans = ~np.array([r["abstained"] for r in rows])
@@ -143,6 +146,8 @@ def evaluate(model: cal.MotionClassifier, entries: list[dict]) -> dict:
         "accuracy_answered": float(np.mean(p[ans] == y[ans])) if ans.any() else None,
         "group_accuracy_all": float(np.mean(gp == gy)),
         "group_accuracy_answered": float(np.mean(gp[ans] == gy[ans])) if ans.any() else None,
+        "group_level_coverage": float(g_ans.mean()),
+        "group_level_accuracy_answered": float(g_ok[g_ans].mean()) if g_ans.any() else None,
         "ece": ece, "nll": cal.nll(probs, y), "confusion": conf.tolist(),
         "reliability": {"counts": counts.tolist(), "confidence": mconf.tolist(),
                         "accuracy": macc.tolist()},
@@ -271,13 +276,20 @@ def main(argv=None) -> int:
     ok = cv_probs.argmax(1) == cv["labels"]
     threshold = cal.choose_threshold(conf, ok, 0.9)
     novelty_limit = 2.0 * float(cv["novelty"].max())
+    cv_groups = [cal.group_scores(dict(zip(MATERIALS, p, strict=True))) for p in cv_probs]
+    g_conf = np.array([max(g.values()) for g in cv_groups])
+    g_ok = np.array([max(g, key=g.get) == cal.GROUPS[MATERIALS[y]]
+                     for g, y in zip(cv_groups, cv["labels"], strict=True)])
+    group_threshold = cal.choose_threshold(g_conf, g_ok, 0.9)
     model = cal.fit(*_stack(train), cfg)._replace(temperature=temp, threshold=threshold,
-                                                   novelty_limit=novelty_limit)
+                                                   novelty_limit=novelty_limit,
+                                                   group_threshold=group_threshold)
     cv_counts, cv_conf, cv_acc, cv_ece = cal.reliability(cv_probs, cv["labels"])
     _, _, _, cv_ece_t1 = cal.reliability(cal.sequence_probs(cv["mean_lp"], 1.0), cv["labels"])
     cv_ans = conf >= threshold
+    g_ans = g_conf >= group_threshold
     res = {"config": dataclasses.asdict(cfg), "temperature": temp, "threshold": threshold,
-           "novelty_limit": novelty_limit,
+           "novelty_limit": novelty_limit, "group_threshold": group_threshold,
            "cv": {"seq_acc": cv["seq_acc"], "win_acc": cv["win_acc"], "ece": cv_ece,
                   "ece_temperature_1": cv_ece_t1,
                   "nll": cal.nll(cv_probs, cv["labels"]),
@@ -287,7 +299,10 @@ def main(argv=None) -> int:
                   "accuracy_answered": float(ok[cv_ans].mean()) if cv_ans.any() else None,
                   "group_accuracy": float(np.mean(group_of(cv_probs.argmax(1))
                                                   == group_of(cv["labels"]))),
-                  "max_novelty": float(cv["novelty"].max())},
+                  "max_novelty": float(cv["novelty"].max()),
+                  "group_level_coverage": float(g_ans.mean()),
+                  "group_level_accuracy_answered": float(g_ok[g_ans].mean()) if g_ans.any()
+                  else None},
            "candidates": [c[0] for c in cands],
            "heldout": evaluate(model, heldout), "skinned": evaluate(model, skinned)}
     curve = accuracy_vs_windows(model, heldout)
@@ -301,8 +316,11 @@ def main(argv=None) -> int:
     print(json.dumps({k: res["cv"][k] for k in res["cv"]}, indent=1))
     for name, r in (("heldout", h), ("skinned", s)):
         print(name, {k: r[k] for k in ("n", "accuracy_all", "coverage", "accuracy_answered",
-                                       "group_accuracy_all", "group_accuracy_answered", "ece",
-                                       "nll")})
+                                       "group_accuracy_all", "group_accuracy_answered",
+                                       "group_level_coverage", "group_level_accuracy_answered",
+                                       "ece", "nll")})
+    print("temperature", temp, "threshold", threshold, "group_threshold", group_threshold,
+          "novelty_limit", novelty_limit)
     targets = (h["coverage"] >= 0.5 and (h["accuracy_answered"] or 0) >= 0.9
                and (h["group_accuracy_answered"] or 0) >= 0.9 and s["coverage"] == 0.0)
     print("targets hold:", targets)

@@ -167,3 +167,19 @@ def test_abstains_on_constant_input_and_round_trips(tmp_path):
     assert r2.confidence == pytest.approx(good.confidence, rel=1e-4)
     with pytest.raises(cal.ClassifierError):
         cal.load(tmp_path / "missing.npz")
+
+
+def test_group_answer_when_the_material_is_unsure():
+    cfg = cal.MotionConfig(families=("lag",))
+    d = len(cfg.columns())
+    p = np.array([0.45, 0.04, 0.03, 0.45, 0.03])  # the two silks, MATERIALS order
+    model = cal.MotionClassifier(np.zeros((d, 5)), np.log(p), np.zeros(d), np.ones(d), 1.0,
+                                 0.6, np.inf, cfg, group_threshold=0.8)
+    r = cal.classify_features(model, np.zeros((3, motion.FEATURE_DIM)))
+    assert r.abstained and r.material is None and "low confidence" in r.reason
+    assert r.group == "light_silk" and r.group_confidence == pytest.approx(0.9)
+    assert sum(r.group_scores.values()) == pytest.approx(1.0)
+    # Above the group threshold only: a stricter one abstains at group level too.
+    r2 = cal.classify_features(model._replace(group_threshold=0.95),
+                               np.zeros((3, motion.FEATURE_DIM)))
+    assert r2.group is None

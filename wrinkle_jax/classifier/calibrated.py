@@ -78,7 +78,8 @@ class MotionConfig:
 
 class MotionClassifier(NamedTuple):
     """Weights (D, M), bias (M,), mean/std (D,) of the used features, the sequence-level
-    temperature, the abstain threshold on max p, the novelty limit, and the config."""
+    temperature, the abstain threshold on max p, the novelty limit, the config, and the
+    threshold on the top group's probability (`GROUPS`) for a group-level answer."""
 
     weights: np.ndarray
     bias: np.ndarray
@@ -88,6 +89,7 @@ class MotionClassifier(NamedTuple):
     threshold: float
     novelty_limit: float
     config: MotionConfig
+    group_threshold: float = 1.0
 
 
 @functools.partial(jax.jit, static_argnames=("num_classes", "steps"))
@@ -217,9 +219,18 @@ def novelty(model: MotionClassifier, features) -> float:
     return float(np.mean(z ** 2))
 
 
+def group_scores(scores: dict) -> dict:
+    """Material name -> p summed into `GROUPS` (light_silk, heavy_woven, knit) -> p."""
+    out = {}
+    for m, p in scores.items():
+        out[GROUPS[m]] = out.get(GROUPS[m], 0.0) + float(p)
+    return out
+
+
 class MotionClassification(NamedTuple):
     """material (None when abstained), scores (name -> p), confidence = max p, abstained,
-    reason (why it abstained, '' when it answered), novelty, num_windows."""
+    reason (why it abstained, '' when it answered), novelty, num_windows, and the group-level
+    answer: group (None when that abstains too), group_scores, group_confidence."""
 
     material: str | None
     scores: dict
@@ -228,6 +239,9 @@ class MotionClassification(NamedTuple):
     reason: str
     novelty: float
     num_windows: int
+    group: str | None = None
+    group_scores: dict | None = None
+    group_confidence: float = 0.0
 
     def to_json(self) -> dict:
         return dict(self._asdict())
@@ -244,6 +258,9 @@ def classify_features(model: MotionClassifier, features) -> MotionClassification
         raise ClassifierError(f"need (N >= 1, D) finite window features, got shape {f.shape}")
     probs = sequence_probs(window_log_probs(model, f).mean(axis=0), model.temperature)
     names = model.config.materials
+    scores = {m: float(p) for m, p in zip(names, probs, strict=True)}
+    groups = group_scores(scores)
+    top_group = max(groups, key=groups.get)
     conf = float(probs.max())
     nov = novelty(model, f)
     reason = ""
@@ -252,10 +269,12 @@ def classify_features(model: MotionClassifier, features) -> MotionClassification
                   f"{model.novelty_limit:.3g}; e.g. a skinned garment without dynamics)")
     elif conf < model.threshold:
         reason = f"low confidence ({conf:.2f} < threshold {model.threshold:.2f})"
+    group_ok = nov <= model.novelty_limit and groups[top_group] >= model.group_threshold
     return MotionClassification(
         material=None if reason else names[int(probs.argmax())],
-        scores={m: float(p) for m, p in zip(names, probs, strict=True)}, confidence=conf,
-        abstained=bool(reason), reason=reason, novelty=nov, num_windows=int(len(f)))
+        scores=scores, confidence=conf, abstained=bool(reason), reason=reason, novelty=nov,
+        num_windows=int(len(f)), group=top_group if group_ok else None, group_scores=groups,
+        group_confidence=float(groups[top_group]))
 
 
 def save(path: str | os.PathLike, model: MotionClassifier, meta: dict | None = None) -> Path:
@@ -266,7 +285,7 @@ def save(path: str | os.PathLike, model: MotionClassifier, meta: dict | None = N
     cfg = dataclasses.asdict(model.config)
     head = {"format": _FORMAT, "config": cfg, "temperature": model.temperature,
             "threshold": model.threshold, "novelty_limit": model.novelty_limit,
-            "meta": meta or {}}
+            "group_threshold": model.group_threshold, "meta": meta or {}}
     buf = io.BytesIO()
     np.savez(buf, weights=np.asarray(model.weights, np.float32),
              bias=np.asarray(model.bias, np.float32), mean=np.asarray(model.mean, np.float32),
@@ -304,4 +323,5 @@ def load(path: str | os.PathLike | None = None) -> MotionClassifier:
                               f"config ({d} features, {m} materials)")
     return MotionClassifier(arrays["weights"], arrays["bias"], arrays["mean"], arrays["std"],
                             float(head["temperature"]), float(head["threshold"]),
-                            float(head["novelty_limit"]), config)
+                            float(head["novelty_limit"]), config,
+                            float(head.get("group_threshold", 1.0)))

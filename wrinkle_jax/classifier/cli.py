@@ -112,6 +112,10 @@ def _cmd_classify_motion(args) -> int:
         head = ("abstained: " + result.reason if result.abstained
                 else f"material: {result.material}")
         print(f"{head}  (confidence {result.confidence:.2f}, {result.num_windows} windows)")
+        if result.group_scores:
+            g = result.group or "abstained"
+            print(f"group: {g}  (light_silk / heavy_woven / knit; confidence "
+                  f"{result.group_confidence:.2f})")
         for m, p in sorted(result.scores.items(), key=lambda kv: -kv[1]):
             print(f"  {m:<16} {p:.3f}")
     return 0

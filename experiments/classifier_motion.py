@@ -59,7 +59,8 @@ def _seq_features(path: Path, cfg: cal.MotionConfig, skinned: bool = False) -> n
     if skinned:
         frames = motion.follow_body_rigidly(frames[0], arrays["capsule_ends"])
     return motion.sequence_features(frames, motion.reference_track(arrays), topo,
-                                    float(arrays["fps"]), cfg.window, cfg.stride)
+                                    float(arrays["fps"]), cfg.window, cfg.stride,
+                                    arrays.get("capsule_ends"))
 
 
 def lbs_entries(lbs_root: Path | None, cfg) -> list[dict]:

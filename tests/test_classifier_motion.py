@@ -45,16 +45,17 @@ def _yaw_shift(x, angle, shift):
 def test_features_invariant_to_rigid_motion_of_body_and_cloth():
     frames, caps, faces, uv, fps = _scene()
     topo = motion.make_topology(faces, uv)
-    f0 = motion.window_features(frames[:32], motion.body_reference(caps[:32]), topo, fps)
+    f0 = motion.window_features(frames[:32], motion.body_reference(caps[:32]), topo, fps,
+                                caps[:32])
     shift = np.array([3.0, -2.0, 0.7])
+    moved_caps = _yaw_shift(caps[:32], 1.1, shift)
     f1 = motion.window_features(_yaw_shift(frames[:32], 1.1, shift),
-                                motion.body_reference(_yaw_shift(caps[:32], 1.1, shift)),
-                                topo, fps)
+                                motion.body_reference(moved_caps), topo, fps, moved_caps)
     assert f0.shape == (motion.FEATURE_DIM,)
     np.testing.assert_allclose(f1, f0, rtol=1e-6, atol=1e-6)
     # ... and NOT invariant to moving the cloth alone (the features do see the motion).
     moved = frames[:32] + np.linspace(0, 0.3, 32)[:, None, None] * np.array([1.0, 0, 0])
-    f2 = motion.window_features(moved, motion.body_reference(caps[:32]), topo, fps)
+    f2 = motion.window_features(moved, motion.body_reference(caps[:32]), topo, fps, caps[:32])
     assert np.max(np.abs(f2 - f0)) > 0.05
 
 
@@ -112,6 +113,14 @@ def test_follow_body_rigidly_keeps_shape():
                      1)
     same = bone[:, None] == bone[None]
     np.testing.assert_allclose(d9[same], d0[same], atol=1e-5)
+    # The rigidity family sees it: no motion in the capsules' frames (the 1e-4 m/s floor),
+    # while the swinging original moves in them.
+    topo = motion.make_topology(faces, uv)
+    sl = motion.family_slices()["rigidity"]
+    ref = motion.body_reference(caps)
+    rigid = motion.window_features(skinned, ref, topo, 30.0, caps)[sl]
+    swing = motion.window_features(frames, ref, topo, 30.0, caps)[sl]
+    assert rigid[0] < np.log(2e-4) and swing[0] > np.log(1e-2)
 
 
 def _blobs(seed, n=60, scale=1.0):

@@ -79,6 +79,7 @@ def classify_motion_input(path, model_path=None):
             topo = motion.make_topology(z["faces"], z["uvs"] if "uvs" in z.files else None,
                                         z["uv_faces"] if "uv_faces" in z.files else None)
             fps = float(z["fps"]) if "fps" in z.files else 30.0
+            caps = np.asarray(z["capsule_ends"]) if "capsule_ends" in z.files else None
     except (OSError, KeyError, ValueError) as e:
         raise ClassifierError(f"{path}: cannot read the sequence ({e})") from None
     if len(frames) < cfg.window:
@@ -86,7 +87,7 @@ def classify_motion_input(path, model_path=None):
     if ref.shape[0] != frames.shape[0]:
         raise ClassifierError(f"{path}: the body track has {ref.shape[0]} frames, the garment "
                               f"{frames.shape[0]}")
-    feats = motion.sequence_features(frames, ref, topo, fps, cfg.window, cfg.stride)
+    feats = motion.sequence_features(frames, ref, topo, fps, cfg.window, cfg.stride, caps)
     return calibrated.classify_features(model, feats)
 
 

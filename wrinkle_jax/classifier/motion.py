@@ -18,7 +18,9 @@ measurements, grouped in families so each can be scored alone:
   * ``curvature``: dihedral angles between neighbouring faces (fold sharpness) and how fast
     they change;
   * ``sag``: log-strain of hanging (near-vertical) sides against horizontal and diagonal
-    ones, and of the top third against the bottom third (the weight a side carries).
+    ones, and of the top third against the bottom third (the weight a side carries);
+  * ``rigidity``: motion of each vertex in the frame of its nearest body capsule (zero for a
+    garment that rides its bones, as skinned input does).
 
 Conventions: positions in meters, z up (gravity along -z, as in `wrinkle_jax.sim`), time in
 seconds. Every feature is a function of distances, speeds, heights and times only, so it is
@@ -33,7 +35,7 @@ import dataclasses
 
 import numpy as np
 
-FAMILIES = ("kinematic", "spectral", "lag", "stretch", "curvature", "sag")
+FAMILIES = ("kinematic", "spectral", "lag", "stretch", "curvature", "sag", "rigidity")
 # Band edges (Hz) of the spectral family: below the body's stride rate, around it, the first
 # harmonics and the fast flutter a light fabric adds.
 BANDS_HZ = (0.0, 1.0, 2.0, 3.5, 6.0, 10.0, 16.0)
@@ -258,7 +260,7 @@ def _curvature(x, topo, fps):
 
 
 FAMILY_DIMS = {"kinematic": 8, "spectral": len(BANDS_HZ), "lag": 5, "stretch": 6,
-               "curvature": 5, "sag": 6}
+               "curvature": 5, "sag": 6, "rigidity": 3}
 
 
 def family_slices() -> dict:
@@ -273,7 +275,23 @@ def family_slices() -> dict:
 FEATURE_DIM = sum(FAMILY_DIMS.values())
 
 
-def window_features(frames, ref, topo: Topology, fps: float) -> np.ndarray:
+def _rigidity(x, caps, ref, fps):
+    """How much the cloth moves in the frame of the body part it hangs from: each vertex is
+    given its nearest capsule at the window's first frame and followed in that capsule's
+    frame. Skinned (LBS) cloth rides its bones, so this motion is ~0 away from the joints;
+    simulated cloth swings and lags. Zeros when there are no capsules (a pinned sheet)."""
+    if caps is None:
+        return np.zeros(3)
+    rot, org = _capsule_frames(caps, ref)
+    bone = _nearest_capsule(x[0], caps[0])
+    local = np.einsum("tvij,tvj->tvi", rot[:, bone], x - org[:, bone])          # (W, V, 3)
+    nonrigid = np.linalg.norm(np.diff(local, axis=0), axis=-1) * fps
+    rel = np.linalg.norm(np.diff(x - ref[:, None], axis=0), axis=-1) * fps
+    return np.array([np.log(nonrigid.mean() + 1e-4), np.log(np.percentile(nonrigid, 90) + 1e-4),
+                     np.log((nonrigid.mean() + 1e-4) / (rel.mean() + 1e-4))])
+
+
+def window_features(frames, ref, topo: Topology, fps: float, capsules=None) -> np.ndarray:
     """The feature vector of one window of frames.
 
     Args:
@@ -281,6 +299,7 @@ def window_features(frames, ref, topo: Topology, fps: float) -> np.ndarray:
       ref: (W, 3) the body's reference point per frame (`body_reference`), meters.
       topo: `make_topology` of the garment.
       fps: frames per second.
+      capsules: (W, C, 2, 3) the body's capsules, meters (the ``rigidity`` family), or None.
     Returns:
       (FEATURE_DIM,) float64, families in `FAMILIES` order (`family_slices`).
     """
@@ -292,7 +311,9 @@ def window_features(frames, ref, topo: Topology, fps: float) -> np.ndarray:
     x_rel = x - r[:, None, :]
     return np.concatenate([_kinematic(x_rel, r, fps), _spectral(x_rel, fps),
                            _lag(x, r, fps), _stretch(x, topo), _curvature(x, topo, fps),
-                           _sag(x, topo)])
+                           _sag(x, topo),
+                           _rigidity(x, None if capsules is None else
+                                     np.asarray(capsules, np.float64), r, fps)])
 
 
 def window_starts(num_frames: int, window: int, stride: int) -> np.ndarray:
@@ -303,13 +324,15 @@ def window_starts(num_frames: int, window: int, stride: int) -> np.ndarray:
 
 
 def sequence_features(frames, ref, topo: Topology, fps: float, window: int = 32,
-                      stride: int = 16) -> np.ndarray:
-    """Features of every window of a sequence: (N, FEATURE_DIM), N = len(window_starts)."""
+                      stride: int = 16, capsules=None) -> np.ndarray:
+    """Features of every window of a sequence: (N, FEATURE_DIM), N = len(window_starts).
+    capsules: (T, C, 2, 3) or None (see `window_features`)."""
     starts = window_starts(len(frames), window, stride)
     if len(starts) == 0:
         raise ValueError(f"the sequence has {len(frames)} frames, fewer than one window "
                          f"({window})")
-    return np.stack([window_features(frames[s:s + window], ref[s:s + window], topo, fps)
+    return np.stack([window_features(frames[s:s + window], ref[s:s + window], topo, fps,
+                                     None if capsules is None else capsules[s:s + window])
                      for s in starts])
 
 
@@ -334,6 +357,14 @@ def _capsule_frames(capsule_ends, ref):
     return np.stack([e1, s, e3], axis=-2), a
 
 
+def _nearest_capsule(x0, caps0) -> np.ndarray:
+    """(V,) index of the capsule axis segment nearest to each vertex; caps0 (C, 2, 3)."""
+    a0, b0 = caps0[:, 0], caps0[:, 1]
+    ab = b0 - a0
+    t = np.clip(((x0[:, None] - a0) * ab).sum(-1) / ((ab * ab).sum(-1) + 1e-12), 0.0, 1.0)
+    return np.argmin(np.linalg.norm(x0[:, None] - (a0 + t[..., None] * ab), axis=-1), axis=1)
+
+
 def follow_body_rigidly(rest_vertices, capsule_ends) -> np.ndarray:
     """A skinned garment without dynamics: every vertex rides rigidly on its nearest capsule.
 
@@ -350,11 +381,7 @@ def follow_body_rigidly(rest_vertices, capsule_ends) -> np.ndarray:
     c = np.asarray(capsule_ends, np.float64)
     ref = body_reference(c)
     rot, org = _capsule_frames(c, ref)
-    a0, b0 = c[0, :, 0], c[0, :, 1]
-    ab = b0 - a0
-    t = np.clip(((x0[:, None] - a0) * ab).sum(-1) / ((ab * ab).sum(-1) + 1e-12), 0.0, 1.0)
-    dist = np.linalg.norm(x0[:, None] - (a0 + t[..., None] * ab), axis=-1)
-    bone = np.argmin(dist, axis=1)                                              # (V,)
+    bone = _nearest_capsule(x0, c[0])
     local = np.einsum("vij,vj->vi", rot[0, bone], x0 - org[0, bone])
     return np.einsum("tvji,vj->tvi", rot[:, bone], local).astype(np.float32) + \
         org[:, bone].astype(np.float32)

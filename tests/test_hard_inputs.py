@@ -258,9 +258,9 @@ FAILING = [
                          ids=[c[0] for c in FAILING])
 def test_bad_input_fails_with_one_line_and_no_output(root, tmp_path, capsys, monkeypatch, name,
                                                      make, argv, code, fragments):
-    from wrinkle_jax import classifier
+    from wrinkle_jax.classifier import calibrated
 
-    monkeypatch.setattr(classifier, "DEFAULT_PATH", tmp_path / "no_classifier.npz")
+    monkeypatch.setattr(calibrated, "MOTION_PATH", tmp_path / "no_classifier.npz")
     inputs = tmp_path / "inputs"
     inputs.mkdir()
     (inputs / "bad_model.npz").write_bytes(b"PK\x03\x04 not an enhancer")
@@ -511,7 +511,8 @@ def test_bake_never_writes_into_a_folder_with_user_files(root, tmp_path, capsys)
 
 
 def test_choose_material_reports_where_the_material_came_from(tmp_path, monkeypatch):
-    from wrinkle_jax import MATERIALS, classifier
+    from wrinkle_jax import MATERIALS
+    from wrinkle_jax.classifier import calibrated
 
     choose = validate.choose_material
     assert choose(None, "knit_terry", MATERIALS, "s.npz") == ("knit_terry", "stored")
@@ -520,7 +521,7 @@ def test_choose_material_reports_where_the_material_came_from(tmp_path, monkeypa
         choose(None, "tweed", MATERIALS, "s.npz")
     with pytest.raises(validate.UsageError, match="s.npz stores no material.*--material NAME"):
         choose(None, None, MATERIALS, "s.npz")
-    monkeypatch.setattr(classifier, "DEFAULT_PATH", tmp_path / "none.npz")
+    monkeypatch.setattr(calibrated, "MOTION_PATH", tmp_path / "none.npz")
     with pytest.raises(validate.UsageError, match="no material classifier is available"):
         choose("auto", "knit_terry", MATERIALS, "s.npz")
     (tmp_path / "none.npz").write_bytes(b"")  # a classifier file exists: classify

@@ -91,8 +91,9 @@ def _add_material(p) -> None:
     from wrinkle_jax import MATERIALS
 
     p.add_argument("--material", default=None, metavar="NAME",
-                   help=f"fabric: {', '.join(MATERIALS)}, or auto (needs a classifier; none "
-                   f"ships); default: the material stored in the sequence")
+                   help=f"fabric: {', '.join(MATERIALS)}, or auto (the motion classifier; "
+                   f"none ships yet; stops when it abstains); default: the material stored "
+                   f"in the sequence")
 
 
 def _add_units(p) -> None:

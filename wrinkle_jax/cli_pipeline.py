@@ -124,6 +124,27 @@ def _load_body(path: Path):
         raise bodies.BodyError(f"{path}: {e}") from None
 
 
+def _classify_auto(input_path: Path, materials) -> tuple:
+    """`--material auto`: the motion classifier's material, or a UsageError naming --material
+    when it abstains (never a silent default). Returns (material, MotionClassification)."""
+    from wrinkle_jax.classifier import ClassifierError
+    from wrinkle_jax.classifier.cli import classify_motion_input
+    from wrinkle_jax.validate import UsageError
+
+    names = ", ".join(materials)
+    try:
+        result = classify_motion_input(input_path)
+    except ClassifierError as e:
+        raise UsageError(f"--material auto: {e}; pass --material NAME (one of {names})") from None
+    if result.abstained:
+        raise UsageError(f"--material auto: the material classifier abstained ({result.reason}); "
+                         f"pass --material NAME (one of {names})")
+    if result.material not in materials:
+        raise UsageError(f"--material auto: the classifier chose {result.material!r}, which the "
+                         f"model does not know; pass --material NAME (one of {names})")
+    return result.material, result
+
+
 def _run_enhance(input_path: Path, out: Path, args, model: Path | None = None,
                  template: Path | None = None, demo: bool = False) -> int:
     """`enhance` (and the full `demo`): load, check everything up front (before any compile),
@@ -167,6 +188,9 @@ def _run_enhance(input_path: Path, out: Path, args, model: Path | None = None,
         material, material_source = validate.choose_material(
             args.material, seq.metadata.get("material"), enh.config.materials,
             display_path(input_path))
+        classification = None
+        if material == "auto":
+            material, classification = _classify_auto(input_path, enh.config.materials)
         body = _load_body(Path(args.body)) if getattr(args, "body", None) else None
         # Warm-started lift: the same error as cold starts on the demo at ~0.6x the lift time
         # (benchmarks/bench_lift.py --sequence); frames are streamed in order. A chunk's
@@ -192,6 +216,9 @@ def _run_enhance(input_path: Path, out: Path, args, model: Path | None = None,
             report["command"] = cmd
             report["input"] = display_path(input_path)
             report["material_source"] = material_source
+            if classification is not None:
+                report["material_scores"] = classification.scores
+                report["material_classification"] = classification.to_json()
             report["warnings"] = warnings
             report["budget"] = {k: list(v) if isinstance(v, tuple) else v
                                 for k, v in budget.items()}

@@ -1,4 +1,14 @@
-"""Patch-based material classifier with temporal voting (paper Sec. 4.2, Fig. 6).
+"""Material classifiers: from motion (issue 25, the default of `wrinkle-jax classify` and
+`--material auto`) and from normal-map patches (paper Sec. 4.2, Fig. 6; at chance here).
+
+Motion (`motion`, `calibrated`; imported as submodules)::
+
+    frames (T, V, 3) + body track (capsules or pins) --windows of 32 frames, stride 16-->
+      motion features per window (kinematic, spectral, hem lag, stretch, curvature)
+      --logistic regression--> window log p --mean over windows / temperature--> p (M,)
+      --answer if max p >= threshold and the features look like the training sims--> or abstain
+
+The rest of this docstring describes the patch classifier.
 
 Modules (by concept): `config` (ClassifierConfig, feature specs), `features` (VGG features
 per patch), `model` (the MLP, prediction), `voting` (Fig. 6), `sequences` (crops of a

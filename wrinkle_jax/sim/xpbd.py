@@ -262,6 +262,8 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
             raise ValueError("self-collision needs a model built with self_topo (build_cloth)")
 
         def rebuild(x):
+            if sc.raw_per_vertex > 0:  # bounds on totals, the nearest kept (see build_pairs)
+                return selfcollision.build_pairs(x, model.faces, model.self_topo, sc)
             # Per-vertex candidates, then one flat bounded list: the projections then touch
             # only the contacts that exist (0.009-3 per vertex measured), not V x K slots.
             cand = selfcollision.build_candidates(x, model.faces, model.self_topo, sc)

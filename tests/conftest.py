@@ -61,24 +61,24 @@ def pytest_unconfigure(config):
 # Makefile) hands files to the workers in collection order as they free up, so a long file
 # collected last would run alone at the end. (Without --no-loadscope-reorder xdist orders files
 # by their number of tests instead.) The order within a file is kept. Ranked by per-file CPU
-# (process + reaped children, setup to teardown) in one 2-worker run of session 14 (main
-# 62c1bb6, WRINKLE_JAX_TEST_PROFILE below), every file of 10 s or more; test_notebooks by its
-# kernels' CPU measured alone (~41 s for the notebooks' code in one process, ~48 s with three
-# kernel start-ups; the kernels are not reaped children). Files not listed
-# follow in collection order. With these numbers, a greedy two-worker schedule ends 7.5 s of
-# CPU earlier than with the session-13 list (533 s against 541 s for the busier worker).
-# Session 16: test_fastconv moves down to its new single-process CPU (79.0 s -> 33.4 s, its
-# test data no longer drawn with op-by-op jax.random), beside test_patches (34.6 s).
-SLOW_FILES_FIRST = ("test_train.py", "test_sharpen.py", "test_lift.py",
-                    "test_sim_selfcollision.py", "test_patchgan.py", "test_unet.py",
-                    "test_notebooks.py", "test_pipeline.py", "test_eval_experiments.py",
-                    "test_fastconv.py", "test_patches.py", "test_sim_xpbd.py", "test_sim_detail.py",
-                    "test_cli_train.py", "test_train_bands.py", "test_vgg.py",
+# (process + reaped children, setup to teardown) in the 2-worker run of session 16
+# (WRINKLE_JAX_TEST_PROFILE below), every file of 6 s or more, less what session 17 measured
+# cutting (test_train -4, test_sharpen -9, test_patchgan -4, test_lift -2 s); test_notebooks by
+# its kernels' CPU measured alone (~41 s for the notebooks' code in one process, ~48 s with
+# three kernel start-ups; the kernels are not reaped children). Files not listed follow in
+# collection order.
+SLOW_FILES_FIRST = ("test_train.py", "test_lift.py", "test_sharpen.py", "test_notebooks.py",
+                    "test_sim_selfcollision.py", "test_unet.py", "test_patchgan.py",
+                    "test_eval_experiments.py", "test_sim_xpbd.py", "test_pipeline.py",
+                    "test_fastconv.py", "test_cli_train.py", "test_patches.py",
                     "test_classifier.py", "test_enhancer.py", "test_character.py",
-                    "test_normalmap.py", "test_losses.py", "test_bodies_mesh.py",
-                    "test_frame_fn.py", "test_sim_colliders.py", "test_mesh.py",
-                    "test_sim_textile.py", "test_hard_inputs.py", "test_cli.py",
-                    "test_detail.py", "test_bodies.py", "test_sim_scenes.py")
+                    "test_vgg.py", "test_train_bands.py", "test_frame_fn.py", "test_losses.py",
+                    "test_gram_bank.py", "test_bodies_mesh.py", "test_sim_detail.py",
+                    "test_lift_quality.py", "test_normalmap.py", "test_mesh.py",
+                    "test_nn_widen.py", "test_hard_inputs.py", "test_sim_colliders.py",
+                    "test_bodies.py", "test_detail.py", "test_sim_textile.py",
+                    "test_lift_warmstart.py", "test_sim_scenes.py", "test_readme.py",
+                    "test_fidelity_previews.py", "test_cli.py")
 
 
 def pytest_collection_modifyitems(config, items):

@@ -58,7 +58,9 @@ def test_frame_fn_gradients_match_central_differences_in_float64(x64):
     v0 = np.asarray(g.vertices, np.float64)
     v0[:, 2] += 0.006 * np.sin(60.0 * v0[:, 0] + 30.0 * v0[:, 1])
     net = SmoothNet()
-    params = net.init(jax.random.key(1), jnp.zeros((1, 16, 16, 3)), jnp.zeros((1,), int))
+    # One program (op by op, each float64 threefry draw compiles on its own); same values.
+    params = jax.jit(net.init)(jax.random.key(1), jnp.zeros((1, 16, 16, 3)),
+                               jnp.zeros((1,), int))
     model = enhancer.Enhancer(net, params["params"], enhancer.EnhancerConfig(
         unet.UNetConfig(width=1), patch_size=16, texel_size=0.004), {})
     # A converged solve: the lift's implicit gradient is exact at a stationary point.

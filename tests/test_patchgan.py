@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from wrinkle_jax import enhancer
-from wrinkle_jax.nn import patchgan, unet, vgg
+from wrinkle_jax.nn import patchgan, unet
 
 SIZE = 32
 TINY = patchgan.GANConfig(unet.UNetConfig(width=4, residual=True), disc_width=4, batch_size=4)
@@ -126,14 +126,11 @@ def test_generator_exports_as_an_enhancer_that_reproduces_it(tmp_path):
     b = _batch(4)
     state = patchgan.create_gan_state(TINY, _key(5), SIZE)
 
-    @jax.jit  # one program (op by op, each leaf shape compiled its own normal and add)
-    def perturb(g_params, key):
-        leaves, tree = jax.tree_util.tree_flatten(g_params)
-        keys = jax.random.split(key, len(leaves))
-        return jax.tree_util.tree_unflatten(tree, [x + 0.05 * jax.random.normal(k, x.shape)
-                                                   for x, k in zip(leaves, keys, strict=True)])
-
-    g = perturb(state.g_params, _key(6))
+    # Perturbed weights (the zero-initialized output layer too), drawn with NumPy: jax.random
+    # would compile a program for them.
+    rng = np.random.default_rng(6)
+    g = jax.tree.map(lambda x: jnp.asarray(x + 0.05 * rng.standard_normal(x.shape), x.dtype),
+                     state.g_params)
     cfg = TINY.enhancer_config(SIZE, 0.004, 0.03)
     assert cfg.materials == (patchgan.ANY_MATERIAL,)
     path = enhancer.save_enhancer(tmp_path / "gan.npz", g, cfg, dtype=np.float32)
@@ -184,14 +181,14 @@ def test_training_resumes_exactly(tmp_path, tiny_patch_root):
     assert script.load_state(tmp_path / "split", resumed["state"], other) is None
 
 
-def test_patchgan_script_trains_exports_and_scores(tmp_path, monkeypatch, tiny_patch_root):
+def test_patchgan_script_trains_exports_and_scores(tmp_path, monkeypatch, tiny_patch_root,
+                                                   tiny_vgg, model):
     from experiments import patchgan as script
 
-    tiny_vgg = vgg.init_vgg19(_key(0), widths=(4, 8, 8, 8, 8), num_convs=16,
-                              spec=vgg.VGGSpec("custom", "REFLECT"))
+    # The session's tiny VGG (16 convs, widths 4-8) and tiny enhancer (width-4 residual U-Net,
+    # 32 px patches, 4 mm texels): built once per worker (tests/conftest.py).
+    assert (model.config.patch_size, model.config.texel_size) == (SIZE, 0.004)
     monkeypatch.setattr(script.vgg, "load_vgg19", lambda *a, **k: tiny_vgg)
-    model = enhancer.init_enhancer(_key(1), enhancer.EnhancerConfig(
-        unet.UNetConfig(width=4, residual=True), patch_size=SIZE, texel_size=0.004))
     model_path = enhancer.save_enhancer(tmp_path / "model.npz", model.params, model.config)
     out = tmp_path / "out"
     # The file's configuration (FAST), so the script's GAN step is the program the file has

@@ -16,8 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from wrinkle_jax import bodies, enhancer, lift, meshio, normalmap, pipeline, primitives
-from wrinkle_jax.nn import unet
+from wrinkle_jax import bodies, lift, meshio, normalmap, pipeline, primitives
 
 BATCH = 4
 
@@ -35,13 +34,9 @@ def garment():
     return primitives.grid_sheet(6, 6, size=(0.16, 0.12))
 
 
-@pytest.fixture(scope="module")
-def model():
-    # Residual, so that zeroing its output layer makes an identity network of the same shapes
-    # (one compile for both).
-    config = enhancer.EnhancerConfig(unet.UNetConfig(width=4, residual=True), patch_size=32,
-                                     texel_size=0.004)
-    return enhancer.init_enhancer(jax.random.key(0, impl="rbg"), config)
+# `model` is the session's tiny enhancer (tests/conftest.py, built once per worker): a width-4
+# residual U-Net on 32 px patches of 4 mm texels. Residual, so that zeroing its output layer
+# makes an identity network of the same shapes (one compile for both).
 
 
 @pytest.fixture(scope="module")

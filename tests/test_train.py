@@ -149,23 +149,22 @@ SHARDED = textwrap.dedent("""
              "mask": np.ones((4, 32, 32, 1), np.float32),
              "material": np.array([0, 1, 2, 3], np.int32)}
     state = train.create_train_state(cfg, jax.random.key(1, impl="rbg"), patch_size=32)
-    out = {}
-    for n in (1, 2):
-        mesh = train.data_mesh(jax.devices()[:n])
-        sharded = train.shard_batch(batch, mesh)
-        # The loss and its gradient, through the jit on one device and the data-parallel one.
-        (loss, _), grad = jax.jit(jax.value_and_grad(train.loss_fn, has_aux=True),
-                                  static_argnums=3)(state.params, sharded, tiny, cfg)
-        out[n] = (jax.tree_util.tree_leaves(jax.device_get(grad)), float(loss))
-    # The data-parallel train step (a second compiled program per mesh, so run on the 2-device
-    # mesh only) reports the same loss as the single-device jit.
-    step = train.make_train_step(cfg, tiny, train.data_mesh(jax.devices()[:2]))
-    _, m = step(state, train.shard_batch(batch, train.data_mesh(jax.devices()[:2])))
-    out["step"] = float(m["loss"])
-    scale = max(float(np.abs(g).max()) for g in out[1][0])
-    diff = max(float(np.abs(a - b).max()) for a, b in zip(out[1][0], out[2][0]))
-    print(json.dumps({"grad_diff_rel": diff / scale,
-                      "loss": [out[1][1], out[2][1], out["step"]]}))
+    # The loss and its gradient through the jit on one device ...
+    (loss, _), grad = jax.jit(jax.value_and_grad(train.loss_fn, has_aux=True),
+                              static_argnums=3)(state.params, batch, tiny, cfg)
+    # ... and the data-parallel train step on two: its Adam first moment after one step from
+    # zero is (1 - b1) * g exactly, so the step's own gradient is read back from its state
+    # (no third program: a separate data-parallel gradient would be another compile).
+    mesh = train.data_mesh(jax.devices()[:2])
+    stepped, m = train.make_train_step(cfg, tiny, mesh)(state, train.shard_batch(batch, mesh))
+    adam = stepped.opt_state[0]
+    assert int(adam.count) == 1
+    grad2 = jax.tree.map(lambda mu: np.asarray(mu) / (1 - cfg.b1), adam.mu)
+    g1, g2 = (jax.tree_util.tree_leaves(jax.device_get(g)) for g in (grad, grad2))
+    scale = max(float(np.abs(g).max()) for g in g1)
+    diff = max(float(np.abs(a - b).max()) for a, b in zip(g1, g2, strict=True))
+    print(json.dumps({"grad_diff_rel": diff / scale, "grad_scale": scale,
+                      "loss": [float(loss), float(m["loss"])]}))
 """)
 
 
@@ -178,9 +177,8 @@ def test_sharded_step_matches_single_device():
     got = json.loads(res.stdout.strip().splitlines()[-1])
     # Gradients, not Adam-updated parameters: Adam's first step is ~lr * sign(g), so entries
     # with |g| near 0 amplify float reduction-order differences up to lr.
-    assert got["grad_diff_rel"] < 1e-5, got
+    assert got["grad_diff_rel"] < 1e-5 and got["grad_scale"] > 0, got
     np.testing.assert_allclose(got["loss"][0], got["loss"][1], rtol=1e-5)
-    np.testing.assert_allclose(got["loss"][0], got["loss"][2], rtol=1e-5)
     assert jnp.isfinite(got["loss"][0])
 
 

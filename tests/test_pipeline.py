@@ -7,7 +7,6 @@ for the module (jit caches are shared by every pipeline in the process).
 from __future__ import annotations
 
 import dataclasses
-import sys
 import tracemalloc
 from types import SimpleNamespace
 
@@ -164,9 +163,16 @@ def test_material_auto_uses_the_injected_classifier(seq, model):
                                   lambda f, g, k: SimpleNamespace(material="denim", scores={}))
 
 
-def test_material_auto_without_a_classifier_is_a_clear_error(seq, monkeypatch):
-    monkeypatch.setitem(sys.modules, "wrinkle_jax.nn.classifier", None)  # import fails
-    with pytest.raises(pipeline.PipelineError, match="classifier"):
+def test_material_auto_without_a_classifier_is_a_clear_error(seq, monkeypatch, tmp_path):
+    from wrinkle_jax.classifier import calibrated
+
+    monkeypatch.setattr(calibrated, "MOTION_PATH", tmp_path / "none.npz")  # nothing ships
+    with pytest.raises(pipeline.PipelineError, match="no material classifier is available"):
+        pipeline.resolve_material("auto", ("silk_charmeuse",), seq.frames, seq.garment)
+    # With a model, frames alone still cannot be classified: the motion is read against the
+    # body, which a GarmentSequence does not carry.
+    monkeypatch.setattr(calibrated, "load", lambda path=None: object())
+    with pytest.raises(pipeline.PipelineError, match="capsule_ends"):
         pipeline.resolve_material("auto", ("silk_charmeuse",), seq.frames, seq.garment)
 
 

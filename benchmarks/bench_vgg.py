@@ -8,7 +8,17 @@ bfloat16 introduces in the style loss and its gradient against float32; and whet
 compiled CPU program keeps bfloat16 convolutions (native bf16 / AMX kernels) or converts them
 back to float32.
 
+With `--train-step`: where one training step's time goes instead (`train.make_train_step`
+at the authors' recipe -- width 64, style relu1_2 .. relu5_1, content relu2_1, AdamW -- with
+random U-Net and VGG19 weights), each part jitted on its own and timed alternately with the
+whole step: U-Net forward, U-Net forward + backward (vjp w.r.t. the parameters), VGG19 on the
+output forward + backward (style and content loss w.r.t. the output images, Grams included),
+VGG19 on target and input (forward only), Gram and content loss alone (forward + backward
+w.r.t. the features), the optimizer update; wall and process CPU ms, and each part's share of
+the whole step.
+
 Usage: python benchmarks/bench_vgg.py [--batch 8] [--size 128] [--reps 5]
+       python benchmarks/bench_vgg.py --train-step [--batch 32] [--conv-impl im2col_bf16]
 """
 
 from __future__ import annotations
@@ -26,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax import primitives
+from wrinkle_jax import primitives, timing
 from wrinkle_jax.nn import losses, vgg
 
 LAYER_SETS = {
@@ -86,12 +96,101 @@ def cpu_flags():
     return sorted(f for f in flags if f.startswith(("amx", "avx512_bf16", "avx512f", "avx2")))
 
 
+AUTHORS_STYLE = ("relu1_2", "relu2_1", "relu3_1", "relu4_1", "relu5_1")
+
+
+def train_step_profile(args) -> dict:
+    """The `--train-step` report (see the module docstring); random weights, all-ones mask."""
+    import optax
+
+    from wrinkle_jax import train
+    from wrinkle_jax.nn import unet
+
+    n, size, rng = args.batch, args.size, np.random.default_rng(0)
+    net = unet.UNetConfig(width=64, input_norm="imagenet", residual=False,
+                          output_norm="imagenet")
+    cfg = train.TrainConfig(unet=net, batch_size=n, learning_rate=1e-4, b1=0.9, b2=0.999,
+                            weight_decay=1e-5, style_layers=AUTHORS_STYLE,
+                            content_layer="relu2_1", normalize_channels=False,
+                            conv_impl=args.conv_impl)
+    model, impl = cfg.model(), cfg.vgg_conv_impl
+    params = unet.init_params(model, jax.random.key(0), size)
+    vp = vgg.init_vgg19(jax.random.key(1), spec=vgg.VGGSpec("imagenet_rgb", "ZERO"))
+    x = jnp.asarray(primitives.wavy_normal_maps(rng, n, size))
+    tgt = jnp.asarray(primitives.wavy_normal_maps(rng, n, size, waves=16))
+    mats = jnp.asarray(rng.integers(0, cfg.num_materials, n), jnp.int32)
+    mask = jnp.ones((n, size, size, 1), jnp.float32)
+    cot = jnp.asarray(rng.normal(size=(n, size, size, 3)), jnp.float32)
+    layers = tuple(sorted(set(AUTHORS_STYLE) | {"relu2_1"}))
+
+    def feats(names):
+        return jax.jit(lambda v, im: vgg.features(v, im, layers=names, conv_impl=impl))
+
+    f_tgt, f_inp = feats(AUTHORS_STYLE)(vp, tgt), feats(("relu2_1",))(vp, x)
+    f_out = feats(layers)(vp, tgt)
+
+    def loss_from(fo, ft, fi, m):
+        return jnp.mean(cfg.w_c * losses.content_loss(fo, fi, m, "relu2_1")
+                        + cfg.w_s * losses.style_loss(fo, ft, m, AUTHORS_STYLE))
+
+    unet_fwd = jax.jit(lambda p, im, m: model.apply({"params": p}, im, m))
+    # Every array is an argument: closed-over constants would be folded at compile time.
+    unet_vjp = jax.jit(jax.grad(lambda p, im, m, c: jnp.sum(model.apply({"params": p}, im, m)
+                                                            * c)))
+    vgg_out = jax.jit(jax.grad(lambda im, v, ft, fi, m: loss_from(
+        vgg.features(v, im, layers=layers, conv_impl=impl), ft, fi, m)))
+    gram = jax.jit(jax.grad(loss_from))
+    target_input = (feats(AUTHORS_STYLE), feats(("relu2_1",)))
+    tx = train.optimizer(cfg)
+    opt_state, ones = tx.init(params), jax.tree.map(jnp.ones_like, params)
+
+    @jax.jit
+    def opt_step(p, o, g):
+        updates, o = tx.update(g, o, p)
+        return optax.apply_updates(p, updates), o
+
+    step = train.make_train_step(cfg, vp)
+    box = {"state": train.TrainState(jnp.zeros((), jnp.int32), jax.tree.map(jnp.copy, params),
+                                     tx.init(params))}
+    batch = train.shard_batch({"input": np.asarray(x), "target": np.asarray(tgt),
+                               "mask": np.asarray(mask), "material": np.asarray(mats)},
+                              train.data_mesh())
+
+    def whole():
+        box["state"], metrics = step(box["state"], batch)
+        return metrics["loss"]
+
+    runs = {"unet_fwd": lambda: unet_fwd(params, x, mats),
+            "unet_fwd_bwd": lambda: unet_vjp(params, x, mats, cot),
+            "vgg_output_fwd_bwd": lambda: vgg_out(tgt, vp, f_tgt, f_inp, mask),
+            "vgg_target_input_fwd": lambda: (target_input[0](vp, tgt),
+                                             target_input[1](vp, x)),
+            "gram_content_fwd_bwd": lambda: gram(f_out, f_tgt, f_inp, mask),
+            "optimizer": lambda: opt_step(params, opt_state, ones),
+            "whole_step": whole}
+    t = timing.alternate(runs, args.reps)
+    return {"benchmark": "train_step_profile", "jax": jax.__version__, "batch": n,
+            "patch": size, "conv_impl": args.conv_impl, "vgg_conv_impl": impl,
+            "unet_params": unet.count_params(params), "style_layers": list(AUTHORS_STYLE),
+            "content_layer": "relu2_1",
+            "note": "parts jitted separately; vgg_output_fwd_bwd includes the Grams and "
+                    "content loss (gram_content_fwd_bwd alone beside it)",
+            **t.to_json("whole_step")}
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch", type=int, default=8)
     parser.add_argument("--size", type=int, default=128)
     parser.add_argument("--reps", type=int, default=5)
+    parser.add_argument("--train-step", action="store_true",
+                        help="profile one training step instead (see the docstring)")
+    parser.add_argument("--conv-impl", default="im2col_bf16",
+                        help="with --train-step: the U-Net's and VGG's convolution form")
     args = parser.parse_args()
+    if args.train_step:
+        print(json.dumps(train_step_profile(args), indent=1))
+        return
 
     params = vgg.load_vgg19()
     rng = np.random.default_rng(0)

@@ -18,12 +18,14 @@ generation): test_sim_colliders' sphere/capsule drape fails at level 0 and passe
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import resource
 import shutil
 import tempfile
 import time
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -134,6 +136,17 @@ def x64():
 def enable_x64():
     with x64():
         yield
+
+
+@pytest.fixture(scope="session")
+def bench():
+    """benchmarks/bench_reference.py as a module (not __main__: it parses no arguments and
+    imports no torch), for the tests of its pure helpers."""
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_reference.py"
+    spec = importlib.util.spec_from_file_location("bench_reference", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
 
 @pytest.fixture(scope="session")

@@ -2,23 +2,11 @@
 lifting loop from our mesh (their cross edges, their adjacency) and the lifting test case.
 Anything that needs torch or their code is exercised by running the benchmark, not here."""
 
-import importlib.util
-import pathlib
 
 import numpy as np
 import pytest
 
 from wrinkle_jax import mesh, primitives
-
-_PATH = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "bench_reference.py"
-
-
-@pytest.fixture(scope="module")
-def bench():
-    spec = importlib.util.spec_from_file_location("bench_reference", _PATH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)  # not __main__: parses no arguments, imports no torch
-    return mod
 
 
 def _irregular_mesh():

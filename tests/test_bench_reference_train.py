@@ -3,8 +3,6 @@ objective equal to the authors' (checked against their formula written out in Nu
 pytree error measure, and -- only where torch is installed (an optional extra; skipped
 otherwise) -- the seeded VGG19 in their torchvision layout read into ours."""
 
-import importlib.util
-import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -12,16 +10,6 @@ import numpy as np
 import pytest
 
 from wrinkle_jax.nn import losses, vgg
-
-_PATH = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "bench_reference.py"
-
-
-@pytest.fixture(scope="module")
-def bench():
-    spec = importlib.util.spec_from_file_location("bench_reference", _PATH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)  # not __main__: parses no arguments, imports no torch
-    return mod
 
 
 def _authors_objective(f_out, f_inp, f_tgt, style_layers, content_layer,

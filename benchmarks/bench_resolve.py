@@ -46,8 +46,9 @@ VARIANTS = {
 
 
 def lifted_frames(scene: str, frames: int, every: int):
-    """(lifted vertices list, body list, topology) of `scene`: the pipeline's detailed frames
-    before any push-out (body None), and the capsule body of each measured frame."""
+    """(lifted vertices list, body list, topology, frame indices) of `scene`: the pipeline's
+    detailed frames before any push-out (body None), and the capsule body of each measured
+    frame."""
     material = "silk_charmeuse"
     seq = scenes.simulate(scenes.get_scene(scene), material, "coarse", frames=frames, seed=1)
     ends = np.asarray(seq.tracks["capsule_ends"])

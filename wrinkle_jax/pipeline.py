@@ -258,7 +258,7 @@ def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int
             if cfg.lift:
                 t0 = time.perf_counter()
                 args = (pipe.subdivision, pipe.fine_garment, pipe.topology,
-                        _body_for(pipe.body, t))
+                        _body_for(pipe.body, t), pipe.resolve_coarse)
                 if cfg.warm_start:
                     detailed, carried, info = _lift_frame_warm(
                         jnp.asarray(coarse[j]), jnp.asarray(enhanced[j]), carried, *args,
@@ -321,7 +321,7 @@ def frame_fn(pipe: Pipeline, body=None) -> Callable[..., FrameResult]:
     setup = dict(plan=pipe.plan, padded_mask=_padded_mask(pipe),
                  origins=jnp.asarray(pipe.origins), mask=jnp.asarray(pipe.mask),
                  subdivision=pipe.subdivision, fine_garment=pipe.fine_garment,
-                 topology=pipe.topology, body=body)
+                 topology=pipe.topology, body=body, resolve_coarse=pipe.resolve_coarse)
 
     def f(params, coarse_vertices, material_id) -> FrameResult:
         return _frame(setup, params, coarse_vertices, material_id, static=static)

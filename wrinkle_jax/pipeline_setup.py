@@ -147,6 +147,8 @@ class Pipeline:
       fine_garment, subdivision, topology: the lifted mesh's topology (None without lifting).
       body: a `bodies` body, a callable frame index -> body, or None.
       timings: seconds spent in setup and compilation.
+      resolve_coarse: `lift.resolve_coarse` of the lifted mesh for `config.resolve` (the body
+        push-out's coarse-grid preconditioner), or None.
     """
 
     enhancer: enhancer_lib.Enhancer
@@ -161,6 +163,7 @@ class Pipeline:
     topology: lift_lib.LiftTopology | None
     body: Any
     timings: dict
+    resolve_coarse: Any = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -243,7 +246,7 @@ def make_pipeline(garment: Garment, enhancer: enhancer_lib.Enhancer | None = Non
                             f"{enh.config.texel_size} m (is its UV layout degenerate?)")
     padded, _ = patches.pad_to_patch(mask, size)
     origins = patches.tile(padded, size=size, stride=stride)
-    fine = sub = top = None
+    fine = sub = top = coarse_pc = None
     if config.lift:
         levels = config.subdivision
         if levels == "auto":
@@ -252,10 +255,11 @@ def make_pipeline(garment: Garment, enhancer: enhancer_lib.Enhancer | None = Non
         fine, sub = lift_lib.upsample(garment, config.target_edge, config.subdivision_scheme,
                                       levels=levels)
         top = lift_lib.lift_topology(fine.faces, fine.num_vertices)
+        coarse_pc = lift_lib.resolve_coarse(sub, top, config.phi, config.resolve)
         fine = jax.tree.map(jnp.asarray, fine)  # device arrays: arguments, not constants
     timings["setup"] = time.perf_counter() - t0
     pipe = Pipeline(enh, dataclasses.replace(config, stride=stride), garment, plan, mask,
-                    origins, tuple(padded.shape[:2]), fine, sub, top, body, timings)
+                    origins, tuple(padded.shape[:2]), fine, sub, top, body, timings, coarse_pc)
     timings["compile"] = _compile(pipe) if compile else 0.0
     return pipe
 
@@ -283,11 +287,11 @@ def _compile(pipe: Pipeline) -> float:
         coarse, nmap = spec((pipe.garment.num_vertices, 3), f32), spec((*pipe.shape, 3), f32)
         if cfg.warm_start:
             _lift_frame_warm.lower(coarse, nmap, _no_offsets(pipe), pipe.subdivision,
-                                   pipe.fine_garment, pipe.topology, body,
+                                   pipe.fine_garment, pipe.topology, body, pipe.resolve_coarse,
                                    **_lift_static(pipe)).compile()
         else:
             _lift_frame.lower(coarse, nmap, pipe.subdivision, pipe.fine_garment, pipe.topology,
-                              body, **_lift_static(pipe)).compile()
+                              body, pipe.resolve_coarse, **_lift_static(pipe)).compile()
     return time.perf_counter() - t0
 
 

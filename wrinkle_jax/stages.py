@@ -127,7 +127,9 @@ def merge_stage(outputs, origins, mask, coarse_map, *, window: str = "hann",
 
 
 def lift_stage(coarse_vertices, normal_map, subdivision, fine_garment,
-               topology: lift_lib.LiftTopology, body=None, *, layout: normalmap.UVLayout,
+               topology: lift_lib.LiftTopology, body=None,
+               resolve_coarse: lift_lib.ResolveCoarse | None = None, *,
+               layout: normalmap.UVLayout,
                weights: lift_lib.LiftWeights = lift_lib.LiftWeights(),  # noqa: B008
                solver: lift_lib.SolverConfig = lift_lib.SolverConfig(),  # noqa: B008
                resolve: lift_lib.ResolveConfig = lift_lib.ResolveConfig(),  # noqa: B008
@@ -141,6 +143,8 @@ def lift_stage(coarse_vertices, normal_map, subdivision, fine_garment,
       topology: `lift.lift_topology` of the fine mesh.
       body: None, or a `bodies` body (meters) the result is pushed out of; the penetration
         term exists only then, and is not differentiable in reverse mode.
+      resolve_coarse: None, or `lift.resolve_coarse(subdivision, topology, phi, resolve)`
+        (the push-out's coarse-grid preconditioner; used only with a body).
       layout, weights, solver, resolve, phi: static settings (see `lift.lift_from_normal_map`
         and `lift.resolve_penetration`).
     Returns:
@@ -151,7 +155,7 @@ def lift_stage(coarse_vertices, normal_map, subdivision, fine_garment,
     p = lift_lib.lift_from_normal_map(coarse_vertices, subdivision, fine_garment, topology,
                                       normal_map, layout, weights, solver)
     if body is not None:  # the penetration term exists only when a body is given
-        p = lift_lib.resolve_penetration(p, topology, body, phi, resolve)
+        p = lift_lib.resolve_penetration(p, topology, body, phi, resolve, resolve_coarse)
     return p
 
 
@@ -197,7 +201,7 @@ class _FrameStatic:
 @functools.partial(jax.jit, static_argnames=("static",))
 def _frame(setup: dict, params, coarse_vertices, material_id, static: _FrameStatic):
     """bake -> tile -> network -> merge (-> lift) of one frame; `setup` holds the arrays (plan,
-    padded_mask, origins, mask, subdivision, fine_garment, topology, body)."""
+    padded_mask, origins, mask, subdivision, fine_garment, topology, body, resolve_coarse)."""
     coarse_map, rgb = bake_stage(setup["plan"], coarse_vertices, setup["padded_mask"],
                                  smooth=static.smooth, padded_shape=static.padded_shape)
     tiles = tile_stage(rgb, setup["origins"], size=static.size)
@@ -209,7 +213,7 @@ def _frame(setup: dict, params, coarse_vertices, material_id, static: _FrameStat
     if static.lift is not None:
         detailed = lift_stage(coarse_vertices, normal_map, setup["subdivision"],
                               setup["fine_garment"], setup["topology"], setup["body"],
-                              **static.lift_kwargs())
+                              setup["resolve_coarse"], **static.lift_kwargs())
     return FrameResult(normal_map, setup["mask"], detailed)
 
 
@@ -276,7 +280,7 @@ def from_local(local, frames):
 
 
 def _lift_warm(coarse_vertices, normal_map, local, subdivision, fine_garment, topology,
-               body=None, *, layout, weights, solver, resolve, phi):
+               body=None, resolve_coarse=None, *, layout, weights, solver, resolve, phi):
     """`lift_stage` started from the previous frame's solution, carried in local coordinates.
 
     The lifted detail of consecutive frames is nearly the same *relative to the coarse
@@ -299,7 +303,7 @@ def _lift_warm(coarse_vertices, normal_map, local, subdivision, fine_garment, to
                                       start=p0 + from_local(local, frames))
     carried = to_local(p - p0, frames)
     if body is not None:
-        p = lift_lib.resolve_penetration(p, topology, body, phi, resolve)
+        p = lift_lib.resolve_penetration(p, topology, body, phi, resolve, resolve_coarse)
     return p, carried, info
 
 

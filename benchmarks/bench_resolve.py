@@ -33,22 +33,24 @@ from wrinkle_jax import bodies, enhancer, lift, pipeline, timing
 from wrinkle_jax.sim import scenes
 
 REFERENCE = lift.ResolveConfig(cg_max_iters=3000, cg_tol=1e-8)
+# Session 18: the pipeline's Jacobi default (tol 1e-3, session 17's choice) against the
+# two-level preconditioner (`lift.resolve_coarse`, mass gamma) at looser tolerances; rule
+# fixed before the run in experiments/results/lift/resolve_rule_s18.txt. (Session 17's
+# variants, caps 20-300 and tol 1e-4, are in resolve_s17.json.)
 VARIANTS = {
-    "cap 20": lift.ResolveConfig(cg_max_iters=20),
-    "cap 40": lift.ResolveConfig(cg_max_iters=40),
-    "cap 60": lift.ResolveConfig(cg_max_iters=60),
-    "cap 100": lift.ResolveConfig(cg_max_iters=100),
-    "cap 160": lift.ResolveConfig(cg_max_iters=160),
-    "cap 300 (default)": lift.ResolveConfig(),
-    "tol 1e-3": lift.ResolveConfig(cg_tol=1e-3),
-    "tol 1e-4": lift.ResolveConfig(cg_tol=1e-4),
+    "jacobi tol 1e-3 (default)": lift.ResolveConfig(cg_tol=1e-3),
+    "coarse 0.05 tol 3e-3": lift.ResolveConfig(cg_tol=3e-3, coarse_mass=0.05),
+    "coarse 0.05 tol 1e-2": lift.ResolveConfig(cg_tol=1e-2, coarse_mass=0.05),
+    "coarse 0.2 tol 3e-3": lift.ResolveConfig(cg_tol=3e-3, coarse_mass=0.2),
+    "coarse 0.2 tol 1e-2": lift.ResolveConfig(cg_tol=1e-2, coarse_mass=0.2),
+    "coarse 0.05 tol 2e-2": lift.ResolveConfig(cg_tol=2e-2, coarse_mass=0.05),
 }
 
 
 def lifted_frames(scene: str, frames: int, every: int):
-    """(lifted vertices list, body list, topology, frame indices) of `scene`: the pipeline's
-    detailed frames before any push-out (body None), and the capsule body of each measured
-    frame."""
+    """(lifted vertices list, body list, topology, frame indices, subdivision) of `scene`: the
+    pipeline's detailed frames before any push-out (body None), the capsule body of each
+    measured frame, and the lifted mesh's topology and subdivision from the coarse garment."""
     material = "silk_charmeuse"
     seq = scenes.simulate(scenes.get_scene(scene), material, "coarse", frames=frames, seed=1)
     ends = np.asarray(seq.tracks["capsule_ends"])
@@ -60,20 +62,22 @@ def lifted_frames(scene: str, frames: int, every: int):
     picks = list(range(10, len(seq), every))
     bodies_t = [bodies.primitive_body(capsules=(ends[t, :, 0], ends[t, :, 1], radii))
                 for t in picks]
-    return [jnp.asarray(res.detailed_frames[t]) for t in picks], bodies_t, pipe.topology, picks
+    return ([jnp.asarray(res.detailed_frames[t]) for t in picks], bodies_t, pipe.topology, picks,
+            pipe.subdivision)
 
 
-def measure(verts, bodies_t, topology, reps: int) -> dict:
+def measure(verts, bodies_t, topology, subdivision, reps: int) -> dict:
     rows = {k: {"max_mm": [], "rms_mm": [], "inside": [], "min_distance_mm": [], "rounds": [],
                 "cg_iterations": [], "cpu_ms": [], "wall_ms": []} for k in VARIANTS}
     before = {"inside": [], "within_thickness": []}
+    coarse = {k: lift.resolve_coarse(subdivision, topology, 5e3, c) for k, c in VARIANTS.items()}
     for v, b in zip(verts, bodies_t, strict=True):
         q = bodies.query(b, v)
         before["inside"].append(int(jnp.sum(q.distance < 0)))
         before["within_thickness"].append(int(jnp.sum(q.distance < REFERENCE.thickness)))
         ref = np.asarray(lift.resolve_penetration(v, topology, b, 5e3, REFERENCE))
-        runs = {k: (lambda c=c, v=v, b=b: lift.resolve_penetration_with_info(
-                    v, topology, b, 5e3, c)) for k, c in VARIANTS.items()}
+        runs = {k: (lambda c=c, v=v, b=b, k=k: lift.resolve_penetration_with_info(
+                    v, topology, b, 5e3, c, coarse[k])) for k, c in VARIANTS.items()}
         t = timing.alternate(runs, reps=reps)
         for k in VARIANTS:
             out, info = runs[k]()
@@ -108,8 +112,9 @@ def main(argv=None) -> int:
            "variants": {k: c.__dict__ for k, c in VARIANTS.items()},
            "load_avg_1m_before": os.getloadavg()[0], "scenes": {}}
     for scene in args.scenes.split(","):
-        verts, bodies_t, topology, picks = lifted_frames(scene, args.frames, args.every)
-        got = measure(verts, bodies_t, topology, args.reps)
+        verts, bodies_t, topology, picks, subdivision = lifted_frames(scene, args.frames,
+                                                                      args.every)
+        got = measure(verts, bodies_t, topology, subdivision, args.reps)
         got["frames"] = picks
         got["vertices"] = int(verts[0].shape[0])
         out["scenes"][scene] = got

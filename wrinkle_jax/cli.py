@@ -65,7 +65,8 @@ def _cmd_demo(args) -> int:
             f"ran (16-bit normal maps of the bundled coarse skirt); with the model, `demo` "
             f"runs the whole pipeline (enhance, merge, lift)")
     report = bake_sequence_to_pngs(_demo_sequence_path(), Path(args.out), args.texel_size,
-                                   args.frames, batch=args.batch, args=args, force=args.force,
+                                   args.frames, batch=args.batch or 16, args=args,
+                                   force=args.force,
                                    extra={"note": note})
     _print_report(report, args, "demo", Path(args.out))
     print(note, file=sys.stderr)
@@ -162,8 +163,9 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         _add_material(p)
         _add_frames_out(p)
         p.add_argument("--no-lift", action="store_true", help="stop at the enhanced normal maps")
-        p.add_argument("--batch", type=int, default=16,
-                       help="patches per U-Net call (frames per bake call in the bake-only demo)")
+        p.add_argument("--batch", type=int, default=None,
+                       help="patches per U-Net call (default: the pipeline's, 4; frames per "
+                       "bake call in the bake-only demo, default 16)")
         p.add_argument("--chunk", type=int, default=4, help="frames per streamed chunk")
         p.add_argument("--stride", type=int, default=None,
                        help="patch stride in texels (default: three quarters of a patch)")
@@ -195,8 +197,9 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     _add_frames_out(p)
     p.add_argument("--stride", type=int, default=None,
                    help="patch stride in texels (default: three quarters of a patch)")
-    p.add_argument("--batch", type=int, default=16,
-                   help="patches per U-Net call (default: %(default)s)")
+    p.add_argument("--batch", type=int, default=None,
+                   help="patches per U-Net call (default: the pipeline's, 4: the fastest per "
+                   "frame of 4, 8 and 16 in benchmarks/bench_batch.py)")
     p.add_argument("--chunk", type=int, default=4,
                    help="frames per streamed chunk; bounds memory (default: %(default)s)")
     p.add_argument("--no-previews", action="store_true",

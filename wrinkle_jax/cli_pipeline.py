@@ -195,8 +195,10 @@ def _run_enhance(input_path: Path, out: Path, args, model: Path | None = None,
         # Warm-started lift: the same error as cold starts on the demo at ~0.6x the lift time
         # (benchmarks/bench_lift.py --sequence); frames are streamed in order. A chunk's
         # patches share network calls: ~0.9x the network's CPU time per frame at batch 16
-        # (benchmarks/bench_pipeline.py --network-sweep).
-        config = pipeline.PipelineConfig(batch_size=args.batch, chunk_size=args.chunk,
+        # (benchmarks/bench_pipeline.py --network-sweep); batch 4 then takes 0.90-0.95x
+        # batch 8's CPU and batch 16 1.04-1.08x (bench_batch.py --frames-per-batch 4).
+        batch = args.batch or pipeline.PipelineConfig.batch_size
+        config = pipeline.PipelineConfig(batch_size=batch, chunk_size=args.chunk,
                                          frames_per_batch=args.chunk, stride=args.stride,
                                          lift=not args.no_lift, warm_start=True)
     except _UsageError as e:

@@ -68,8 +68,10 @@ class PipelineConfig:
 
     Attributes:
       batch_size: patches per jitted U-Net call; a frame's last batch is zero-padded, so the
-        network compiles once. Larger batches are faster per patch up to a point
-        (benchmarks/bench_pipeline.py).
+        network compiles once. 4 (default) was the fastest of 2, 4, 8 and 16 per frame on
+        three garments (benchmarks/bench_batch.py, experiments/results/timing/batch_s18.json:
+        0.82-0.88x batch 8's CPU, batch 16 1.09-1.30x; bit-identical maps): smaller calls
+        keep the convolutions' working set in cache, and less of the last batch is padding.
       chunk_size: frames baked, enhanced and merged per step (bounds memory: one chunk holds
         chunk_size * P patches of S^2 * 3 float32 twice).
       frames_per_batch: frames whose patches share one network call (their F * P patches
@@ -104,7 +106,7 @@ class PipelineConfig:
         converged solve); pass `lift.ResolveConfig()` for the converged one.
     """
 
-    batch_size: int = 8
+    batch_size: int = 4
     chunk_size: int = 4
     frames_per_batch: int = 1
     stride: int | None = None

@@ -33,8 +33,9 @@ the pipeline's default lift (`choose_lift`) to the sweeps' JSON files.
 Usage: python benchmarks/bench_pipeline.py [--quick] [--frames N] [--no-lift] [--reps R]
        python benchmarks/bench_pipeline.py --network-sweep [--reps R] [--stride S]
        python benchmarks/bench_pipeline.py --lift-sweep [--scene demo|dress_dance] [--frames N]
-           [--partial PATH]
+           [--partial PATH] [--settings W:GN:CG,...] [--subdivisions none,auto]
        python benchmarks/bench_pipeline.py --choose-lift DEMO.json DRESS_DANCE.json
+           [--choose-by lift_ms_per_frame|cpu_ms_per_frame_all_stages]
   --quick: 4 frames (one chunk), no batch-size sweep (< 2 min on a quiet 2-core machine).
 """
 
@@ -247,8 +248,8 @@ def _mean(rows: list, key: str, sub: str | None = None) -> float | None:
 
 
 def lift_sweep(model, scene: str = "demo", frames: int = 12, caps=LIFT_CAPS,
-               warm=(False, True), subdivisions=(None, "auto"), partial: str | None = None
-               ) -> dict:
+               warm=(False, True), subdivisions=(None, "auto"), partial: str | None = None,
+               settings=None) -> dict:
     """The lift stage of the streaming pipeline for every subdivision x warm start x GN
     iteration cap, timed and measured against its goal (`lift_quality`).
 
@@ -261,7 +262,9 @@ def lift_sweep(model, scene: str = "demo", frames: int = 12, caps=LIFT_CAPS,
     after another (not alternating); the 1-minute load average is recorded beside each.
     A subdivision setting that gives the same level as an earlier one is not run again
     ("levels" says which). `partial`: a path rewritten with the results so far after each
-    setting.
+    setting. `settings`: None (every warm x cap, the CG cap at its default), or a list of
+    (warm start, GN cap, CG cap) triples run in that order (the name then ends in "_cg=N"
+    where N is not the default CG cap).
     """
     import dataclasses
 
@@ -278,61 +281,64 @@ def lift_sweep(model, scene: str = "demo", frames: int = 12, caps=LIFT_CAPS,
             levels[str(sub)] = level
             continue
         levels[str(sub)] = level
-        for w in warm:
-            for k in caps:
-                cfg = pipeline.PipelineConfig(
-                    batch_size=16, chunk_size=4, frames_per_batch=4, warm_start=w,
-                    subdivision=sub, solver=dataclasses.replace(SolverConfig(), max_iters=k))
-                pipe = pipeline.make_pipeline(seq.garment, model, cfg, body_fn)
-                pipeline.enhance_sequence(seq, material, pipeline=pipe, frames=sel[:2],
-                                          keep=False)
-                load = os.getloadavg()[0]
-                cpu0 = time.process_time()
-                res = pipeline.enhance_sequence(seq, material, pipeline=pipe, frames=sel)
-                cpu = time.process_time() - cpu0
-                det = np.asarray(res.detailed_frames)
-                if sub not in plans:
-                    plans[sub] = (lq.quality_plan(pipe.fine_garment, res.layout),
-                                  lq.rim_topology(np.asarray(pipe.fine_garment.faces),
-                                                  det.shape[1]))
-                plan, rim = plans[sub]
-                refs.setdefault(sub, det)
-                rows = []
-                for j, t in enumerate(sel):
-                    p0 = pipe.subdivision.apply(jnp.asarray(seq.frames[t], jnp.float32))
-                    q = lq.lift_quality(det[j], res.normal_maps[j], plan, vertices0=p0,
-                                        reference=refs[sub][j], rim=rim,
-                                        body=None if body_fn is None else body_fn(t))
-                    rows.append(q.as_dict())
-                name = f"sub={sub}_warm={int(w)}_cap={k}"
-                out[name] = {
-                    "subdivision": sub, "warm_start": w, "max_iters": k,
-                    "vertices": int(det.shape[1]),
-                    "lift_ms_per_frame": round(1e3 * res.timings["lift"] / len(det), 1),
-                    "iterations_per_frame": (res.lift_iterations / len(det)) if w else None,
-                    "load_avg_1m": round(load, 2),
-                    # Process CPU time of all stages (the network's is the same in every
-                    # setting): less sensitive to the machine's other load than wall time.
-                    "cpu_ms_per_frame_all_stages": round(1e3 * cpu / len(det), 1),
-                    "mean_over_frames": {
-                        **{key: _mean(rows, key) for key in (
-                            "angle_median_deg", "angle_mean_deg", "angle_p90_deg",
-                            "vs_reference_mm_rms", "vs_reference_mm_max", "inside",
-                            "rim_mm_rms", "rim_mm_max", "rim_ragged_mm_rms",
-                            "interior_mm_rms")},
-                        **{f"band_ratio_{b}": _mean(rows, "band_ratio", b)
-                           for b in rows[0]["band_ratio"]}},
-                    "per_frame": {key: [round(float(r[key]), 4) for r in rows] for key in (
-                        "angle_mean_deg", "angle_p90_deg")} | {
-                        "band_ratio_16_64mm": [round(r["band_ratio"]["16_64mm"], 4)
-                                               for r in rows],
-                        "inside": [r["inside"] for r in rows]},
-                }
-                if partial is not None:  # progress survives an interrupted sweep
-                    Path(partial).write_text(json.dumps(out, indent=1))
-                print(f"# {scene} {name}: lift {out[name]['lift_ms_per_frame']} ms/frame, "
-                      f"angle mean {out[name]['mean_over_frames']['angle_mean_deg']} deg, "
-                      f"load {load:.2f}", file=sys.stderr, flush=True)
+        cg_default = SolverConfig().cg_max_iters
+        runs = settings or [(w, k, cg_default) for w in warm for k in caps]
+        for w, k, cg in runs:
+            cfg = pipeline.PipelineConfig(
+                batch_size=16, chunk_size=4, frames_per_batch=4, warm_start=w,
+                subdivision=sub, solver=dataclasses.replace(SolverConfig(), max_iters=k,
+                                                            cg_max_iters=cg))
+            pipe = pipeline.make_pipeline(seq.garment, model, cfg, body_fn)
+            pipeline.enhance_sequence(seq, material, pipeline=pipe, frames=sel[:2],
+                                      keep=False)
+            load = os.getloadavg()[0]
+            cpu0 = time.process_time()
+            res = pipeline.enhance_sequence(seq, material, pipeline=pipe, frames=sel)
+            cpu = time.process_time() - cpu0
+            det = np.asarray(res.detailed_frames)
+            if sub not in plans:
+                plans[sub] = (lq.quality_plan(pipe.fine_garment, res.layout),
+                              lq.rim_topology(np.asarray(pipe.fine_garment.faces),
+                                              det.shape[1]))
+            plan, rim = plans[sub]
+            refs.setdefault(sub, det)
+            rows = []
+            for j, t in enumerate(sel):
+                p0 = pipe.subdivision.apply(jnp.asarray(seq.frames[t], jnp.float32))
+                q = lq.lift_quality(det[j], res.normal_maps[j], plan, vertices0=p0,
+                                    reference=refs[sub][j], rim=rim,
+                                    body=None if body_fn is None else body_fn(t))
+                rows.append(q.as_dict())
+            name = f"sub={sub}_warm={int(w)}_cap={k}" + (
+                f"_cg={cg}" if cg != cg_default else "")
+            out[name] = {
+                "subdivision": sub, "warm_start": w, "max_iters": k, "cg_max_iters": cg,
+                "vertices": int(det.shape[1]),
+                "lift_ms_per_frame": round(1e3 * res.timings["lift"] / len(det), 1),
+                "iterations_per_frame": (res.lift_iterations / len(det)) if w else None,
+                "load_avg_1m": round(load, 2),
+                # Process CPU time of all stages (the network's is the same in every
+                # setting): less sensitive to the machine's other load than wall time.
+                "cpu_ms_per_frame_all_stages": round(1e3 * cpu / len(det), 1),
+                "mean_over_frames": {
+                    **{key: _mean(rows, key) for key in (
+                        "angle_median_deg", "angle_mean_deg", "angle_p90_deg",
+                        "vs_reference_mm_rms", "vs_reference_mm_max", "inside",
+                        "rim_mm_rms", "rim_mm_max", "rim_ragged_mm_rms",
+                        "interior_mm_rms")},
+                    **{f"band_ratio_{b}": _mean(rows, "band_ratio", b)
+                       for b in rows[0]["band_ratio"]}},
+                "per_frame": {key: [round(float(r[key]), 4) for r in rows] for key in (
+                    "angle_mean_deg", "angle_p90_deg")} | {
+                    "band_ratio_16_64mm": [round(r["band_ratio"]["16_64mm"], 4)
+                                           for r in rows],
+                    "inside": [r["inside"] for r in rows]},
+            }
+            if partial is not None:  # progress survives an interrupted sweep
+                Path(partial).write_text(json.dumps(out, indent=1))
+            print(f"# {scene} {name}: lift {out[name]['lift_ms_per_frame']} ms/frame, "
+                  f"angle mean {out[name]['mean_over_frames']['angle_mean_deg']} deg, "
+                  f"load {load:.2f}", file=sys.stderr, flush=True)
     return {"scene": scene, "material": material, "body": body_fn is not None,
             "frames": len(sel), "reference": "cap 20, cold start, same subdivision",
             "levels": levels,
@@ -350,7 +356,8 @@ def _paired(settings: dict, a: str, b: str, key: str) -> np.ndarray:
     return x - np.asarray(settings[b]["per_frame"][key], np.float64)
 
 
-def choose_lift(sweeps: list, default: str = CHOICE_DEFAULT, twin: str = CHOICE_TWIN) -> dict:
+def choose_lift(sweeps: list, default: str = CHOICE_DEFAULT, twin: str = CHOICE_TWIN,
+                by: str = "lift_ms_per_frame") -> dict:
     """The cheapest lift setting whose quality is within noise of the default's, on every
     scene (the rule, fixed before the sweep was read):
 
@@ -359,7 +366,9 @@ def choose_lift(sweeps: list, default: str = CHOICE_DEFAULT, twin: str = CHOICE_
     qualifies when mean_f(q_S - q_default) <= noise_q for the one-sided quantities (angle
     mean and p90, penetrating vertices: lower is fine) and |.| <= noise_q for the 16-64 mm
     band ratio, on every scene. The choice: the qualifying setting with the lowest lift
-    ms/frame on the last scene (the timing scene); the default when none does.
+    ms/frame (`by`; session 18: "cpu_ms_per_frame_all_stages", the process CPU time, steadier
+    under load than the lift's wall time) on the last scene (the timing scene); the default
+    when none does.
     """
     verdicts: dict = {}
     for sweep in sweeps:
@@ -380,13 +389,13 @@ def choose_lift(sweeps: list, default: str = CHOICE_DEFAULT, twin: str = CHOICE_
             v["qualifies"] &= ok
             v["scenes"][sweep["scene"]] = {
                 "ok": ok, "diff_to_default": {k: round(x, 4) for k, x in diff.items()},
-                "lift_ms_per_frame": st[name]["lift_ms_per_frame"]}
+                "lift_ms_per_frame": st[name]["lift_ms_per_frame"], by: st[name][by]}
         verdicts["_noise_" + sweep["scene"]] = {k: round(float(x), 4) for k, x in noise.items()}
     timing_scene = sweeps[-1]["scene"]
     ok = [n for n, v in verdicts.items() if not n.startswith("_") and v["qualifies"]]
-    best = min(ok, key=lambda n: verdicts[n]["scenes"][timing_scene]["lift_ms_per_frame"],
-               default=default)
+    best = min(ok, key=lambda n: verdicts[n]["scenes"][timing_scene][by], default=default)
     return {"default": default, "twin": twin, "chosen": best, "timing_scene": timing_scene,
+            "by": by,
             "verdicts": verdicts}
 
 
@@ -411,20 +420,35 @@ def main() -> None:
                          "capsule body)")
     ap.add_argument("--partial", default=None,
                     help="--lift-sweep: rewrite this JSON file with the results so far")
+    ap.add_argument("--settings", default=None,
+                    help="--lift-sweep: comma-separated warm:gn_cap:cg_cap triples run in order "
+                         "(e.g. 0:20:25,1:20:25,1:3:10; the first is the reference); default: "
+                         "warm x GN caps at the default CG cap")
+    ap.add_argument("--subdivisions", default="none,auto",
+                    help="--lift-sweep: comma-separated subdivisions (none, auto or a level)")
+    ap.add_argument("--choose-by", default="lift_ms_per_frame",
+                    choices=("lift_ms_per_frame", "cpu_ms_per_frame_all_stages"),
+                    help="--choose-lift: the cost the qualifying settings are ranked by")
     ap.add_argument("--choose-lift", nargs="+", metavar="SWEEP_JSON", default=None,
                     help="apply the lift choice rule (choose_lift) to --lift-sweep outputs "
                          "(the timing scene last)")
     args = ap.parse_args()
     if args.choose_lift:
         sweeps = [json.loads(Path(p).read_text()) for p in args.choose_lift]
-        print(json.dumps(choose_lift(sweeps), indent=2))
+        print(json.dumps(choose_lift(sweeps, by=args.choose_by), indent=2))
         return
     if args.lift_sweep:
+        settings = None if args.settings is None else [
+            (bool(int(w)), int(k), int(c))
+            for w, k, c in (t.split(":") for t in args.settings.split(","))]
+        subdivisions = tuple(None if x == "none" else x if x == "auto" else int(x)
+                             for x in args.subdivisions.split(","))
         model, which = load_model()
         print(json.dumps({"benchmark": "pipeline_lift_sweep", "model": which,
                           "load_avg_1m_before": os.getloadavg()[0],
                           **lift_sweep(model, args.scene, frames=args.frames,
-                                       partial=args.partial),
+                                       partial=args.partial, settings=settings,
+                                       subdivisions=subdivisions),
                           "load_avg_1m_after": os.getloadavg()[0]}, indent=2))
         return
     if args.network_sweep:

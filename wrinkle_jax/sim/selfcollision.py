@@ -92,6 +92,11 @@ class SelfCollisionConfig:
         bound on triangles given the exact test, ceil(this x V). With the flat build every
         bound is a total, and where one overflows the nearest candidates are kept (the
         overflow is counted).
+      block: > 0 (with raw_per_vertex > 0) selects the blocked flat build
+        (`selfcollision_blocks.build_pairs_blocked`): the vertices of a cell are tested in
+        blocks of this many against each cell entry, and `raw_per_vertex` bounds the
+        (block, entry) slots at ceil(raw_per_vertex x V / block). Same contacts as the flat
+        build when no bound is exceeded; the triangle data is gathered once per slot.
     """
 
     thickness: float = 0.004
@@ -106,6 +111,7 @@ class SelfCollisionConfig:
     pairs_per_vertex: float = 0.0
     raw_per_vertex: float = 0.0
     box_per_vertex: float = 8.0
+    block: int = 0
 
 
 @jax.tree_util.register_dataclass
@@ -169,12 +175,13 @@ def _hash(g):
     return jnp.minimum(k, _SENTINEL - np.uint32(1))
 
 
-def _cell_lists(x, tri, reach):
+def _cell_lists(x, tri, reach, with_keys: bool = False):
     """Triangles (F, 3, 3) entered in a uniform grid by their boxes grown by `reach`; per
     vertex of x (V, 3), where its own cell's entries lie in the sorted list.
 
     Returns: lo, hi (F, 3) grown boxes; stri (8F,) int32 triangle of each sorted entry;
-    start (V,) and count (V,) int32, the vertex's cell entries stri[start:start + count].
+    start (V,) and count (V,) int32, the vertex's cell entries stri[start:start + count];
+    with_keys: also the vertices' cell keys (V,) uint32.
     """
     lo = tri.min(1) - reach
     hi = tri.max(1) + reach
@@ -194,7 +201,8 @@ def _cell_lists(x, tri, reach):
     kv = _hash(jnp.floor(x / cell).astype(jnp.int32))
     start = jnp.searchsorted(skeys, kv, side="left")
     count = jnp.searchsorted(skeys, kv, side="right") - start
-    return lo, hi, stri, start.astype(jnp.int32), count.astype(jnp.int32)
+    out = lo, hi, stri, start.astype(jnp.int32), count.astype(jnp.int32)
+    return out + (kv,) if with_keys else out
 
 
 def build_candidates(x, faces, topo: SelfTopology, cfg: SelfCollisionConfig) -> Candidates:

@@ -2,16 +2,17 @@
 stage by stage, on poses of a scene simulated without self-collision.
 
     python -m experiments.self_collision_profile [--scene skirt_dance] [--resolution fine]
-        [--frames 40] [--poses 40,80] [--repeat 5]
+        [--frames 40] [--poses 40,80] [--repeat 5] [--block G] [--raw-per-vertex R]
+        [--box-per-vertex B] [--pairs-per-vertex P]
 
 Simulates the pre-roll and `--frames` frames without self-collision (its layers touch and
 cross), then at each pose in `--poses` (frame indices, pre-roll included) times jitted stages
 with `block_until_ready`, the minimum of `--repeat` calls after a compiling one: the flat
 build (`selfcollision.build_pairs`, session 17's fine default) whole, and the blocked build
-(`scenes.SELF_COLLISION[resolution]`) whole and by stage: grid and reads plus sphere tests
-(`block_hits`), the bounded selection (`_select2`); then the substep's stages on the blocked
-build's contacts (`contact_frame`, one `project_pairs` pass). The load average is printed
-beside every pose (the machine is shared).
+(`scenes.SELF_COLLISION[resolution]`, or with the bounds given) whole and by stage: grid
+and reads plus sphere tests (`block_hits`), the bounded selection (`_select2`); then the
+substep's stages on the blocked build's contacts (`contact_frame`, one `project_pairs`
+pass). The load average is printed beside every pose (the machine is shared).
 """
 
 from __future__ import annotations
@@ -49,6 +50,10 @@ def main(argv=None) -> None:
     ap.add_argument("--frames", type=int, default=40)
     ap.add_argument("--poses", default="40,80")
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--block", type=int)
+    ap.add_argument("--raw-per-vertex", type=float)
+    ap.add_argument("--box-per-vertex", type=float)
+    ap.add_argument("--pairs-per-vertex", type=float)
     args = ap.parse_args(argv)
     setup = scenes.setup_scene(args.scene, args.resolution, args.frames)
     config = xpbd.SimConfig(substeps=setup.scene.substeps,
@@ -57,7 +62,11 @@ def main(argv=None) -> None:
     state = xpbd.cloth_simulator(config)[0](setup.model, setup.mesh.garment.vertices)
     _, xs = xpbd.simulate_frames(config, setup.model, params, state, setup.drives)
     faces, topo = setup.model.faces, setup.model.self_topo
-    cfg = scenes.SELF_COLLISION[args.resolution]
+    over = {k: getattr(args, k) for k in ("block", "raw_per_vertex", "box_per_vertex",
+                                          "pairs_per_vertex") if getattr(args, k) is not None}
+    cfg = dataclasses.replace(scenes.SELF_COLLISION[args.resolution], **over)
+    if cfg.block < 1 or cfg.raw_per_vertex <= 0:
+        raise SystemExit("the blocked build needs --block >= 1 and --raw-per-vertex > 0")
     flat = dataclasses.replace(cfg, block=0, raw_per_vertex=480.0, box_per_vertex=32.0)
     num_v = xs.shape[1]
     n_box = S._budget(cfg.box_per_vertex, num_v)

@@ -71,14 +71,17 @@ RESOLUTIONS = {"fine": 0.010, "coarse": 0.030}  # particle distance (PD), meters
 # Session 18: the fine meshes use the blocked flat build (`selfcollision_blocks`: a cell's
 # vertices tested in blocks of 8 against each triangle of the 27 cells around it; the same
 # contacts when no bound is exceeded): one build 0.9-2.3 s -> ~0.25-0.45 s; skirt_dance fine
-# 2.03 % -> 0.001 % intersecting faces at 6.1x the cost (results/sim/README.md).
+# 2.03 % -> 0.001 % intersecting faces at 6.1x the cost (results/sim/README.md). Coarse too
+# (the per-vertex build above dropped 14 M cell entries over 60 skirt frames): skirt_dance
+# 6.5 % -> 0 %, cape_walk 4.9 % -> 0.008 %; the cost ratio stays ~6-7x there (the build is
+# ~18 ms; the per-substep work and the off run's small size set it).
 SELF_COLLISION = {
     "fine": SelfCollisionConfig(thickness=0.004, margin=0.014, rebuild_every=4,
                                 rest_exclusion=0.024, pairs_per_vertex=4.0,
                                 raw_per_vertex=560.0, box_per_vertex=16.0, block=8),
-    "coarse": SelfCollisionConfig(thickness=0.009, margin=0.015, rebuild_every=4, max_raw=128,
-                                  max_box=16, max_contacts=8, rest_exclusion=0.042,
-                                  pairs_per_vertex=1.0),
+    "coarse": SelfCollisionConfig(thickness=0.009, margin=0.015, rebuild_every=4,
+                                  rest_exclusion=0.042, pairs_per_vertex=1.0,
+                                  raw_per_vertex=400.0, box_per_vertex=16.0, block=8),
 }
 
 

@@ -70,7 +70,7 @@ RESOLUTIONS = {"fine": 0.010, "coarse": 0.030}  # particle distance (PD), meters
 # (60 frames): skirt_dance fine 2.03 % -> 0.003 % intersecting faces, at 11x the cost.
 # Session 18: the fine meshes use the blocked flat build (`selfcollision_blocks`: a cell's
 # vertices tested in blocks of 8 against each triangle of the 27 cells around it; the same
-# contacts when no bound is exceeded): one build 0.9-2.3 s -> ~0.25-0.45 s; skirt_dance fine
+# contacts when no bound is exceeded): one build 551-586 -> 148-149 ms (load 3-4); skirt_dance fine
 # 2.03 % -> 0.001 % intersecting faces at 6.1x the cost (results/sim/README.md). Coarse too
 # (the per-vertex build above dropped 14 M cell entries over 60 skirt frames): skirt_dance
 # 6.5 % -> 0 %, cape_walk 4.9 % -> 0.008 %; the cost ratio stays ~6-7x there (the build is

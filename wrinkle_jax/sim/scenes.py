@@ -74,10 +74,12 @@ RESOLUTIONS = {"fine": 0.010, "coarse": 0.030}  # particle distance (PD), meters
 # 2.03 % -> 0.001 % intersecting faces at 6.1x the cost (results/sim/README.md). Coarse too
 # (the per-vertex build above dropped 14 M cell entries over 60 skirt frames): skirt_dance
 # 6.5 % -> 0 %, cape_walk 4.9 % -> 0.008 %; the cost ratio stays ~6-7x there (the build is
-# ~18 ms; the per-substep work and the off run's small size set it).
+# ~18 ms; the per-substep work and the off run's small size set it). Fine: 2 contacts per
+# vertex (nearest kept) instead of 4 halve the per-substep contact work; skirt_dance 0.003 %,
+# cape_walk 0.018 % (the same as with 4) at 5.1x / 4.0x.
 SELF_COLLISION = {
     "fine": SelfCollisionConfig(thickness=0.004, margin=0.014, rebuild_every=4,
-                                rest_exclusion=0.024, pairs_per_vertex=4.0,
+                                rest_exclusion=0.024, pairs_per_vertex=2.0,
                                 raw_per_vertex=560.0, box_per_vertex=16.0, block=8),
     "coarse": SelfCollisionConfig(thickness=0.009, margin=0.015, rebuild_every=4,
                                   rest_exclusion=0.042, pairs_per_vertex=1.0,

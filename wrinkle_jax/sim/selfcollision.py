@@ -19,11 +19,15 @@ Method (Bridson, Fedkiw & Anderson 2002 proximity; Mueller et al. 2007 PBD const
       lists and the exact tests.
     * the per-vertex slots are moved into one flat list of at most `pairs_per_vertex` x V
       contacts (`flatten`), which the projections run over.
-    * or the flat build (`build_pairs`, `raw_per_vertex` > 0; the fine default): the same
-      cells, but every bound is a total over the mesh (a fold fills a few vertices' lists
-      while most have none), and where one is exceeded the nearest candidates are kept. On
+    * or the flat build (`build_pairs`, `raw_per_vertex` > 0; the fine default in session
+      17): the same cells, but every bound is a total over the mesh (a fold fills a few
+      vertices' lists while most have none), and where one is exceeded the nearest
+      candidates are kept. On
       the skirt's fine poses the per-vertex bounds above kept only 6-11 % of the pairs
       closer than the thickness (they drop in cell and vertex order); the flat build 97-100 %.
+    * or the blocked flat build (`selfcollision_blocks`, `block` > 0; the default of both
+      resolutions since session 18): the flat build's contacts, from a centroid grid read in
+      the 27 cells around a vertex, a cell's vertices tested in blocks against each triangle.
     * nothing is dropped silently: cell entries beyond `max_raw`, box hits beyond `max_box`
       and close triangles beyond `max_contacts` are counted (`Candidates.overflow`,
       accumulated in the solver state).
@@ -175,13 +179,12 @@ def _hash(g):
     return jnp.minimum(k, _SENTINEL - np.uint32(1))
 
 
-def _cell_lists(x, tri, reach, with_keys: bool = False):
+def _cell_lists(x, tri, reach):
     """Triangles (F, 3, 3) entered in a uniform grid by their boxes grown by `reach`; per
     vertex of x (V, 3), where its own cell's entries lie in the sorted list.
 
     Returns: lo, hi (F, 3) grown boxes; stri (8F,) int32 triangle of each sorted entry;
-    start (V,) and count (V,) int32, the vertex's cell entries stri[start:start + count];
-    with_keys: also the vertices' cell keys (V,) uint32.
+    start (V,) and count (V,) int32, the vertex's cell entries stri[start:start + count].
     """
     lo = tri.min(1) - reach
     hi = tri.max(1) + reach
@@ -201,8 +204,7 @@ def _cell_lists(x, tri, reach, with_keys: bool = False):
     kv = _hash(jnp.floor(x / cell).astype(jnp.int32))
     start = jnp.searchsorted(skeys, kv, side="left")
     count = jnp.searchsorted(skeys, kv, side="right") - start
-    out = lo, hi, stri, start.astype(jnp.int32), count.astype(jnp.int32)
-    return out + (kv,) if with_keys else out
+    return lo, hi, stri, start.astype(jnp.int32), count.astype(jnp.int32)
 
 
 def build_candidates(x, faces, topo: SelfTopology, cfg: SelfCollisionConfig) -> Candidates:

@@ -10,17 +10,21 @@ gathered once per slot and tested against the block's vertices as a dense (slots
 array, so the gathers drop by ~the block size while the tests stay the same.
 
 Steps (shapes static; S = block-entry slots, G = block size, V vertices, F faces):
-  * triangles entered in the grid as in the flat build (`selfcollision._cell_lists`);
-  * vertices sorted by their cell key and cut into blocks of at most G vertices of one cell
+  * triangles put in a periodic grid by their centroid (`centroid_grid`: one argsort of F
+    bucket ids, no 8 F-entry sort as in `selfcollision._cell_lists`); a vertex reads the 27
+    cells around its own;
+  * vertices sorted by their cell and cut into blocks of at most G vertices of one cell
     (at most V blocks, padded with -1);
-  * the blocks' entries laid out in one list of S slots (slot -> block by one scatter-add
+  * the blocks' 27 ranges laid out in one list of S slots (slot -> range by one scatter-add
     and a cumsum, as the flat build does for vertices); entries beyond S are counted as
     (vertex, entry) reads not made;
   * the sphere test (a lower bound of the distance), the corner test and the rest exclusion
     on the dense (S, G) array; the nearest ceil(box_per_vertex x V) hits get the exact test;
     of those within the reach the nearest ceil(pairs_per_vertex x V) form the contact list
     (both bounds as in the flat build, overflow counted).
-With room everywhere the contact set equals the flat build's (the same cells and tests).
+With room everywhere the contact set equals the flat build's: the 27 cells hold every
+triangle that passes the sphere test, and the sphere, corner, exclusion and exact tests are
+the flat build's.
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
 """Simulator benchmark: ms per frame (30 fps) per scene at PD 10 and 30 mm, speed against
 error over substep counts (constraint violation, energy drift, penetration depth), and the
 skirts' self-intersections; with --self-collision, ms/frame with and without it per scene
-(the resolution's `scenes.SELF_COLLISION` setting) and their ratio.
+(the resolution's `scenes.SELF_COLLISION` setting; the two runs advance in alternating
+chunks) and their ratio.
 
     python benchmarks/bench_sim.py [--quick] [--part speed|substeps|intersect|all]
                                    [--scenes a,b] [--data data/sequences] [--self-collision]
@@ -31,53 +32,67 @@ from wrinkle_jax.sim import scenes, xpbd
 
 def bench_speed(scene_names, resolutions, frames: int, material: str = "silk_charmeuse",
                 self_collision: tuple = (None,)):
-    """ms/frame per scene, resolution and self-collision setting (None = off)."""
+    """ms/frame per scene, resolution and self-collision setting (None = off).
+
+    The settings of one scene and resolution advance chunk by chunk in alternation (the
+    order flipped every chunk), so each sees the same machine load; their ratio to the
+    first (off) setting is `ratio_to_off`.
+    """
     rows = []
     for name in scene_names:
         for res in resolutions:
             setup = scenes.setup_scene(name, res, frames)
-            off_ms = None
-            for sc in self_collision:
-                if sc == "default":  # the data-set scenes' setting for this resolution
-                    sc = scenes.SELF_COLLISION[res]
-                rows.append(_speed_row(setup, name, res, frames, material, sc))
-                if sc is None:
-                    off_ms = rows[-1]["ms_per_frame"]
-                elif off_ms:
-                    rows[-1]["ratio_to_off"] = round(rows[-1]["ms_per_frame"] / off_ms, 2)
-                rows[-1]["load_avg"] = [round(a, 2) for a in os.getloadavg()]
-                print(json.dumps(rows[-1]), file=sys.stderr, flush=True)  # progress
+            settings = [scenes.SELF_COLLISION[res] if sc == "default" else sc
+                        for sc in self_collision]  # "default": the data-set scenes' setting
+            group = _speed_rows(setup, name, res, frames, material, settings)
+            for row, sc in zip(group, settings, strict=True):
+                if sc is not None and settings[0] is None:
+                    row["ratio_to_off"] = round(row["ms_per_frame"] / group[0]["ms_per_frame"],
+                                                2)
+                row["load_avg"] = [round(a, 2) for a in os.getloadavg()]
+                print(json.dumps(row), file=sys.stderr, flush=True)  # progress
+            rows += group
     return rows
 
 
-def _speed_row(setup, name, res, frames, material, sc):
-    config = xpbd.SimConfig(substeps=setup.scene.substeps,
-                            stretch_sweeps=setup.scene.stretch_sweeps, self_collision=sc)
+def _speed_rows(setup, name, res, frames, material, settings):
     params = xpbd.fabric_params(M.fabric(material))
-    init_fn, _ = xpbd.cloth_simulator(config)
-    state = init_fn(setup.model, setup.mesh.garment.vertices)
+    configs = [xpbd.SimConfig(substeps=setup.scene.substeps,
+                              stretch_sweeps=setup.scene.stretch_sweeps, self_collision=sc)
+               for sc in settings]
     chunk = 10
+    states, compile_s = [], []
     warm = xpbd.slice_drives(setup.drives, 0, chunk + 1)
-    t0 = time.perf_counter()
-    state, xs = xpbd.run_frames(config, setup.model, params, state, warm)
-    xs.block_until_ready()
-    compile_s = time.perf_counter() - t0
+    for config in configs:
+        init_fn, _ = xpbd.cloth_simulator(config)
+        t0 = time.perf_counter()
+        state, xs = xpbd.run_frames(config, setup.model, params,
+                                    init_fn(setup.model, setup.mesh.garment.vertices), warm)
+        xs.block_until_ready()
+        compile_s.append(time.perf_counter() - t0)
+        states.append(state)
+    secs = [0.0] * len(configs)
     n = 0
-    t0 = time.perf_counter()
-    for start in range(chunk, min(chunk + frames, setup.drives.time.shape[0] - 1), chunk):
+    stop = min(chunk + frames, setup.drives.time.shape[0] - 1)
+    for k, start in enumerate(range(chunk, stop, chunk)):
         part = xpbd.slice_drives(setup.drives, start, start + chunk + 1)
-        state, xs = xpbd.run_frames(config, setup.model, params, state, part)
+        order = range(len(configs)) if k % 2 == 0 else reversed(range(len(configs)))
+        for i in order:
+            t0 = time.perf_counter()
+            states[i], xs = xpbd.run_frames(configs[i], setup.model, params, states[i], part)
+            xs.block_until_ready()
+            secs[i] += time.perf_counter() - t0
         n += chunk
-    xs.block_until_ready()
-    dt = time.perf_counter() - t0
-    return {"scene": name, "resolution": res, "pd_mm": setup.mesh.pd * 1e3,
-            "vertices": setup.mesh.garment.num_vertices,
-            "faces": setup.mesh.garment.num_faces,
-            "substeps": config.substeps, "stretch_sweeps": config.stretch_sweeps,
-            "self_collision": None if sc is None else dataclasses.asdict(sc),
-            "self_overflow": None if sc is None else np.asarray(state.self_overflow).tolist(),
-            "ms_per_frame": round(1e3 * dt / max(n, 1), 1),
-            "compile_plus_first_chunk_s": round(compile_s, 2)}
+    return [{"scene": name, "resolution": res, "pd_mm": setup.mesh.pd * 1e3,
+             "vertices": setup.mesh.garment.num_vertices,
+             "faces": setup.mesh.garment.num_faces,
+             "substeps": config.substeps, "stretch_sweeps": config.stretch_sweeps,
+             "self_collision": None if sc is None else dataclasses.asdict(sc),
+             "self_overflow": None if sc is None else np.asarray(state.self_overflow).tolist(),
+             "ms_per_frame": round(1e3 * dt / max(n, 1), 1),
+             "compile_plus_first_chunk_s": round(c, 2)}
+            for config, sc, state, dt, c in zip(configs, settings, states, secs, compile_s,
+                                                strict=True)]
 
 
 def _energies(xs, vs, model, params):

@@ -4,7 +4,7 @@
         [--frames 90] [--every 6] [--material silk_charmeuse] [--thickness MM] [--margin MM]
         [--rebuild-every N] [--max-raw R] [--max-contacts K] [--max-box B]
         [--rest-exclusion MM] [--pairs-per-vertex P] [--raw-per-vertex R]
-        [--box-per-vertex B] [--out PATH] [--log PATH]
+        [--box-per-vertex B] [--block G] [--out PATH] [--log PATH]
 
 For each scene of `sim.scenes` and resolution, simulates the pre-roll and the first `--frames`
 frames of the motion twice in one process, with self-collision off and on (the same frames,
@@ -118,6 +118,7 @@ def main(argv=None) -> None:
     ap.add_argument("--pairs-per-vertex", type=float)
     ap.add_argument("--raw-per-vertex", type=float, help="> 0: the flat build (build_pairs)")
     ap.add_argument("--box-per-vertex", type=float)
+    ap.add_argument("--block", type=int, help="> 0: the blocked flat build (selfcollision_blocks)")
     ap.add_argument("--out", default=str(ROOT / "experiments" / "results" / "sim"
                                          / "self_collision_scenes.json"))
     ap.add_argument("--log", default=None, help="JSON lines, one per row (default OUT.log)")
@@ -133,7 +134,8 @@ def main(argv=None) -> None:
                                else args.rest_exclusion * 1e-3),
                               ("pairs_per_vertex", args.pairs_per_vertex),
                               ("raw_per_vertex", args.raw_per_vertex),
-                              ("box_per_vertex", args.box_per_vertex)) if v is not None}
+                              ("box_per_vertex", args.box_per_vertex),
+                              ("block", args.block)) if v is not None}
     # Rows of other scenes / resolutions already in --out are kept (runs can be split).
     out = Path(args.out)
     rows = json.loads(out.read_text())["rows"] if out.exists() else []

@@ -17,6 +17,7 @@ from wrinkle_jax.sim import contact_scenes as CS
 from wrinkle_jax.sim import intersect
 from wrinkle_jax.sim import materials as M
 from wrinkle_jax.sim import selfcollision as S
+from wrinkle_jax.sim import selfcollision_blocks as SB
 from wrinkle_jax.sim import xpbd as X
 
 # Vertex-triangle contacts only (no edge-edge constraints): on coarse meshes two edges can
@@ -350,6 +351,69 @@ def test_two_sheets_do_not_pass_through_with_the_flat_build():
     scene = CS.two_sheets(pd=0.02, size=0.2, frames=24)
     flat = dataclasses.replace(CFG, raw_per_vertex=128, box_per_vertex=32, pairs_per_vertex=16)
     state, xs = _run(scene, X.SimConfig(self_collision=flat))
+    assert np.isfinite(xs).all()
+    assert np.asarray(state.self_overflow).tolist() == [0, 0, 0]
+    assert _pairs(xs, scene.model.faces, every=3) == [0] * 8
+
+
+# The blocked flat build (`selfcollision_blocks`): a cell's vertices tested in blocks.
+_build_blocked = jax.jit(SB.build_pairs_blocked, static_argnums=3)
+
+
+def test_blocked_build_finds_the_same_pairs_as_the_flat_build():
+    # With room everywhere: the same contacts and target distances (rest exclusion on).
+    scene, x = _wavy_fold()
+    topo, faces = scene.model.self_topo, scene.model.faces
+    flat = S.SelfCollisionConfig(thickness=0.004, margin=0.02, rest_exclusion=0.05,
+                                 raw_per_vertex=256, box_per_vertex=64, pairs_per_vertex=32)
+    ref, over = _build_pairs(x, faces, topo, flat)
+    assert np.asarray(over).tolist() == [0, 0, 0]
+    want = _pair_dict(ref.vertex, ref.tri, ref.valid, ref.thickness)
+    assert len(want) > 500
+    got, over = _build_blocked(x, faces, topo, dataclasses.replace(flat, block=4))
+    assert np.asarray(over).tolist() == [0, 0, 0]
+    assert _pair_dict(got.vertex, got.tri, got.valid, got.thickness) == want
+
+
+def test_blocked_selection_matches_the_flat_selection():
+    # Row-major order, nearest first under a cut: the same indices as `_select` on the
+    # flattened arrays, with and without a cut.
+    k1, k2 = jax.random.split(jax.random.PRNGKey(3))
+    valid = jax.random.uniform(k1, (300, 8)) < 0.2
+    dist = jax.random.uniform(k2, (300, 8), maxval=0.02)
+    n = int(valid.sum())
+    for size in (n + 7, n // 3):
+        got = jax.jit(SB._select2, static_argnums=(2, 3))(valid, dist, size, 0.02)
+        ref = jax.jit(S._select, static_argnums=(2, 3))(valid.reshape(-1), dist.reshape(-1),
+                                                       size, 0.02)
+        for a, b in zip(got, ref, strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_blocked_build_counts_unread_reads():
+    # With blocks of one vertex every slot is one (vertex, entry) read: the reads not made
+    # are the vertices' 27-cell entries beyond the slots.
+    scene, x = _wavy_fold()
+    topo, faces = scene.model.self_topo, scene.model.faces
+    cfg = S.SelfCollisionConfig(thickness=0.004, margin=0.02, raw_per_vertex=4, block=1,
+                                box_per_vertex=64, pairs_per_vertex=32)
+    tri = x[faces]
+    centre = tri.mean(1)
+    radius = jnp.sqrt(jnp.max(jnp.sum((tri - centre[:, None]) ** 2, -1), -1))
+    _, _, count, _ = jax.jit(SB.centroid_grid, static_argnums=3)(x, centre, radius, 0.024)
+    pairs, over = _build_blocked(x, faces, topo, cfg)
+    total = int(np.asarray(count).sum())
+    assert total > 4 * len(x) and int(over[0]) == total - 4 * len(x)
+    ok = np.asarray(pairs.valid)
+    v, t = np.asarray(pairs.vertex)[ok], np.asarray(pairs.tri)[ok]
+    assert ok.any() and not (np.asarray(faces)[t] == v[:, None]).any()
+
+
+def test_two_sheets_do_not_pass_through_with_the_blocked_build():
+    scene = CS.two_sheets(pd=0.02, size=0.2, frames=24)
+    blocked = dataclasses.replace(CFG, raw_per_vertex=512, box_per_vertex=32,
+                                  pairs_per_vertex=16, block=4)
+    state, xs = _run(scene, X.SimConfig(self_collision=blocked))
     assert np.isfinite(xs).all()
     assert np.asarray(state.self_overflow).tolist() == [0, 0, 0]
     assert _pairs(xs, scene.model.faces, every=3) == [0] * 8

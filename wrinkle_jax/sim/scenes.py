@@ -68,13 +68,22 @@ RESOLUTIONS = {"fine": 0.010, "coarse": 0.030}  # particle distance (PD), meters
 # closer than the thickness on the data set's skirt poses, the build above kept 6-11 %); the
 # read budget covers the skirt's cells in motion (mean 368 entries per vertex). Measured
 # (60 frames): skirt_dance fine 2.03 % -> 0.003 % intersecting faces, at 11x the cost.
+# Session 18: the fine meshes use the blocked flat build (`selfcollision_blocks`: a cell's
+# vertices tested in blocks of 8 against each triangle of the 27 cells around it; the same
+# contacts when no bound is exceeded): one build 551-586 -> 148-149 ms (load 3-4); skirt_dance fine
+# 2.03 % -> 0.001 % intersecting faces at 6.1x the cost (results/sim/README.md). Coarse too
+# (the per-vertex build above dropped 14 M cell entries over 60 skirt frames): skirt_dance
+# 6.5 % -> 0 %, cape_walk 4.9 % -> 0.008 %; the cost ratio stays ~6-7x there (the build is
+# ~18 ms; the per-substep work and the off run's small size set it). Fine: 2 contacts per
+# vertex (nearest kept) instead of 4 halve the per-substep contact work; skirt_dance 0.003 %,
+# cape_walk 0.018 % (the same as with 4) at 5.1x / 4.0x.
 SELF_COLLISION = {
     "fine": SelfCollisionConfig(thickness=0.004, margin=0.014, rebuild_every=4,
-                                rest_exclusion=0.024, pairs_per_vertex=4.0,
-                                raw_per_vertex=480.0, box_per_vertex=32.0),
-    "coarse": SelfCollisionConfig(thickness=0.009, margin=0.015, rebuild_every=4, max_raw=128,
-                                  max_box=16, max_contacts=8, rest_exclusion=0.042,
-                                  pairs_per_vertex=1.0),
+                                rest_exclusion=0.024, pairs_per_vertex=2.0,
+                                raw_per_vertex=560.0, box_per_vertex=16.0, block=8),
+    "coarse": SelfCollisionConfig(thickness=0.009, margin=0.015, rebuild_every=4,
+                                  rest_exclusion=0.042, pairs_per_vertex=1.0,
+                                  raw_per_vertex=400.0, box_per_vertex=16.0, block=8),
 }
 
 

@@ -19,11 +19,15 @@ Method (Bridson, Fedkiw & Anderson 2002 proximity; Mueller et al. 2007 PBD const
       lists and the exact tests.
     * the per-vertex slots are moved into one flat list of at most `pairs_per_vertex` x V
       contacts (`flatten`), which the projections run over.
-    * or the flat build (`build_pairs`, `raw_per_vertex` > 0; the fine default): the same
-      cells, but every bound is a total over the mesh (a fold fills a few vertices' lists
-      while most have none), and where one is exceeded the nearest candidates are kept. On
+    * or the flat build (`build_pairs`, `raw_per_vertex` > 0; the fine default in session
+      17): the same cells, but every bound is a total over the mesh (a fold fills a few
+      vertices' lists while most have none), and where one is exceeded the nearest
+      candidates are kept. On
       the skirt's fine poses the per-vertex bounds above kept only 6-11 % of the pairs
       closer than the thickness (they drop in cell and vertex order); the flat build 97-100 %.
+    * or the blocked flat build (`selfcollision_blocks`, `block` > 0; the default of both
+      resolutions since session 18): the flat build's contacts, from a centroid grid read in
+      the 27 cells around a vertex, a cell's vertices tested in blocks against each triangle.
     * nothing is dropped silently: cell entries beyond `max_raw`, box hits beyond `max_box`
       and close triangles beyond `max_contacts` are counted (`Candidates.overflow`,
       accumulated in the solver state).
@@ -92,6 +96,11 @@ class SelfCollisionConfig:
         bound on triangles given the exact test, ceil(this x V). With the flat build every
         bound is a total, and where one overflows the nearest candidates are kept (the
         overflow is counted).
+      block: > 0 (with raw_per_vertex > 0) selects the blocked flat build
+        (`selfcollision_blocks.build_pairs_blocked`): the vertices of a cell are tested in
+        blocks of this many against each cell entry, and `raw_per_vertex` bounds the
+        (block, entry) slots at ceil(raw_per_vertex x V / block). Same contacts as the flat
+        build when no bound is exceeded; the triangle data is gathered once per slot.
     """
 
     thickness: float = 0.004
@@ -106,6 +115,7 @@ class SelfCollisionConfig:
     pairs_per_vertex: float = 0.0
     raw_per_vertex: float = 0.0
     box_per_vertex: float = 8.0
+    block: int = 0
 
 
 @jax.tree_util.register_dataclass

@@ -54,7 +54,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax.numerics import normalize, safe_div, safe_norm
-from wrinkle_jax.sim import aero, colliders, selfcollision
+from wrinkle_jax.sim import aero, colliders, selfcollision, selfcollision_blocks
 
 # The model's pytrees and their allocation live in cloth_model; every name stays importable
 # from here (old import paths, pickles).
@@ -262,6 +262,9 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
             raise ValueError("self-collision needs a model built with self_topo (build_cloth)")
 
         def rebuild(x):
+            if sc.raw_per_vertex > 0 and sc.block > 0:  # cell vertices in blocks
+                return selfcollision_blocks.build_pairs_blocked(x, model.faces,
+                                                                model.self_topo, sc)
             if sc.raw_per_vertex > 0:  # bounds on totals, the nearest kept (see build_pairs)
                 return selfcollision.build_pairs(x, model.faces, model.self_topo, sc)
             # Per-vertex candidates, then one flat bounded list: the projections then touch

@@ -239,14 +239,19 @@ def test_detail_space_model_starts_as_identity_and_keeps_the_large_scale():
     np.testing.assert_allclose(np.linalg.norm(np.asarray(out) * 2 - 1, axis=-1), 1.0, atol=1e-5)
 
 
+# One program per noise shape (op by op, each of the hash's integer and float primitives
+# compiles on its own for every shape); the U-Net calls it inside its own jit likewise.
+_texel_noise = jax.jit(unet.texel_noise, static_argnums=(1, 2, 3), static_argnames="scale")
+
+
 def test_texel_noise_is_fixed_to_the_texel():
-    a = unet.texel_noise(jnp.array([[10, 20]]), 16, 16, 3)
-    b = unet.texel_noise(jnp.array([[14, 25], [10, 20]]), 16, 16, 3)
+    a = _texel_noise(jnp.array([[10, 20]]), 16, 16, 3)
+    b = _texel_noise(jnp.array([[14, 25], [10, 20]]), 16, 16, 3)
     # The same absolute texel gets the same value in every patch that covers it ...
     np.testing.assert_array_equal(a[0, 4:, 5:], b[0, :12, :11])
     np.testing.assert_array_equal(a[0], b[1])
     # ... and the field is white: zero mean, unit variance, uncorrelated neighbours/channels.
-    big = np.asarray(unet.texel_noise(jnp.array([[0, 0], [512, 77]]), 128, 128, 4))
+    big = np.asarray(_texel_noise(jnp.array([[0, 0], [512, 77]]), 128, 128, 4))
     assert abs(big.mean()) < 0.02 and abs(big.var() - 1) < 0.03
     assert abs(np.mean(big[:, 1:] * big[:, :-1])) < 0.02
     assert abs(np.mean(big[..., 0] * big[..., 1])) < 0.02
@@ -272,25 +277,25 @@ def test_noise_model_depends_on_origins_only_through_the_noise():
 def test_lattice_noise_is_smooth_unit_and_fixed_to_the_texel():
     s = 4
     # Overlapping patches (negative origins too: floor division near the layout's border).
-    a = unet.texel_noise(jnp.array([[-6, 10]]), 24, 24, 2, scale=s)
-    b = unet.texel_noise(jnp.array([[-3, 15]]), 24, 24, 2, scale=s)
+    a = _texel_noise(jnp.array([[-6, 10]]), 24, 24, 2, scale=s)
+    b = _texel_noise(jnp.array([[-3, 15]]), 24, 24, 2, scale=s)
     np.testing.assert_allclose(a[0, 3:, 5:], b[0, :21, :19], rtol=0, atol=1e-6)
     # On the lattice the field is the white field of lattice coordinates, rescaled to unit
     # variance; between lattice points it is the bilinear interpolation of those values.
-    white = np.asarray(unet.texel_noise(jnp.array([[0, 0]]), 8, 8, 2))
-    fine = np.asarray(unet.texel_noise(jnp.array([[0, 0]]), 29, 29, 2, scale=s))
+    white = np.asarray(_texel_noise(jnp.array([[0, 0]]), 8, 8, 2))
+    fine = np.asarray(_texel_noise(jnp.array([[0, 0]]), 29, 29, 2, scale=s))
     t = np.arange(s) / s
     gain = 1.0 / np.mean((1 - t) ** 2 + t**2)
     np.testing.assert_allclose(fine[0, ::s, ::s], white[0] * gain, rtol=1e-5)
     np.testing.assert_allclose(fine[0, 2, 0], 0.5 * (fine[0, 0, 0] + fine[0, 4, 0]), rtol=1e-5)
-    big = np.asarray(unet.texel_noise(jnp.array([[0, 0], [512, 77]]), 128, 128, 4, scale=s))
+    big = np.asarray(_texel_noise(jnp.array([[0, 0], [512, 77]]), 128, 128, 4, scale=s))
     assert abs(big.mean()) < 0.05 and abs(big.var() - 1) < 0.06
     # Smooth: neighbours are strongly correlated, and the 2-texel checkerboard is weak.
     assert np.mean(big[:, 1:] * big[:, :-1]) > 0.8
-    w = np.asarray(unet.texel_noise(jnp.array([[0, 0], [512, 77]]), 128, 128, 4))
+    w = np.asarray(_texel_noise(jnp.array([[0, 0], [512, 77]]), 128, 128, 4))
     assert _checker_std(big) < 0.1 * _checker_std(w)
     with pytest.raises(ValueError, match="scale"):
-        unet.texel_noise(jnp.array([[0, 0]]), 8, 8, 1, scale=0)
+        _texel_noise(jnp.array([[0, 0]]), 8, 8, 1, scale=0)
 
 
 def _checker_std(v):

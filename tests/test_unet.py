@@ -71,8 +71,10 @@ def test_residual_adds_input(small):
     plain = unet.CINUNet(unet.UNetConfig(width=4, input_norm="none"), num_materials=3)
     res = unet.CINUNet(unet.UNetConfig(width=4, input_norm="none", residual=True), num_materials=3)
     m = jnp.array([1])
-    np.testing.assert_allclose(res.apply({"params": params}, x, m),
-                               x + plain.apply({"params": params}, x, m), atol=1e-6)
+    # Both networks in one program (op by op, each primitive of a U-Net compiles on its own).
+    both = jax.jit(lambda p: (res.apply({"params": p}, x, m), plain.apply({"params": p}, x, m)))
+    out_res, out_plain = both(params)
+    np.testing.assert_allclose(out_res, x + out_plain, atol=1e-6)
 
 
 def test_rejects_bad_patch_size(small):
@@ -230,10 +232,11 @@ def test_detail_space_model_starts_as_identity_and_keeps_the_large_scale():
     # at a radius above the detail's the large scale stays the input's: the low-pass of the
     # output agrees with the input's within a few degrees (measured 2.7; 6.0 without it).
     out = apply({"params": params}, x, m)
-    mask = jnp.ones((2, 32, 32, 1))
     assert float(jnp.abs(out - x).max()) > 1e-2
-    lin = detail.large_scale(x * 2 - 1, mask, 4.0)
-    lout = detail.large_scale(out * 2 - 1, mask, 4.0)
+    # Both large scales from one program (op by op, each primitive of the blur compiles on
+    # its own); the blur is per patch, so the four patches are blurred in one call.
+    large = jax.jit(lambda a: detail.large_scale(a * 2 - 1, jnp.ones((4, 32, 32, 1)), 4.0))
+    lin, lout = jnp.split(large(jnp.concatenate([x, out])), 2)
     cos = np.sum(np.asarray(lin) * np.asarray(lout), -1)
     assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 4.0
     np.testing.assert_allclose(np.linalg.norm(np.asarray(out) * 2 - 1, axis=-1), 1.0, atol=1e-5)

@@ -90,9 +90,11 @@ def pytest_collection_modifyitems(config, items):
 
 # Opt-in profile: WRINKLE_JAX_TEST_PROFILE=<folder> writes <folder>/<worker>.json with, per test
 # file, [wall s, CPU s (process + reaped children), tests, first start, last end (epoch s)],
-# summed from setup to teardown of each test. Off by default (nothing is measured).
+# summed from setup to teardown of each test, and <folder>/<worker>.tests.json with each test's
+# [wall s, CPU s] (setup to teardown, by node id). Off by default (nothing is measured).
 _PROFILE_ENV = "WRINKLE_JAX_TEST_PROFILE"
 _profile: dict[str, list[float]] = {}
+_profile_tests: dict[str, list[float]] = {}
 
 
 def _cpu_seconds() -> float:
@@ -107,11 +109,13 @@ def pytest_runtest_protocol(item, nextitem):
         return
     t0, w0, c0 = time.time(), time.perf_counter(), _cpu_seconds()
     yield
+    wall, cpu = time.perf_counter() - w0, _cpu_seconds() - c0
     row = _profile.setdefault(item.path.name, [0.0, 0.0, 0, t0, t0])
-    row[0] += time.perf_counter() - w0
-    row[1] += _cpu_seconds() - c0
+    row[0] += wall
+    row[1] += cpu
     row[2] += 1
     row[4] = time.time()
+    _profile_tests[item.nodeid] = [wall, cpu]
 
 
 def pytest_sessionfinish(session):
@@ -121,6 +125,8 @@ def pytest_sessionfinish(session):
         name = os.environ.get("PYTEST_XDIST_WORKER", "main")
         with open(os.path.join(folder, f"{name}.json"), "w") as f:
             json.dump(_profile, f, indent=1)
+        with open(os.path.join(folder, f"{name}.tests.json"), "w") as f:
+            json.dump(_profile_tests, f, indent=1)
 
 
 def x64():

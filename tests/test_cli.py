@@ -82,21 +82,16 @@ def test_help_on_every_command(capsys):
 # ---------------------------------------------------------------- enhance
 
 
-def _tiny_model(path):
-    import jax
-
+def _tiny_model(path, model):
+    """The session's tiny enhancer (conftest `model`) as a model file."""
     from wrinkle_jax import enhancer
-    from wrinkle_jax.nn import unet
 
-    config = enhancer.EnhancerConfig(unet.UNetConfig(width=4, residual=True), patch_size=32,
-                                     texel_size=0.004)
-    enh = enhancer.init_enhancer(jax.random.key(0, impl="rbg"), config)
-    enhancer.save_enhancer(path, enh.params, enh.config, meta={"name": "tiny"})
+    enhancer.save_enhancer(path, model.params, model.config, meta={"name": "tiny"})
     return path
 
 
 @pytest.fixture(scope="module")
-def inputs(tmp_path_factory):
+def inputs(tmp_path_factory, model):
     """A tiny 3-frame sheet as .npz, OBJ folder and PC2 + template, and a tiny model."""
     root = tmp_path_factory.mktemp("inputs")
     g = primitives.grid_sheet(6, 6, size=(0.16, 0.12))
@@ -107,7 +102,7 @@ def inputs(tmp_path_factory):
     meshio.save_obj_sequence(root / "objs", seq)
     meshio.save_obj(root / "template.obj", g)
     meshio.save_pc2(root / "seq.pc2", seq.frames)
-    return {"root": root, "seq": seq, "model": _tiny_model(root / "model.npz")}
+    return {"root": root, "seq": seq, "model": _tiny_model(root / "model.npz", model)}
 
 
 def _enhance(inputs, out, *extra, source="seq.npz"):

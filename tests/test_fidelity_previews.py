@@ -11,14 +11,12 @@ from __future__ import annotations
 import json
 
 import cv2
-import jax
 import numpy as np
 import pytest
 
 from experiments import fidelity_previews
 from wrinkle_jax import compare, enhancer, meshio, primitives
 from wrinkle_jax.evaluation import suite
-from wrinkle_jax.nn import unet
 
 SIZE = 0.24  # meters
 PANEL = 96
@@ -43,7 +41,7 @@ def _sequence(garment, frames: int) -> meshio.GarmentSequence:
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
+def run(tmp_path_factory, model):
     """main() on one cell (frame 1 of 2) with synthetic sequences and a tiny model."""
     tmp = tmp_path_factory.mktemp("previews")
     coarse = primitives.grid_sheet(8, 8, size=(SIZE, SIZE), height_fn=_bump)
@@ -51,10 +49,8 @@ def run(tmp_path_factory):
     paths = {"coarse": tmp / "coarse.npz", "fine": tmp / "fine.npz"}
     meshio.save_sequence(paths["coarse"], _sequence(coarse, 2))
     meshio.save_sequence(paths["fine"], _sequence(fine, 2))
-    config = enhancer.EnhancerConfig(unet.UNetConfig(width=4, residual=True), patch_size=32,
-                                     texel_size=0.004)
-    enh = enhancer.init_enhancer(jax.random.key(0, impl="rbg"), config)
-    model = enhancer.save_enhancer(tmp / "model.npz", enh.params, enh.config)
+    # The session's tiny enhancer (conftest `model`: width 4, 32-texel patches, 4 mm texels).
+    model_path = enhancer.save_enhancer(tmp / "model.npz", model.params, model.config)
     calls = []
 
     def fake_cell_sequences(cell, frames, **kwargs):
@@ -65,10 +61,10 @@ def run(tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(fidelity_previews.cell_lib, "cell_sequences", fake_cell_sequences)
         index = fidelity_previews.main(
-            ["--model", str(model), "--frames", "2", "--frame", "1", "--scenes", "dress_dance",
+            ["--model", str(model_path), "--frames", "2", "--frame", "1", "--scenes", "dress_dance",
              "--materials", "silk_charmeuse", "--panel", str(PANEL), "--crop", str(CROP),
              "--out", str(out), "--sim-out", str(tmp / "sims")])
-    return {"out": out, "index": index, "calls": calls, "model": model}
+    return {"out": out, "index": index, "calls": calls, "model": model_path}
 
 
 def _read(path) -> np.ndarray:

@@ -50,19 +50,14 @@ def _save_npz(path, g, frames=None, material="wool_melton", scale=1.0, **arrays)
 
 
 @pytest.fixture(scope="module")
-def root(tmp_path_factory):
-    import jax
-
+def root(tmp_path_factory, model):
     from wrinkle_jax import enhancer
-    from wrinkle_jax.nn import unet
 
     root = tmp_path_factory.mktemp("hard")
     g = _sheet()
     _save_npz(root / "seq.npz", g)
-    config = enhancer.EnhancerConfig(unet.UNetConfig(width=4, residual=True), patch_size=32,
-                                     texel_size=0.004)
-    enh = enhancer.init_enhancer(jax.random.key(0, impl="rbg"), config)
-    enhancer.save_enhancer(root / "model.npz", enh.params, enh.config, meta={"name": "tiny"})
+    # The session's tiny enhancer (conftest `model`: width 4, 32-texel patches, 4 mm texels).
+    enhancer.save_enhancer(root / "model.npz", model.params, model.config, meta={"name": "tiny"})
     meshio.save_obj(root / "sheet.obj", g)
     return root
 

@@ -71,8 +71,10 @@ def test_residual_adds_input(small):
     plain = unet.CINUNet(unet.UNetConfig(width=4, input_norm="none"), num_materials=3)
     res = unet.CINUNet(unet.UNetConfig(width=4, input_norm="none", residual=True), num_materials=3)
     m = jnp.array([1])
-    np.testing.assert_allclose(res.apply({"params": params}, x, m),
-                               x + plain.apply({"params": params}, x, m), atol=1e-6)
+    # Both networks in one program (op by op, each primitive of a U-Net compiles on its own).
+    both = jax.jit(lambda p: (res.apply({"params": p}, x, m), plain.apply({"params": p}, x, m)))
+    out_res, out_plain = both(params)
+    np.testing.assert_allclose(out_res, x + out_plain, atol=1e-6)
 
 
 def test_rejects_bad_patch_size(small):
@@ -230,23 +232,29 @@ def test_detail_space_model_starts_as_identity_and_keeps_the_large_scale():
     # at a radius above the detail's the large scale stays the input's: the low-pass of the
     # output agrees with the input's within a few degrees (measured 2.7; 6.0 without it).
     out = apply({"params": params}, x, m)
-    mask = jnp.ones((2, 32, 32, 1))
     assert float(jnp.abs(out - x).max()) > 1e-2
-    lin = detail.large_scale(x * 2 - 1, mask, 4.0)
-    lout = detail.large_scale(out * 2 - 1, mask, 4.0)
+    # Both large scales from one program (op by op, each primitive of the blur compiles on
+    # its own); the blur is per patch, so the four patches are blurred in one call.
+    large = jax.jit(lambda a: detail.large_scale(a * 2 - 1, jnp.ones((4, 32, 32, 1)), 4.0))
+    lin, lout = jnp.split(large(jnp.concatenate([x, out])), 2)
     cos = np.sum(np.asarray(lin) * np.asarray(lout), -1)
     assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 4.0
     np.testing.assert_allclose(np.linalg.norm(np.asarray(out) * 2 - 1, axis=-1), 1.0, atol=1e-5)
 
 
+# One program per noise shape (op by op, each of the hash's integer and float primitives
+# compiles on its own for every shape); the U-Net calls it inside its own jit likewise.
+_texel_noise = jax.jit(unet.texel_noise, static_argnums=(1, 2, 3), static_argnames="scale")
+
+
 def test_texel_noise_is_fixed_to_the_texel():
-    a = unet.texel_noise(jnp.array([[10, 20]]), 16, 16, 3)
-    b = unet.texel_noise(jnp.array([[14, 25], [10, 20]]), 16, 16, 3)
+    a = _texel_noise(jnp.array([[10, 20]]), 16, 16, 3)
+    b = _texel_noise(jnp.array([[14, 25], [10, 20]]), 16, 16, 3)
     # The same absolute texel gets the same value in every patch that covers it ...
     np.testing.assert_array_equal(a[0, 4:, 5:], b[0, :12, :11])
     np.testing.assert_array_equal(a[0], b[1])
     # ... and the field is white: zero mean, unit variance, uncorrelated neighbours/channels.
-    big = np.asarray(unet.texel_noise(jnp.array([[0, 0], [512, 77]]), 128, 128, 4))
+    big = np.asarray(_texel_noise(jnp.array([[0, 0], [512, 77]]), 128, 128, 4))
     assert abs(big.mean()) < 0.02 and abs(big.var() - 1) < 0.03
     assert abs(np.mean(big[:, 1:] * big[:, :-1])) < 0.02
     assert abs(np.mean(big[..., 0] * big[..., 1])) < 0.02
@@ -272,25 +280,25 @@ def test_noise_model_depends_on_origins_only_through_the_noise():
 def test_lattice_noise_is_smooth_unit_and_fixed_to_the_texel():
     s = 4
     # Overlapping patches (negative origins too: floor division near the layout's border).
-    a = unet.texel_noise(jnp.array([[-6, 10]]), 24, 24, 2, scale=s)
-    b = unet.texel_noise(jnp.array([[-3, 15]]), 24, 24, 2, scale=s)
+    a = _texel_noise(jnp.array([[-6, 10]]), 24, 24, 2, scale=s)
+    b = _texel_noise(jnp.array([[-3, 15]]), 24, 24, 2, scale=s)
     np.testing.assert_allclose(a[0, 3:, 5:], b[0, :21, :19], rtol=0, atol=1e-6)
     # On the lattice the field is the white field of lattice coordinates, rescaled to unit
     # variance; between lattice points it is the bilinear interpolation of those values.
-    white = np.asarray(unet.texel_noise(jnp.array([[0, 0]]), 8, 8, 2))
-    fine = np.asarray(unet.texel_noise(jnp.array([[0, 0]]), 29, 29, 2, scale=s))
+    white = np.asarray(_texel_noise(jnp.array([[0, 0]]), 8, 8, 2))
+    fine = np.asarray(_texel_noise(jnp.array([[0, 0]]), 29, 29, 2, scale=s))
     t = np.arange(s) / s
     gain = 1.0 / np.mean((1 - t) ** 2 + t**2)
     np.testing.assert_allclose(fine[0, ::s, ::s], white[0] * gain, rtol=1e-5)
     np.testing.assert_allclose(fine[0, 2, 0], 0.5 * (fine[0, 0, 0] + fine[0, 4, 0]), rtol=1e-5)
-    big = np.asarray(unet.texel_noise(jnp.array([[0, 0], [512, 77]]), 128, 128, 4, scale=s))
+    big = np.asarray(_texel_noise(jnp.array([[0, 0], [512, 77]]), 128, 128, 4, scale=s))
     assert abs(big.mean()) < 0.05 and abs(big.var() - 1) < 0.06
     # Smooth: neighbours are strongly correlated, and the 2-texel checkerboard is weak.
     assert np.mean(big[:, 1:] * big[:, :-1]) > 0.8
-    w = np.asarray(unet.texel_noise(jnp.array([[0, 0], [512, 77]]), 128, 128, 4))
+    w = np.asarray(_texel_noise(jnp.array([[0, 0], [512, 77]]), 128, 128, 4))
     assert _checker_std(big) < 0.1 * _checker_std(w)
     with pytest.raises(ValueError, match="scale"):
-        unet.texel_noise(jnp.array([[0, 0]]), 8, 8, 1, scale=0)
+        _texel_noise(jnp.array([[0, 0]]), 8, 8, 1, scale=0)
 
 
 def _checker_std(v):

@@ -100,20 +100,22 @@ def capsule_body_fn(tracks: dict):
 
 
 def time_pipeline(seq, enh: enhancer_lib.Enhancer, material: str, body=None, lift: bool = True,
-                  batch_size: int = 8, chunk_size: int = 4) -> dict:
+                  batch_size: int | None = None, chunk_size: int = 4) -> dict:
     """Time the pipeline stages on every frame of `seq` after building, compiling and warming
     up (one chunk) the pipeline.
 
     Args:
       seq: coarse `GarmentSequence` (frames (T, V, 3) meters).
       body: None, a body or a callable frame index -> body (see `pipeline.make_pipeline`).
+      batch_size: patches per network call (None: the pipeline's default, as the CLI).
     Returns:
       {"frames", "ms_per_frame": {stage: ms}, "ms_per_frame_total", "setup_s", "compile_s",
        "warmup_s", "warmup_frames", "patches_per_frame", "detailed_vertices", "map_shape"}.
     """
-    # The lift as the CLI runs it: warm-started from the previous frame.
+    # As the CLI runs it: warm-started lift, a chunk's patches sharing network calls.
+    batch_size = batch_size or pipeline.PipelineConfig.batch_size
     config = pipeline.PipelineConfig(batch_size=batch_size, chunk_size=chunk_size, lift=lift,
-                                     warm_start=True)
+                                     frames_per_batch=chunk_size, warm_start=True)
     pipe = pipeline.make_pipeline(seq.garment, enh, config, body)
     warm = list(range(min(chunk_size, len(seq))))
     t0 = time.perf_counter()
@@ -126,7 +128,8 @@ def time_pipeline(seq, enh: enhancer_lib.Enhancer, material: str, body=None, lif
             "setup_s": pipe.timings["setup"], "compile_s": pipe.timings["compile"],
             "warmup_s": warmup_s, "warmup_frames": len(warm),
             "patches_per_frame": pipe.num_patches, "batch_size": batch_size,
-            "chunk_size": chunk_size, "lift": lift, "body": body is not None,
+            "chunk_size": chunk_size, "frames_per_batch": chunk_size, "lift": lift,
+            "body": body is not None,
             "lift_warm_start": True, "lift_max_iters": config.solver.max_iters,
             "lift_iterations_per_frame": res.lift_iterations / n,
             "detailed_vertices": (None if pipe.fine_garment is None
@@ -179,7 +182,8 @@ def main(argv=None) -> int:
     ap.add_argument("--material", default="silk_charmeuse", choices=MATERIALS)
     ap.add_argument("--model", default=str(enhancer_lib.DEFAULT_PATH),
                     help="enhancer .npz (default: the shipped model)")
-    ap.add_argument("--batch-size", type=int, default=8, help="patches per network call")
+    ap.add_argument("--batch-size", type=int, default=None,
+                    help="patches per network call (default: the pipeline's, as the CLI)")
     ap.add_argument("--no-body", action="store_true",
                     help="lift without the body (no interpenetration resolution)")
     ap.add_argument("--out", default=str(suite.RESULTS / "timing"))

@@ -25,6 +25,9 @@ from wrinkle_jax.sim import xpbd as X
 # two_sheets at PD 30 mm with 4 mm ends with intersecting pairs, at PD 20 mm with 6 mm
 # with none). The bounds leave no overflow on these scenes.
 CFG = S.SelfCollisionConfig(thickness=0.006, margin=0.006, max_raw=256, max_contacts=16)
+# The same with the blocked build (bounds as totals per vertex, blocks of 4 vertices).
+BLOCKED = dataclasses.replace(CFG, raw_per_vertex=512, box_per_vertex=32, pairs_per_vertex=16,
+                              block=4)
 
 # The candidate search, projection and distance as one program each, as the solver runs them
 # (called op by op, every primitive of the search compiles on its own).
@@ -166,28 +169,13 @@ def _layers_ordered(x, lower, upper, reach=0.01):
     return ok.sum() >= 20 and np.mean(xu[ok, 2] > xl[j[ok], 2]) > 0.95
 
 
-def test_two_sheets_do_not_pass_through():
-    # Without self-collision this scene ends with ~300 intersecting pairs per frame.
-    scene = CS.two_sheets(pd=0.02, size=0.2, frames=24)
-    state, xs = _run(scene, X.SimConfig(self_collision=CFG))
-    assert np.isfinite(xs).all()
-    assert np.asarray(state.self_overflow).tolist() == [0, 0, 0]
-    assert _pairs(xs, scene.model.faces, every=3) == [0] * 8
-    g = scene.mesh.garment
-    upper = np.zeros(len(scene.x0), bool)
-    upper[np.asarray(g.faces)[np.asarray(g.panels) == 1].reshape(-1)] = True
-    assert _layers_ordered(xs[-1], ~upper, upper)
-
-
 def test_folded_sheet_stays_intersection_free():
     # Short here (24 frames, the top layer lands on the bottom one over the ball); the
     # 300-frame run is experiments/self_collision.py.
     scene = CS.folded_sheet(pd=0.02, length=0.4, width=0.2, frames=24)
-    # Where the fold presses the two layers together a vertex can see more than 16 triangles
-    # within the margin (one was dropped, and counted, on a fresh CI machine): the bound is
-    # raised so the test checks that with enough room nothing is dropped.
-    config = dataclasses.replace(CFG, max_contacts=32)
-    state, xs = _run(scene, X.SimConfig(self_collision=config))
+    # With the blocked build, the simulator's default (scenes.SELF_COLLISION). Its bounds are
+    # totals over the mesh, roomy here, so the test checks that nothing is dropped.
+    state, xs = _run(scene, X.SimConfig(self_collision=BLOCKED))
     assert np.isfinite(xs).all()
     assert np.asarray(state.self_overflow).tolist() == [0, 0, 0]
     assert _pairs(xs, scene.model.faces, every=3) == [0] * 8
@@ -345,15 +333,6 @@ def test_flat_build_counts_unread_cell_entries():
     assert ok.any() and not (np.asarray(faces)[t] == v[:, None]).any()
 
 
-def test_two_sheets_do_not_pass_through_with_the_flat_build():
-    scene = CS.two_sheets(pd=0.02, size=0.2, frames=24)
-    flat = dataclasses.replace(CFG, raw_per_vertex=128, box_per_vertex=32, pairs_per_vertex=16)
-    state, xs = _run(scene, X.SimConfig(self_collision=flat))
-    assert np.isfinite(xs).all()
-    assert np.asarray(state.self_overflow).tolist() == [0, 0, 0]
-    assert _pairs(xs, scene.model.faces, every=3) == [0] * 8
-
-
 # The blocked flat build (`selfcollision_blocks`): a cell's vertices tested in blocks.
 _build_blocked = jax.jit(SB.build_pairs_blocked, static_argnums=3)
 
@@ -407,11 +386,16 @@ def test_blocked_build_counts_unread_reads():
     assert ok.any() and not (np.asarray(faces)[t] == v[:, None]).any()
 
 
-def test_two_sheets_do_not_pass_through_with_the_blocked_build():
+def test_two_sheets_do_not_pass_through():
+    # Without self-collision this scene ends with ~300 intersecting pairs per frame. The
+    # blocked build, the simulator's default; the per-vertex and flat builds find the same
+    # pairs (tests above) and the per-vertex one runs through the solver in the overflow test.
     scene = CS.two_sheets(pd=0.02, size=0.2, frames=24)
-    blocked = dataclasses.replace(CFG, raw_per_vertex=512, box_per_vertex=32,
-                                  pairs_per_vertex=16, block=4)
-    state, xs = _run(scene, X.SimConfig(self_collision=blocked))
+    state, xs = _run(scene, X.SimConfig(self_collision=BLOCKED))
     assert np.isfinite(xs).all()
     assert np.asarray(state.self_overflow).tolist() == [0, 0, 0]
     assert _pairs(xs, scene.model.faces, every=3) == [0] * 8
+    g = scene.mesh.garment
+    upper = np.zeros(len(scene.x0), bool)
+    upper[np.asarray(g.faces)[np.asarray(g.panels) == 1].reshape(-1)] = True
+    assert _layers_ordered(xs[-1], ~upper, upper)

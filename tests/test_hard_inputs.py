@@ -56,6 +56,9 @@ def root(tmp_path_factory, model):
     root = tmp_path_factory.mktemp("hard")
     g = _sheet()
     _save_npz(root / "seq.npz", g)
+    # Long enough that a signal sent once the output folder exists arrives mid-run: the
+    # 3-frame sequence could finish first (seen once on a fresh clone, exit 0 instead of 143).
+    _save_npz(root / "long.npz", g, frames=_frames(g, 600))
     # The session's tiny enhancer (conftest `model`: width 4, 32-texel patches, 4 mm texels).
     enhancer.save_enhancer(root / "model.npz", model.params, model.config, meta={"name": "tiny"})
     meshio.save_obj(root / "sheet.obj", g)
@@ -358,7 +361,7 @@ def test_signal_removes_the_temporary_folder(root, tmp_path, sig, code, word):
     run = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
            "from wrinkle_jax.cli import main; sys.exit(main(sys.argv[1:]))")
     proc = subprocess.Popen(
-        [sys.executable, "-c", run, "enhance", str(root / "seq.npz"), "--out",
+        [sys.executable, "-c", run, "enhance", str(root / "long.npz"), "--out",
          str(tmp_path / "out"), "--model", str(root / "model.npz"), "--batch", "4",
          "--no-previews"], cwd=tmp_path, env=env, stderr=subprocess.PIPE, text=True)
     try:

@@ -274,6 +274,8 @@ def lift_sweep(model, scene: str = "demo", frames: int = 12, caps=LIFT_CAPS,
     seq, material, body_fn = sweep_scene(scene, frames)
     sel = list(range(min(frames, len(seq))))
     out, refs, plans, levels = {}, {}, {}, {}
+    cg_default = SolverConfig().cg_max_iters
+    runs = settings or [(w, k, cg_default) for w in warm for k in caps]
     for sub in subdivisions:
         level = pipeline.make_pipeline(seq.garment, model, pipeline.PipelineConfig(
             subdivision=sub), compile=False).subdivision.levels
@@ -281,8 +283,6 @@ def lift_sweep(model, scene: str = "demo", frames: int = 12, caps=LIFT_CAPS,
             levels[str(sub)] = level
             continue
         levels[str(sub)] = level
-        cg_default = SolverConfig().cg_max_iters
-        runs = settings or [(w, k, cg_default) for w in warm for k in caps]
         for w, k, cg in runs:
             cfg = pipeline.PipelineConfig(
                 batch_size=16, chunk_size=4, frames_per_batch=4, warm_start=w,

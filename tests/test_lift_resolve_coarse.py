@@ -31,8 +31,7 @@ def test_operators_are_the_subdivision_and_the_galerkin_system(case):
     np.testing.assert_allclose(mesh.apply(co.prolong, jnp.asarray(x)), sub.apply(jnp.asarray(x)),
                                atol=1e-6)
     y = np.random.default_rng(1).normal(size=(fine.shape[0], 3)).astype(np.float32)
-    p = mesh.SparseOperator(co.prolong.rows, co.prolong.cols, co.prolong.values,
-                            co.prolong.shape).todense()
+    p = co.prolong.todense()
     np.testing.assert_allclose(mesh.apply(co.restrict, jnp.asarray(y)), p.T @ y, atol=1e-4)
     lap = mesh.uniform_laplacian(np.asarray(top.faces), fine.shape[0]).todense()
     a, b = cfg.compliance * np.sqrt(PHI), cfg.compliance / np.sqrt(PHI)

@@ -278,14 +278,18 @@ def test_flat_build_finds_the_same_pairs_as_the_per_vertex_build(exclusion):
     assert not np.asarray(pairs.thickness)[~np.asarray(pairs.valid)].any()
 
 
+# The flat build with room on `_wavy_fold` (rest exclusion on): nothing is dropped there.
+ROOMY_FLAT = S.SelfCollisionConfig(thickness=0.004, margin=0.02, rest_exclusion=0.05,
+                                   raw_per_vertex=256, box_per_vertex=64, pairs_per_vertex=32)
+
+
 def test_flat_build_keeps_the_nearest_and_counts_the_rest():
     # A contact list of 0.3 per vertex against ~1 close pair per vertex: the per-vertex
     # build's flat list keeps the first vertices' pairs (vertex order); this one keeps the
     # nearest, so a budget cut leaves out far pairs, never the touching ones.
     scene, x = _wavy_fold()
     topo, faces = scene.model.self_topo, scene.model.faces
-    roomy = S.SelfCollisionConfig(thickness=0.004, margin=0.02, rest_exclusion=0.05,
-                                  raw_per_vertex=256, box_per_vertex=64, pairs_per_vertex=32)
+    roomy = ROOMY_FLAT
     full, _ = _build_pairs(x, faces, topo, roomy)
     tight = dataclasses.replace(roomy, pairs_per_vertex=0.3)
     cut, over = _build_pairs(x, faces, topo, tight)
@@ -341,8 +345,7 @@ def test_blocked_build_finds_the_same_pairs_as_the_flat_build():
     # With room everywhere: the same contacts and target distances (rest exclusion on).
     scene, x = _wavy_fold()
     topo, faces = scene.model.self_topo, scene.model.faces
-    flat = S.SelfCollisionConfig(thickness=0.004, margin=0.02, rest_exclusion=0.05,
-                                 raw_per_vertex=256, box_per_vertex=64, pairs_per_vertex=32)
+    flat = ROOMY_FLAT
     ref, over = _build_pairs(x, faces, topo, flat)
     assert np.asarray(over).tolist() == [0, 0, 0]
     want = _pair_dict(ref.vertex, ref.tri, ref.valid, ref.thickness)

@@ -400,7 +400,12 @@ def resolve_coarse(subdivision: mesh.Subdivision, topology: LiftTopology, phi: f
         p = _coo(ops[0])
         for op in ops[1:]:
             p = _product(_coo(op), p, op.shape[1])
-    lap = _coo(mesh.uniform_laplacian(np.asarray(topology.faces), n))
+    # L as the push-out applies it: the topology's one-ring table (no second edge scan).
+    valid = np.asarray(topology.valid) > 0
+    rows = np.concatenate([np.nonzero(valid)[0], np.arange(n)])
+    lap = (rows, np.concatenate([np.asarray(topology.neighbors)[valid], np.arange(n)]),
+           np.concatenate([np.asarray(topology.lap_off, np.float64)[valid],
+                           np.asarray(topology.lap_diag, np.float64)]))
     a = config.compliance * math.sqrt(phi)
     b = config.compliance / math.sqrt(phi)
     a_c = (a * _gram(_product(lap, p, n), n, cols)

@@ -263,9 +263,8 @@ def lift_sweep(model, scene: str = "demo", frames: int = 12, caps=LIFT_CAPS,
     A subdivision setting that gives the same level as an earlier one is not run again
     ("levels" says which). `partial`: a path rewritten with the results so far after each
     setting. `settings`: None (every warm x cap, the CG cap at its default), or a list of
-    (warm start, GN cap, CG cap, gamma or None) run in that order (the name then ends in
-    "_cg=N" where N is not the default CG cap, and "_coarse=G" with the GN coarse correction
-    `PipelineConfig.lift_coarse` = G).
+    (warm start, GN cap, CG cap) triples run in that order (the name then ends in "_cg=N"
+    where N is not the default CG cap).
     """
     import dataclasses
 
@@ -276,7 +275,7 @@ def lift_sweep(model, scene: str = "demo", frames: int = 12, caps=LIFT_CAPS,
     sel = list(range(min(frames, len(seq))))
     out, refs, plans, levels = {}, {}, {}, {}
     cg_default = SolverConfig().cg_max_iters
-    runs = settings or [(w, k, cg_default, None) for w in warm for k in caps]
+    runs = settings or [(w, k, cg_default) for w in warm for k in caps]
     for sub in subdivisions:
         level = pipeline.make_pipeline(seq.garment, model, pipeline.PipelineConfig(
             subdivision=sub), compile=False).subdivision.levels
@@ -284,12 +283,11 @@ def lift_sweep(model, scene: str = "demo", frames: int = 12, caps=LIFT_CAPS,
             levels[str(sub)] = level
             continue
         levels[str(sub)] = level
-        for w, k, cg, gamma in runs:
+        for w, k, cg in runs:
             cfg = pipeline.PipelineConfig(
                 batch_size=16, chunk_size=4, frames_per_batch=4, warm_start=w,
                 subdivision=sub, solver=dataclasses.replace(SolverConfig(), max_iters=k,
-                                                            cg_max_iters=cg),
-                lift_coarse=gamma)
+                                                            cg_max_iters=cg))
             pipe = pipeline.make_pipeline(seq.garment, model, cfg, body_fn)
             pipeline.enhance_sequence(seq, material, pipeline=pipe, frames=sel[:2],
                                       keep=False)
@@ -312,11 +310,9 @@ def lift_sweep(model, scene: str = "demo", frames: int = 12, caps=LIFT_CAPS,
                                     body=None if body_fn is None else body_fn(t))
                 rows.append(q.as_dict())
             name = f"sub={sub}_warm={int(w)}_cap={k}" + (
-                f"_cg={cg}" if cg != cg_default else "") + (
-                f"_coarse={gamma:g}" if gamma is not None else "")
+                f"_cg={cg}" if cg != cg_default else "")
             out[name] = {
                 "subdivision": sub, "warm_start": w, "max_iters": k, "cg_max_iters": cg,
-                "lift_coarse": gamma,
                 "vertices": int(det.shape[1]),
                 "lift_ms_per_frame": round(1e3 * res.timings["lift"] / len(det), 1),
                 "iterations_per_frame": (res.lift_iterations / len(det)) if w else None,
@@ -425,10 +421,9 @@ def main() -> None:
     ap.add_argument("--partial", default=None,
                     help="--lift-sweep: rewrite this JSON file with the results so far")
     ap.add_argument("--settings", default=None,
-                    help="--lift-sweep: comma-separated warm:gn_cap:cg_cap[:gamma] settings run "
-                         "in order (e.g. 0:20:25,1:20:25,1:3:10,1:3:15:3e4; the first is the "
-                         "reference; gamma: the GN coarse correction, PipelineConfig."
-                         "lift_coarse); default: warm x GN caps at the default CG cap")
+                    help="--lift-sweep: comma-separated warm:gn_cap:cg_cap triples run in order "
+                         "(e.g. 0:20:25,1:20:25,1:3:10; the first is the reference); default: "
+                         "warm x GN caps at the default CG cap")
     ap.add_argument("--subdivisions", default="none,auto",
                     help="--lift-sweep: comma-separated subdivisions (none, auto or a level)")
     ap.add_argument("--choose-by", default="lift_ms_per_frame",
@@ -444,8 +439,8 @@ def main() -> None:
         return
     if args.lift_sweep:
         settings = None if args.settings is None else [
-            (bool(int(t[0])), int(t[1]), int(t[2]), float(t[3]) if len(t) > 3 else None)
-            for t in (x.split(":") for x in args.settings.split(","))]
+            (bool(int(w)), int(k), int(c))
+            for w, k, c in (t.split(":") for t in args.settings.split(","))]
         subdivisions = tuple(None if x == "none" else x if x == "auto" else int(x)
                              for x in args.subdivisions.split(","))
         model, which = load_model()

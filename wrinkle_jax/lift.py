@@ -46,7 +46,6 @@ from wrinkle_jax.lift_energy import (  # noqa: F401
     EDGE_SOFTENING,
     OBJECTIVE,
     REFERENCE_EDGE,
-    LiftCoarse,
     LiftProblem,
     LiftTopology,
     LiftWeights,
@@ -56,7 +55,6 @@ from wrinkle_jax.lift_energy import (  # noqa: F401
     _lap_apply,
     _lapt_apply,
     _rows,
-    coarse_correction,
     energy,
     energy_grad,
     lift_topology,
@@ -206,9 +204,6 @@ def _solve_bwd(weights, solver, res, cotangents):
     prob = make_problem(vertices0, topology, target_normals, weights)
     hvp = lambda v: jax.jvp(lambda x: grad_at(x, vertices0, target_normals), (p,), (v,))[1]  # noqa: E731
     precond = solvers.block_inverse(_gn_system(_rows(p, prob), prob).diag)
-    correction = coarse_correction(prob)
-    if correction is not None:  # the forward solve's two-level preconditioner
-        jacobi, precond = precond, lambda r: jacobi(r) + correction(r)
     lam = solvers.pcg(hvp, g_p, precond, solver.adjoint_tol, solver.adjoint_max_iters).x
     _, vjp = jax.vjp(lambda v0, n: grad_at(p, v0, n), vertices0, target_normals)
     ct_v0, ct_n = vjp(-lam)
@@ -372,8 +367,7 @@ def _gram(q, rows: int, cols: int) -> np.ndarray:
 
 
 def resolve_coarse(subdivision: mesh.Subdivision, topology: LiftTopology, phi: float = 5e3,
-                   config: ResolveConfig = ResolveConfig(),  # noqa: B008
-                   grams=None) -> ResolveCoarse | None:
+                   config: ResolveConfig = ResolveConfig()) -> ResolveCoarse | None:  # noqa: B008
     """Precompute the push-out's coarse-grid correction for one garment (NumPy, once).
 
     The push-out system A d = r (see `resolve_penetration`), A = C + a L^T L + b (I - C), has
@@ -391,82 +385,37 @@ def resolve_coarse(subdivision: mesh.Subdivision, topology: LiftTopology, phi: f
       topology: `lift_topology` of the lifted mesh. phi: the push-out's phi.
       config: ResolveConfig; nothing is built (None) when `config.coarse_mass` is None or the
         coarse garment has more than `config.coarse_max_vertices` vertices.
-      grams: None, or `coarse_grams(subdivision, topology)` already computed (shared with
-        `with_lift_coarse`).
     Returns:
       ResolveCoarse, or None.
     """
     if config.coarse_mass is None:
         return None
-    if grams is None or grams[0].shape[1] > config.coarse_max_vertices:
-        grams = coarse_grams(subdivision, topology, config.coarse_max_vertices)
-    if grams is None:
-        return None
-    prolong, restrict, ltl_c, ptp_c = grams
-    a = config.compliance * math.sqrt(phi)
-    b = config.compliance / math.sqrt(phi)
-    a_c = a * ltl_c + (b + config.coarse_mass * (1.0 - b)) * ptp_c
-    return ResolveCoarse(prolong, restrict, jnp.asarray(np.linalg.inv(a_c), jnp.float32),
-                         (float(phi), config.compliance, config.coarse_mass))
-
-
-def coarse_grams(subdivision: mesh.Subdivision, topology: LiftTopology,
-                 max_vertices: int = 3000):
-    """(P, P^T as SparseOperators, dense P^T L^T L P, dense P^T P) for the subdivision from
-    the coarse garment to the topology's mesh (NumPy, float64 Grams), or None when the coarse
-    garment has more than `max_vertices` vertices."""
     n = topology.num_vertices
     ops = list(subdivision.vertex_ops)
     cols = ops[0].shape[1] if ops else n
-    if cols > max_vertices:
+    if cols > config.coarse_max_vertices:
         return None
     p = (np.arange(n), np.arange(n), np.ones(n))
     if ops:
         p = _coo(ops[0])
         for op in ops[1:]:
             p = _product(_coo(op), p, op.shape[1])
-    # L as the lift and the push-out apply it: the topology's one-ring table.
+    # L as the push-out applies it: the topology's one-ring table (no second edge scan).
     valid = np.asarray(topology.valid) > 0
     rows = np.concatenate([np.nonzero(valid)[0], np.arange(n)])
     lap = (rows, np.concatenate([np.asarray(topology.neighbors)[valid], np.arange(n)]),
            np.concatenate([np.asarray(topology.lap_off, np.float64)[valid],
                            np.asarray(topology.lap_diag, np.float64)]))
+    a = config.compliance * math.sqrt(phi)
+    b = config.compliance / math.sqrt(phi)
+    a_c = (a * _gram(_product(lap, p, n), n, cols)
+           + (b + config.coarse_mass * (1.0 - b)) * _gram(p, n, cols))
     r, c, v = (np.asarray(x) for x in p)
     prolong = mesh.SparseOperator(jnp.asarray(r, jnp.int32), jnp.asarray(c, jnp.int32),
                                   jnp.asarray(v, jnp.float32), (n, cols))
     restrict = mesh.SparseOperator(prolong.cols, prolong.rows, prolong.values, (cols, n))
-    return prolong, restrict, _gram(_product(lap, p, n), n, cols), _gram(p, n, cols)
-
-
-def with_lift_coarse(topology: LiftTopology, subdivision: mesh.Subdivision,
-                     weights: LiftWeights = LiftWeights(), gamma: float = 3e4,  # noqa: B008
-                     max_vertices: int = 3000, grams=None) -> LiftTopology:
-    """The topology with a `LiftCoarse` for its Gauss-Newton solves (NumPy, once per garment).
-
-    The lift's Gauss-Newton PCG then uses block Jacobi plus a coarse solve on the coarse
-    garment's vertices (see `LiftCoarse`): fewer CG iterations for the same model decrease.
-    The minimizer is unchanged; only how fast CG approaches it.
-
-    Args:
-      topology: `lift_topology` of the lifted mesh. subdivision: from the coarse garment to it.
-      weights: the LiftWeights the lifts will use (eta and omega enter A_c; `make_problem`
-        refuses other weights).
-      gamma: the mass standing in for the normal term in A_c, in the units of omega.
-      max_vertices: above this many coarse vertices nothing is built (the topology comes
-        back unchanged): the dense inverse costs Vc^2 floats and Vc^3 setup.
-      grams: None, or `coarse_grams(subdivision, topology)` already computed.
-    Returns:
-      LiftTopology (coarse set, or unchanged).
-    """
-    if grams is None or grams[0].shape[1] > max_vertices:
-        grams = coarse_grams(subdivision, topology, max_vertices)
-    if grams is None:
-        return topology
-    prolong, restrict, ltl_c, ptp_c = grams
-    a_c = weights.eta * ltl_c + (weights.omega + gamma) * ptp_c
-    co = LiftCoarse(prolong, restrict, jnp.asarray(np.linalg.inv(a_c), jnp.float32),
-                    (float(weights.eta), float(weights.omega), float(gamma)))
-    return dataclasses.replace(topology, coarse=co)
+    return ResolveCoarse(prolong, restrict, jnp.asarray(np.linalg.inv(a_c), jnp.float32),
+                         (float(phi), config.compliance, config.coarse_mass))
 
 
 @jax.tree_util.register_dataclass

@@ -125,31 +125,6 @@ class LiftWeights:
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
-class LiftCoarse:
-    """Coarse-grid correction of the lift's Gauss-Newton PCG (a pytree; built once per garment
-    by `lift.with_lift_coarse`).
-
-    The Gauss-Newton Hessian is H = (2 s^2 / V) (eta L^T L + omega I) + the normal term
-    (s = reference_edge / h): its smooth modes are held only by the weak data term, which
-    block-Jacobi CG resolves slowly. The correction C = (V / (2 s^2)) P A_c^-1 P^T, with P the
-    subdivision from the coarse garment and A_c = P^T (eta L^T L + (omega + gamma) I) P, is added
-    to the Jacobi preconditioner; gamma stands in for the normal term (which changes every
-    frame), so A_c is fixed and inverted once. C is SPD, so the sum stays a preconditioner.
-
-    Attributes:
-      prolong: (V, Vc) SparseOperator P. restrict: (Vc, V) SparseOperator P^T.
-      inverse: (Vc, Vc) float32 A_c^-1 (applied to each coordinate).
-      key: static (eta, omega, gamma) it was built for (`make_problem` checks eta and omega).
-    """
-
-    prolong: Any
-    restrict: Any
-    inverse: Any
-    key: tuple = dataclasses.field(metadata=dict(static=True))
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
 class LiftTopology:
     """Sparse structure of the lifting problem, built once per mesh by `lift_topology`.
 
@@ -165,8 +140,6 @@ class LiftTopology:
       lap_off: (V, K) float32, L[i, neighbors[i, k]]. lap_diag: (V,) float32, L[i, i].
       lapt_off: (V, K) float32, L^T[i, neighbors[i, k]] = L[neighbors[i, k], i].
       ltl_diag: (V,) float32, diagonal of L^T L (for preconditioners).
-      coarse: None, or a `LiftCoarse` (`lift.with_lift_coarse`): the Gauss-Newton solver's
-        coarse-grid correction on the subdivision hierarchy this mesh came from.
     """
 
     faces: Any
@@ -176,7 +149,6 @@ class LiftTopology:
     lap_diag: Any
     lapt_off: Any
     ltl_diag: Any
-    coarse: Any = None
 
     @property
     def num_vertices(self) -> int:
@@ -285,10 +257,6 @@ def mean_edge(vertices, topology: LiftTopology):
 def make_problem(vertices0, topology: LiftTopology, target_normals,
                  weights: LiftWeights = LiftWeights()) -> LiftProblem:
     """Assemble a LiftProblem (jittable; differentiable in vertices0 and target_normals)."""
-    if topology.coarse is not None and topology.coarse.key[:2] != (float(weights.eta),
-                                                                 float(weights.omega)):
-        raise ValueError(f"the topology's LiftCoarse was built for (eta, omega) = "
-                         f"{topology.coarse.key[:2]}, not {(weights.eta, weights.omega)}")
     v0 = jnp.asarray(vertices0)
     n = normalize(jnp.asarray(target_normals, v0.dtype))
     nv = v0.shape[0]
@@ -429,19 +397,7 @@ def _gauss_newton_model(prob: LiftProblem, p) -> solvers.GaussNewtonModel:
         return lambda v: _gn_matvec(damped_system, prob, v)
 
     return solvers.GaussNewtonModel(matvec=lambda v: _gn_matvec(system, prob, v),
-                                    damped=damped, diag=system.diag,
-                                    correction=coarse_correction(prob))
-
-
-def coarse_correction(prob: LiftProblem):
-    """r (V, 3) -> C r, the topology's `LiftCoarse` correction at this problem's scale, or
-    None without one. C = P A_c^-1 P^T / (2 c_data / omega) (c_data = omega s^2 / V)."""
-    co = prob.topology.coarse
-    if co is None:
-        return None
-    scale = co.key[1] / (2.0 * prob.c_data)
-    inv = co.inverse.astype(prob.vertices0.dtype)
-    return lambda r: scale * mesh.apply(co.prolong, inv @ mesh.apply(co.restrict, r))
+                                    damped=damped, diag=system.diag)
 
 
 def _scaling(prob: LiftProblem) -> solvers.Scaling:

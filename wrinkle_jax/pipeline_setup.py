@@ -104,11 +104,6 @@ class PipelineConfig:
       resolve, phi: body-penetration settings (used only when a body is given); `resolve`
         defaults to `LIFT_RESOLVE` (two-level PCG to a 3e-3 residual, <= 0.5 mm from a
         converged solve); pass `lift.ResolveConfig()` for the converged one.
-      lift_coarse: None (block-Jacobi PCG in the lift's Gauss-Newton steps), or gamma of
-        `lift.with_lift_coarse`: the pipeline's topology then carries a coarse-grid
-        correction on the coarse garment's vertices (built once per garment, up to
-        `resolve.coarse_max_vertices` coarse vertices; the same minimizer, fewer CG
-        iterations for the same decrease).
     """
 
     batch_size: int = 4
@@ -126,7 +121,6 @@ class PipelineConfig:
     warm_start: bool = False
     resolve: lift_lib.ResolveConfig = LIFT_RESOLVE
     phi: float = 5e3
-    lift_coarse: float | None = None
 
     def __post_init__(self):
         if self.batch_size < 1 or self.chunk_size < 1 or self.frames_per_batch < 1:
@@ -265,13 +259,7 @@ def make_pipeline(garment: Garment, enhancer: enhancer_lib.Enhancer | None = Non
         fine, sub = lift_lib.upsample(garment, config.target_edge, config.subdivision_scheme,
                                       levels=levels)
         top = lift_lib.lift_topology(fine.faces, fine.num_vertices)
-        grams = None
-        if config.lift_coarse is not None or config.resolve.coarse_mass is not None:
-            grams = lift_lib.coarse_grams(sub, top, config.resolve.coarse_max_vertices)
-        coarse_pc = lift_lib.resolve_coarse(sub, top, config.phi, config.resolve, grams)
-        if config.lift_coarse is not None and grams is not None:
-            top = lift_lib.with_lift_coarse(top, sub, config.weights, config.lift_coarse,
-                                            config.resolve.coarse_max_vertices, grams)
+        coarse_pc = lift_lib.resolve_coarse(sub, top, config.phi, config.resolve)
         fine = jax.tree.map(jnp.asarray, fine)  # device arrays: arguments, not constants
     timings["setup"] = time.perf_counter() - t0
     pipe = Pipeline(enh, dataclasses.replace(config, stride=stride), garment, plan, mask,

@@ -17,8 +17,7 @@ dataclasses with (at least) the fields `vertices` (the iterate x, (N, d)), `ener
 `make_solver(config, objective)` picks one from a hashable `SolverConfig`:
 
   * "gauss_newton": Levenberg-Marquardt, (H + lambda D) dx = -grad solved by `pcg`
-    preconditioned with the exact block diagonal D of H (Marquardt scaling, Nielsen's rule),
-    plus the model's optional additive `correction` (a two-level preconditioner);
+    preconditioned with the exact block diagonal D of H (Marquardt scaling, Nielsen's rule);
   * "lbfgs": `optax.lbfgs` with its zoom line search;
   * "adam", "gd": `optax.adam` / `optax.sgd` with the early stop of a `patience` window.
 
@@ -97,15 +96,11 @@ class GaussNewtonModel(NamedTuple):
       damped: lambda (scalar) -> the function v -> (H + lambda D) v (assembled once per call,
         then applied many times by CG).
       diag: (N, d, d) the exact block diagonal D of H (Marquardt scaling and preconditioner).
-      correction: None, or r (N, d) -> C r, an SPD term added to the block-Jacobi
-        preconditioner (two-level methods: a coarse-grid solve of the smooth modes that
-        Jacobi resolves slowly, e.g. `lift`'s subdivision correction).
     """
 
     matvec: Callable
     damped: Callable
     diag: Any
-    correction: Callable | None = None
 
 
 class Scaling(NamedTuple):
@@ -242,10 +237,8 @@ def gauss_newton(config: SolverConfig, objective: Objective) -> Solver:
         model = objective.gauss_newton(prob, p)
         lam = s.damping
         damped = model.damped(lam)  # Marquardt scaling
-        precond = block_inverse((1.0 + lam) * model.diag)
-        if model.correction is not None:  # two-level: Jacobi + the model's coarse solve
-            jacobi, precond = precond, lambda r: jacobi(r) + model.correction(r)
-        sol = pcg(damped, -s.grad, precond, config.cg_tol, config.cg_max_iters)
+        sol = pcg(damped, -s.grad, block_inverse((1.0 + lam) * model.diag), config.cg_tol,
+                  config.cg_max_iters)
         d = sol.x
         # Predicted decrease of the quadratic model (without damping).
         pred = -jnp.sum(s.grad * d) - 0.5 * jnp.sum(d * model.matvec(d))

@@ -1,7 +1,8 @@
 """Generate the simulated training and test sequences (resumable, background-friendly).
 
     nohup nice -n 10 python -m experiments.make_sequences [--out data/sequences] \
-        [--train-frames 600] [--test-frames 300] [--tiny] [--only SCENE,...] > /dev/null 2>&1 &
+        [--train-frames 600] [--test-frames 300] [--tiny] [--only SCENE,...] \
+        [--self-collision on|off] > /dev/null 2>&1 &
     python -m experiments.make_sequences --previews experiments/results/sim
 
 Writes `<out>/<scene>/<material>_<resolution>_s<seed>.npz` (`scenes.save_simulation`: frames
@@ -15,10 +16,17 @@ tracks) for:
   * test-only scenes (dress_dance, cape_walk, skirt_walk): all five materials, fine AND coarse
     (PD 30 mm), seed 1.
 
+Self-collision (`--self-collision`, default on since issue 24): each resolution simulates with
+`scenes.SELF_COLLISION[resolution]` (recorded in every file's metadata, with the dropped-
+candidate counts).
+
 Files already present are skipped, each file is written atomically (temporary file + rename),
 and progress goes to `<out>/make_sequences.log` (one line per chunk of frames and per file,
 with ms/frame and an ETA) and `<out>/manifest.json` (rewritten after every file). One mesh,
-model and compiled solver per scene and resolution serve all five materials.
+model and compiled solver per scene and resolution serve all five materials. A run that
+resumes another must use the same code: the log's start line and the manifest record the git
+commit and the self-collision setting, and a start refuses a folder whose manifest names other
+settings (use a new --out for a new simulator version).
 
 Sizing (measured on the 2-core shared CPU, 20 substeps, 2 stretch sweeps; see
 benchmarks/bench_sim.py): fine 120-235 ms/frame (11.5k-20k vertices), coarse 7-15 ms/frame.
@@ -30,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
 import time
 from pathlib import Path
 
@@ -65,6 +74,23 @@ def plan(train_frames: int, test_frames: int, val_frames: int = 150) -> list[dic
                 jobs.append({"scene": name, "resolution": res, "material": mat, "seed": 1,
                              "frames": test_frames})
     return jobs
+
+
+def self_collision_for(resolution: str, setting: str):
+    """The `SelfCollisionConfig` a job of `resolution` simulates with: `scenes.SELF_COLLISION`'s
+    for "on", None for "off"."""
+    if setting not in ("on", "off"):
+        raise ValueError(f"self-collision setting must be 'on' or 'off', got {setting!r}")
+    return scenes.SELF_COLLISION[resolution] if setting == "on" else None
+
+
+def git_commit() -> str:
+    """The project's HEAD commit (short), or "unknown" outside a git checkout."""
+    try:
+        return subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
+                              capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
 
 
 def select(jobs: list[dict], only: str | None) -> list[dict]:
@@ -168,6 +194,8 @@ def main(argv=None) -> int:
     ap.add_argument("--only", default=None,
                     help="comma-separated scene names (e.g. the sheet and the test scenes first, "
                          "so a sheet-only run can start early); the manifest still lists all")
+    ap.add_argument("--self-collision", choices=("on", "off"), default="on",
+                    help="simulate with scenes.SELF_COLLISION per resolution (default on)")
     ap.add_argument("--previews", default=None, metavar="DIR",
                     help="only write fine-vs-coarse preview PNGs into DIR (from --out data)")
     args = ap.parse_args(argv)
@@ -196,10 +224,19 @@ def main(argv=None) -> int:
         with open(log_path, "a", encoding="utf-8") as fh:
             fh.write(line + "\n")
 
-    todo = [j for j in selected if not job_path(out, j).exists()]
-    log(f"start: {len(selected)} jobs, {len(selected) - len(todo)} already done, "
-        f"estimated {sum(estimate_s(j) for j in todo) / 60:.0f} min on an idle machine")
     manifest_path = out / "manifest.json"
+    version = {"self_collision": args.self_collision, "commit": git_commit()}
+    if manifest_path.exists():
+        old = json.loads(manifest_path.read_text()).get("version")
+        if old is not None and old["self_collision"] != version["self_collision"]:
+            ap.error(f"{out} holds sequences simulated with self-collision "
+                     f"{old['self_collision']}; use another --out")
+        if old is not None and old["commit"] != version["commit"]:
+            log(f"note: resuming files written at commit {old['commit']} at {version['commit']}")
+    todo = [j for j in selected if not job_path(out, j).exists()]
+    log(f"start ({version}): {len(selected)} jobs, {len(selected) - len(todo)} already done, "
+        f"estimated {sum(estimate_s(j) for j in todo) / 60:.0f} min on an idle machine "
+        f"(without self-collision)")
     t_start = time.perf_counter()
     done_est = 0.0
     total_est = sum(estimate_s(j) for j in todo)
@@ -224,7 +261,9 @@ def main(argv=None) -> int:
 
             t0 = time.perf_counter()
             seq = scenes.simulate(job["scene"], job["material"], job["resolution"],
-                                  job["frames"], job["seed"], progress=progress, setup=setup)
+                                  job["frames"], job["seed"], progress=progress, setup=setup,
+                                  self_collision=self_collision_for(job["resolution"],
+                                                                    args.self_collision))
             scenes.save_simulation(path, seq)
             wall = time.perf_counter() - t0
         except Exception as e:  # log and go on with the next job; rerun to retry
@@ -243,8 +282,8 @@ def main(argv=None) -> int:
             p = job_path(out, j)
             if p.exists():
                 entries.append(dict(j, path=str(p.relative_to(out)), bytes=p.stat().st_size))
-        atomic_write_text(manifest_path, json.dumps({"jobs": len(jobs), "done": entries},
-                                                    indent=1))
+        atomic_write_text(manifest_path, json.dumps({"jobs": len(jobs), "version": version,
+                                                     "done": entries}, indent=1))
     log(f"finished: {len(todo) - failures} written, {failures} failed, "
         f"{(time.perf_counter() - t_start) / 60:.1f} min")
     return 1 if failures else 0

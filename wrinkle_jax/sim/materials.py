@@ -121,9 +121,13 @@ FABRICS = {
     "knit_terry": Fabric("knit_terry", density=0.28, stretch=4.0e2,
                          bending=0.06 * GF_CM2_PER_CM, damping=0.5, friction=0.6,
                          thickness=0.0012),
-    # 7 momme chiffon: 30 g/m^2; B ~ 0.006 gf cm^2/cm; very light and airy.
+    # 7 momme chiffon: 30 g/m^2; B ~ 0.008 gf cm^2/cm (sheer silks 0.005-0.02, Kawabata &
+    # Niwa 1989); very light and airy. Was 0.006 until the cantilever validation (bend19):
+    # with the clamp-consistent bending model its PD 10 mm bending length was 11.1 mm, just
+    # under the 11.3-19.7 mm derived for the class; 0.008 is the smallest value of the rule in
+    # experiments/results/sim/textile/DECISION.md that clears it by 5 %.
     "silk_chiffon": Fabric("silk_chiffon", density=0.030, stretch=1.5e3,
-                           bending=0.006 * GF_CM2_PER_CM, damping=0.1, friction=0.25,
+                           bending=0.008 * GF_CM2_PER_CM, damping=0.1, friction=0.25,
                            thickness=0.0001),
     # 7 oz/yd^2 light denim: 240 g/m^2; B ~ 0.3 gf cm^2/cm; stiff twill.
     "denim_light": Fabric("denim_light", density=0.24, stretch=2.0e4,

@@ -19,6 +19,8 @@ energy, the clamped boundary and the XPBD solver (issue 24 item 2).
 (c) The XPBD one-iteration ratio r = h^2 B sum_k w_k K_k^2 per hinge on the PD 10 mm strips
     (30 fps x 20 substeps): an interior hinge (uniform gravity prediction, load carried by the
     stretch sweeps that follow) settles at B / (1 + r) with one iteration per substep.
+(d) Which data-set scenes the clamp-rim normalisation touches: hinges whose weights change
+    when the scene's pins are passed, per scene at PD 10 and 30 mm.
 """
 
 from __future__ import annotations
@@ -205,13 +207,43 @@ def part_c():
     return out
 
 
+def part_d():
+    from wrinkle_jax.sim import scenes
+
+    out = {}
+    for name, sc in scenes.SCENES.items():
+        pattern = P.make_pattern(sc.garment)
+        for pd in (0.01, 0.03):
+            mesh = P.mesh_pattern(pattern, pd, seed=0)
+            # "rings" pins a subset of the top edge; the whole edge bounds what can change.
+            pins = mesh.landmark_vertices(pattern, "top" if sc.pins == "rings" else sc.pins)
+            _, w0, _ = CM._hinges(mesh.garment)
+            _, w1, _ = CM._hinges(mesh.garment, pins)
+            out[f"{name} pd={pd}"] = {"hinges": len(w0), "pins": len(pins),
+                                      "changed": int((np.abs(w0 - w1).sum(1) > 0).sum())}
+    print(json.dumps(out), flush=True)
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="experiments/results/sim/textile/bend_calibration.json")
     ap.add_argument("--quick", action="store_true", help="fewer PDs in part (b)")
+    ap.add_argument("--parts", default="abcd", help="which parts to (re)compute; the others "
+                    "are kept from an existing output file")
     args = ap.parse_args(argv)
-    doc = {"a_cylinder_energy_ratio": part_a(), "c_xpbd_bias_pd10": part_c(),
-           "b_static_minimum": part_b(args.quick)}
+    parts = {"a": ("a_cylinder_energy_ratio", part_a), "c": ("c_xpbd_bias_pd10", part_c),
+             "d": ("d_scene_hinges_changed", part_d),
+             "b": ("b_static_minimum", lambda: part_b(args.quick))}
+    try:
+        with open(args.out) as fh:
+            doc = json.load(fh)
+    except FileNotFoundError:
+        doc = {}
+    for k in "acdb":
+        if k in args.parts:
+            key, fn = parts[k]
+            doc[key] = fn()
     with open(args.out, "w") as fh:
         json.dump(doc, fh, indent=1)
 

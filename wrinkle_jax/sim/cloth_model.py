@@ -51,7 +51,8 @@ class StretchColor:
 @dataclasses.dataclass(frozen=True)
 class BendColor:
     """One colour of bending hinges: idx (n, 4) int32 (edge x0 x1, opposite x2 x3) and
-    weights (n, 4) = sqrt(1 / (A_1 + A_2)) * cotangent weights, 1/m."""
+    weights (n, 4) = sqrt(1 / (A_1 + A_2)) * cotangent weights, 1/m (sqrt(1 / A_free) on
+    the rim of a pinned 2-D region, see `_hinges`)."""
 
     idx: Any
     weights: Any

@@ -40,7 +40,15 @@ Resolution scaling (why a material behaves the same at PD 10 and 30 mm):
     consistent discretization of the integral of B/2 (2H)^2 (H the mean curvature): it
     converges under refinement, so B (N m) is used as is at every PD (compliance 1/B per
     hinge). We take c = 1 (Bergou et al. write 3), which makes a cylinder of radius R store
-    exactly B / (2 R^2) per unit area, the cylindrical bend that defines KES rigidity.
+    B / (2 R^2) per unit area, the cylindrical bend that defines KES rigidity (measured on
+    the pattern mesher's jittered meshes at PD 10 and 30 mm, axis at 0-90 degrees: 1.00-1.13
+    x; `experiments/bend_calibration.py`). Hinges on the rim of a clamped (pinned 2-D) region
+    are normalised by their free face only (`cloth_model._hinges`): with the interior weights
+    a clamp was soft by half a cell (cantilever bending length 16 % short at PD 10 mm, O(PD)).
+  * The XPBD solver with one iteration per substep settles an interior hinge at B / (1 + r),
+    r = h^2 B sum_k w_k K_k^2 (median 0.05-0.31 for these fabrics at PD 10 mm, 20 substeps;
+    it grows as 1 / PD^4 and shrinks as 1 / substeps^2): stiff fabrics on fine meshes need
+    substeps (or iterations) to show their full rigidity.
   * Wrinkles still differ with resolution only through what a mesh can hold: a 30 mm mesh
     cannot carry folds shorter than ~2 PD. The natural fold length (B / (rho g))^(1/3) is
     ~13 mm for the silks and terry and ~21-23 mm for melton and denim (see `fold_length`);
@@ -56,9 +64,11 @@ Validation against textile tests (`sim.textile`, `experiments/textile_tests.py`,
     rigidity B and areal density rho should show c = (B / (rho g))^(1/3) = `fold_length`.
   Reference ranges (`textile.REFERENCE`): bending lengths are derived from the KES rigidity
   and weight ranges listed above (an estimate, not a quoted bending length); drape-coefficient
-  ranges are our estimates (no per-class measured DC found for this work). The parameters
-  above are NOT changed by the validation (the data set was simulated with them); proposed
-  values are data in `experiments/results/sim/textile/textile.json`.
+  ranges are our estimates (no per-class measured DC found for this work). After the clamp
+  fix every fabric's PD 10 mm bending length is inside its range with these parameters,
+  chiffon only after B 0.006 -> 0.008 gf cm^2/cm (inside the sheer-silk KES range; rule in
+  `experiments/results/sim/textile/DECISION.md`). The data set must be regenerated with
+  them (it was simulated with the old bending model and chiffon's old B).
 """
 
 from __future__ import annotations
@@ -121,9 +131,13 @@ FABRICS = {
     "knit_terry": Fabric("knit_terry", density=0.28, stretch=4.0e2,
                          bending=0.06 * GF_CM2_PER_CM, damping=0.5, friction=0.6,
                          thickness=0.0012),
-    # 7 momme chiffon: 30 g/m^2; B ~ 0.006 gf cm^2/cm; very light and airy.
+    # 7 momme chiffon: 30 g/m^2; B ~ 0.008 gf cm^2/cm (sheer silks 0.005-0.02, Kawabata &
+    # Niwa 1989); very light and airy. Was 0.006 until the cantilever validation (bend19):
+    # with the clamp-consistent bending model its PD 10 mm bending length was 11.1 mm, just
+    # under the 11.3-19.7 mm derived for the class; 0.008 is the smallest value of the rule in
+    # experiments/results/sim/textile/DECISION.md that clears it by 5 %.
     "silk_chiffon": Fabric("silk_chiffon", density=0.030, stretch=1.5e3,
-                           bending=0.006 * GF_CM2_PER_CM, damping=0.1, friction=0.25,
+                           bending=0.008 * GF_CM2_PER_CM, damping=0.1, friction=0.25,
                            thickness=0.0001),
     # 7 oz/yd^2 light denim: 240 g/m^2; B ~ 0.3 gf cm^2/cm; stiff twill.
     "denim_light": Fabric("denim_light", density=0.24, stretch=2.0e4,

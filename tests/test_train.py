@@ -242,9 +242,11 @@ def test_detail_noise_recipe_trains_and_scores_detail(data_root, tiny_vgg):
     # A global tilt of the target (its large scale) leaves the detail images unchanged.
     a = np.deg2rad(25.0)
     q = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]], np.float32)
-    tilted = dict(batch, target=((np.asarray(batch["target"]) * 2 - 1) @ q.T + 1) / 2
-                  * np.asarray(batch["mask"]))
-    images = jax.jit(train.loss_images, static_argnums=0)  # one program for both calls
+    tilted = ((np.asarray(batch["target"]) * 2 - 1) @ q.T + 1) / 2 * np.asarray(batch["mask"])
+    # Placed as the batch's target is: one program for both calls (a host array would be
+    # another input type to the jit, a second compile).
+    tilted = dict(batch, target=jax.device_put(tilted, batch["target"].sharding))
+    images = jax.jit(train.loss_images, static_argnums=0)
     _, _, t0 = images(cfg, batch, batch["input"])
     _, _, t1 = images(cfg, tilted, batch["input"])
     m_ = np.asarray(batch["mask"])[..., 0] > 0

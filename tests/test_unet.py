@@ -197,7 +197,8 @@ def test_load_torch_checkpoint(tmp_path):
     model, params = unet.load_torch_checkpoint(path)
     assert model.config.width == 4 and model.num_materials == 5
     x = np.random.default_rng(2).uniform(size=(1, 32, 32, 3)).astype(np.float32)
-    y = np.asarray(model.apply({"params": params}, x, jnp.array([4])))
+    # Jitted (op by op, each primitive of the U-Net compiles on its own).
+    y = np.asarray(jax.jit(model.apply)({"params": params}, x, jnp.array([4])))
     ref = _np_forward({k: v.astype(np.float64) for k, v in sd.items()}, x[0], 4)
     np.testing.assert_allclose(y[0], _denormalized(ref), rtol=1e-4, atol=1e-4)
 

@@ -23,7 +23,9 @@ length h = 1 / (fps * substeps):
          stretch C_e = (|x_j - x_i| - L_e) / L_e, compliance 1 / (k_s A_e) (last, so the
                 local strain left by the hard long-range projections is smoothed)
   4. optional self-collision (`SimConfig.self_collision`, see `selfcollision`): candidates
-     rebuilt every `rebuild_every` substeps into a flat bounded contact list, vertex-triangle
+     rebuilt every `rebuild_every` substeps (or, with 0, when the local relative motion
+     since the last build could bring a left-out pair within the thickness:
+     `selfcollision_motion`) into a flat bounded contact list, vertex-triangle
      thickness constraints (closest points once per substep) projected before the body
      contacts and again after them with the body-contact vertices held
   5. collisions with the present colliders (offset = cloth thickness, Coulomb friction;
@@ -54,7 +56,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax.numerics import normalize, safe_div, safe_norm
-from wrinkle_jax.sim import aero, colliders, selfcollision, selfcollision_blocks
+from wrinkle_jax.sim import (
+    aero,
+    colliders,
+    selfcollision,
+    selfcollision_blocks,
+    selfcollision_motion,
+)
 
 # The model's pytrees and their allocation live in cloth_model; every name stays importable
 # from here (old import paths, pickles).
@@ -226,15 +234,18 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
     h = config.h
     dt = 1.0 / config.fps
     sc = config.self_collision
-    if sc is not None and (sc.rebuild_every < 1 or n_sub % sc.rebuild_every):
+    if sc is not None and (sc.rebuild_every < 0
+                           or (sc.rebuild_every > 0 and n_sub % sc.rebuild_every)):
         raise ValueError(f"self_collision.rebuild_every={sc.rebuild_every} must divide "
-                         f"substeps={n_sub}")
+                         f"substeps={n_sub} (or be 0: rebuilt on motion)")
+    # Rebuilt on motion: the state's overflow carries a 4th count, the builds since init_fn.
+    n_over = 4 if sc is not None and sc.rebuild_every == 0 else 3
 
     def init_fn(model: ClothModel, positions) -> ClothState:
         x = jnp.asarray(positions, jnp.float32)
         del model
         return ClothState(x=x, v=jnp.zeros_like(x),
-                          self_overflow=None if sc is None else jnp.zeros(3, jnp.int32))
+                          self_overflow=None if sc is None else jnp.zeros(n_over, jnp.int32))
 
     def step_fn(model: ClothModel, params: SimParams, state: ClothState, drive0: Drive,
                 drive1: Drive) -> ClothState:
@@ -327,21 +338,7 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
                                      lambda _, c: one_iteration(*c), (q, lam_b, lam_s))[0]
 
         def substep(carry, k):
-            x, v, cand, overflow = carry
-            if sc is not None:
-                # Candidates from the substep's start positions; the margin covers the motion
-                # until the next rebuild.
-                if sc.rebuild_every == 1:
-                    cand, lost = rebuild(x)
-                    overflow = overflow + lost
-                else:
-                    fresh = k % sc.rebuild_every == 0
-                    cand, lost = jax.lax.cond(fresh, rebuild,
-                                              lambda _: (cand, jnp.zeros(3, jnp.int32)), x)
-                    overflow = overflow + lost
-                # Closest points and directions at the substep's start: fixed over the
-                # substep, so computed once for both projection stages.
-                frame = selfcollision.contact_frame(x, model.faces, cand)
+            x, v, cand, overflow, x0 = carry
             s0 = k / n_sub
             s1 = (k + 1) / n_sub
             acc = frame_acc
@@ -351,6 +348,36 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
             p = x + h * v
             if model.pin_idx is not None:
                 p = p.at[model.pin_idx].set(drive0.pins + s1 * (drive1.pins - drive0.pins))
+            if sc is not None:
+                # Candidates from the substep's start positions; the margin covers the motion
+                # until the next rebuild.
+                if sc.rebuild_every == 1:
+                    cand, lost = rebuild(x)
+                    overflow = overflow + lost
+                elif sc.rebuild_every == 0:
+                    # On motion: when a pair left out at the last build (x0) could come
+                    # within the thickness by the end of this substep (`motion_bound` at the
+                    # start x and the predicted p), and at a frame's first substep (the
+                    # candidates are not carried across frames).
+                    moved = selfcollision_motion.motion_bound(
+                        [x, p], [x - x0, p - x0], model.faces, sc.thickness)
+                    fresh = (k == 0) | (moved >= sc.margin)
+
+                    def build_here(x):
+                        c, lost = rebuild(x)
+                        return c, jnp.concatenate([lost, jnp.ones(1, jnp.int32)]), x
+
+                    cand, lost, x0 = jax.lax.cond(
+                        fresh, build_here, lambda _: (cand, jnp.zeros(4, jnp.int32), x0), x)
+                    overflow = overflow + lost
+                else:
+                    fresh = k % sc.rebuild_every == 0
+                    cand, lost = jax.lax.cond(fresh, rebuild,
+                                              lambda _: (cand, jnp.zeros(3, jnp.int32)), x)
+                    overflow = overflow + lost
+                # Closest points and directions at the substep's start: fixed over the
+                # substep, so computed once for both projection stages.
+                frame = selfcollision.contact_frame(x, model.faces, cand)
             c0 = colliders.lerp_colliders(drive0.colliders, drive1.colliders, s0)
             c1 = colliders.lerp_colliders(drive0.colliders, drive1.colliders, s1)
             # Contacts before the constraint sweep too: a moving body's push then spreads
@@ -376,15 +403,16 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
                     p, _ = selfcollision.project_pairs(p, w_held, cand, frame)
             else:
                 p = jnp.where(free[:, None] > 0, moved, p)
-            return (p, (p - x) / h, cand, overflow), None
+            return (p, (p - x) / h, cand, overflow, x0), None
 
         cand0 = None
         if sc is not None:  # rebuilt at k = 0
             m = selfcollision.max_pairs(state.x.shape[0], sc)
             cand0 = selfcollision.Pairs(jnp.zeros(m, jnp.int32), jnp.zeros(m, jnp.int32),
                                         jnp.zeros(m, jnp.float32), jnp.zeros(m, bool))
-        (x, v, _, overflow), _ = jax.lax.scan(
-            substep, (state.x, state.v, cand0, state.self_overflow), jnp.arange(n_sub))
+        (x, v, _, overflow, _), _ = jax.lax.scan(
+            substep, (state.x, state.v, cand0, state.self_overflow, state.x),
+            jnp.arange(n_sub))
         return ClothState(x=x, v=v, self_overflow=overflow)
 
     return init_fn, step_fn

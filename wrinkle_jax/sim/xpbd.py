@@ -249,6 +249,13 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
 
     def step_fn(model: ClothModel, params: SimParams, state: ClothState, drive0: Drive,
                 drive1: Drive) -> ClothState:
+        return step_cached(model, params, state, drive0, drive1, None)[0]
+
+    def step_cached(model, params, state, drive0, drive1, cache):
+        """One frame; cache: None, or (with rebuild_every = 0) the contacts of the last build,
+        the positions x0 (V, 3) they were built at and whether they exist (bool scalar):
+        carried from frame to frame by `run_frames`, so a build happens only on motion, not
+        at every frame's start. Returns (ClothState, the new cache or None)."""
         free = model.free
         w = free / (params.density * model.vertex_area)
         inv_k_h2 = 1.0 / (params.stretch * h * h)
@@ -338,7 +345,7 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
                                      lambda _, c: one_iteration(*c), (q, lam_b, lam_s))[0]
 
         def substep(carry, k):
-            x, v, cand, overflow, x0 = carry
+            x, v, cand, overflow, x0, have = carry
             s0 = k / n_sub
             s1 = (k + 1) / n_sub
             acc = frame_acc
@@ -361,7 +368,7 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
                     # candidates are not carried across frames).
                     moved = selfcollision_motion.motion_bound(
                         [x, p], [x - x0, p - x0], model.faces, sc.thickness)
-                    fresh = (k == 0) | (moved >= sc.margin)
+                    fresh = ~have | (moved >= sc.margin)
 
                     def build_here(x):
                         c, lost = rebuild(x)
@@ -370,6 +377,7 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
                     cand, lost, x0 = jax.lax.cond(
                         fresh, build_here, lambda _: (cand, jnp.zeros(4, jnp.int32), x0), x)
                     overflow = overflow + lost
+                    have = jnp.ones((), bool)
                 else:
                     fresh = k % sc.rebuild_every == 0
                     cand, lost = jax.lax.cond(fresh, rebuild,
@@ -403,18 +411,32 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
                     p, _ = selfcollision.project_pairs(p, w_held, cand, frame)
             else:
                 p = jnp.where(free[:, None] > 0, moved, p)
-            return (p, (p - x) / h, cand, overflow, x0), None
+            return (p, (p - x) / h, cand, overflow, x0, have), None
 
-        cand0 = None
-        if sc is not None:  # rebuilt at k = 0
+        cand0, x00, have0 = None, state.x, jnp.zeros((), bool)
+        if sc is not None:  # rebuilt at k = 0 (on motion: unless carried in the cache)
             m = selfcollision.max_pairs(state.x.shape[0], sc)
             cand0 = selfcollision.Pairs(jnp.zeros(m, jnp.int32), jnp.zeros(m, jnp.int32),
                                         jnp.zeros(m, jnp.float32), jnp.zeros(m, bool))
-        (x, v, _, overflow, _), _ = jax.lax.scan(
-            substep, (state.x, state.v, cand0, state.self_overflow, state.x),
+            if cache is not None:
+                cand0, x00, have0 = cache
+        (x, v, cand, overflow, x0, have), _ = jax.lax.scan(
+            substep, (state.x, state.v, cand0, state.self_overflow, x00, have0),
             jnp.arange(n_sub))
-        return ClothState(x=x, v=v, self_overflow=overflow)
+        new_cache = (cand, x0, have) if sc is not None and sc.rebuild_every == 0 else None
+        return ClothState(x=x, v=v, self_overflow=overflow), new_cache
 
+    def empty_cache(state: ClothState):
+        """The cache before a chunk's first frame (none for the fixed-interval rebuilds)."""
+        if sc is None or sc.rebuild_every != 0:
+            return None
+        m = selfcollision.max_pairs(state.x.shape[0], sc)
+        pairs = selfcollision.Pairs(jnp.zeros(m, jnp.int32), jnp.zeros(m, jnp.int32),
+                                    jnp.zeros(m, jnp.float32), jnp.zeros(m, bool))
+        return pairs, state.x, jnp.zeros((), bool)
+
+    step_fn.cached = step_cached  # used by run_frames (a chunk carries the cache)
+    step_fn.empty_cache = empty_cache
     return init_fn, step_fn
 
 
@@ -435,13 +457,17 @@ def run_frames(config: SimConfig, model: ClothModel, params: SimParams, state: C
     count = d0.time.shape[0]
     valid = jnp.arange(count) < (count if num_valid is None else num_valid)
 
-    def frame(s, inputs):
+    def frame(carry, inputs):
+        # With self-collision rebuilt on motion the candidates are carried from frame to
+        # frame within the chunk (built once at its start, then only on motion).
+        s, cache = carry
         a, b, ok = inputs
-        new = step_fn(model, params, s, a, b)
-        s = jax.tree_util.tree_map(lambda n, o: jnp.where(ok, n, o), new, s)
-        return s, s.x
+        new = step_fn.cached(model, params, s, a, b, cache)
+        s, cache = jax.tree_util.tree_map(lambda n, o: jnp.where(ok, n, o), new, (s, cache))
+        return (s, cache), s.x
 
-    return jax.lax.scan(frame, state, (d0, d1, valid))
+    (state, _), xs = jax.lax.scan(frame, (state, step_fn.empty_cache(state)), (d0, d1, valid))
+    return state, xs
 
 
 def slice_drives(drives: Drive, start: int, stop: int) -> Drive:

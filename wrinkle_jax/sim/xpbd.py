@@ -25,7 +25,8 @@ length h = 1 / (fps * substeps):
   4. optional self-collision (`SimConfig.self_collision`, see `selfcollision`): candidates
      rebuilt every `rebuild_every` substeps (or, with 0, when the local relative motion
      since the last build could bring a left-out pair within the thickness:
-     `selfcollision_motion`) into a flat bounded contact list, vertex-triangle
+     `selfcollision_motion`; `run_frames` then carries the candidates across the frames of
+     a chunk) into a flat bounded contact list, vertex-triangle
      thickness constraints (closest points once per substep) projected before the body
      contacts and again after them with the body-contact vertices held
   5. collisions with the present colliders (offset = cloth thickness, Coulomb friction;

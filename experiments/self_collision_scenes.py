@@ -11,9 +11,7 @@ frames of the motion twice in one process, with self-collision off and on (the s
 mesh and drives), advancing the two runs chunk by chunk in alternation so both see the same
 machine load. Every `--every`-th returned frame is checked by the independent `sim.intersect`:
 the fraction of faces in an intersecting non-adjacent pair (mean, max, frames with any), and
-the intersecting pair count. Also reports the candidate overflow, the candidate builds per
-frame (counted over the pre-roll too when rebuilt on motion, `--rebuild-every 0`) and
-ms/frame of each run
+the intersecting pair count. Also reports the candidate overflow and ms/frame of each run
 (compilation excluded: the first chunk is not timed) with the load average.
 
 The settings when on: `--thickness` etc. override the resolution's default
@@ -151,17 +149,11 @@ def main(argv=None) -> None:
             (off, on), ms, overflow = run_pair(setup, args.material, sc, args.chunk)
             faces = np.asarray(setup.mesh.garment.faces)
             idx = list(range(0, args.frames, args.every))
-            if len(overflow) == 4:  # rebuilt on motion: the 4th count is the builds
-                total = setup.drives.time.shape[0] - 1
-                builds = {"builds": overflow[3], "builds_per_frame": round(overflow[3] / total, 2)}
-                overflow = overflow[:3]
-            else:
-                builds = {"builds_per_frame": setup.scene.substeps // sc.rebuild_every}
             row = {"scene": name, "resolution": res, "material": args.material, "seed": seed,
                    "faces": int(len(faces)), "frames": args.frames, "measured_frames": idx,
                    "self_collision": dataclasses.asdict(sc),
                    "off": {"ms_per_frame": ms[0], **face_stats(off[idx], faces)},
-                   "on": {"ms_per_frame": ms[1], "overflow": overflow, **builds,
+                   "on": {"ms_per_frame": ms[1], "overflow": overflow,
                           **face_stats(on[idx], faces)},
                    "cost_ratio": round(ms[1] / max(ms[0], 1e-9), 2),
                    "load_avg": [round(a, 2) for a in load0],

@@ -77,11 +77,7 @@ class SelfCollisionConfig:
         (a flat sheet's non-adjacent vertex-triangle distances are >= ~0.8 PD).
       margin: extra search distance at a rebuild, m: must cover the relative motion of a
         vertex and a triangle between rebuilds (e.g. 3 m/s over one 1/600 s substep = 5 mm).
-      rebuild_every: substeps between candidate rebuilds (1 = every substep); 0 = on
-        motion: checked every substep, rebuilt at a frame's first substep and when a pair
-        left out at the last build could come within the thickness by the substep's end
-        (`selfcollision_motion.motion_bound` >= margin); the solver state's overflow then
-        has a 4th entry, the builds since `init_fn`.
+      rebuild_every: substeps between candidate rebuilds (1 = every substep).
       max_raw: hash-cell entries read per vertex. max_box: of those, triangles whose grown box
         holds the vertex that get the exact distance test. max_contacts: triangles kept.
       passes: Jacobi projection passes per substep before the body contacts.

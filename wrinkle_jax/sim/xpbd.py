@@ -23,10 +23,7 @@ length h = 1 / (fps * substeps):
          stretch C_e = (|x_j - x_i| - L_e) / L_e, compliance 1 / (k_s A_e) (last, so the
                 local strain left by the hard long-range projections is smoothed)
   4. optional self-collision (`SimConfig.self_collision`, see `selfcollision`): candidates
-     rebuilt every `rebuild_every` substeps (or, with 0, when the local relative motion
-     since the last build could bring a left-out pair within the thickness:
-     `selfcollision_motion`; `run_frames` then carries the candidates across the frames of
-     a chunk) into a flat bounded contact list, vertex-triangle
+     rebuilt every `rebuild_every` substeps into a flat bounded contact list, vertex-triangle
      thickness constraints (closest points once per substep) projected before the body
      contacts and again after them with the body-contact vertices held
   5. collisions with the present colliders (offset = cloth thickness, Coulomb friction;
@@ -57,13 +54,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax.numerics import normalize, safe_div, safe_norm
-from wrinkle_jax.sim import (
-    aero,
-    colliders,
-    selfcollision,
-    selfcollision_blocks,
-    selfcollision_motion,
-)
+from wrinkle_jax.sim import aero, colliders, selfcollision, selfcollision_blocks
 
 # The model's pytrees and their allocation live in cloth_model; every name stays importable
 # from here (old import paths, pickles).
@@ -235,28 +226,18 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
     h = config.h
     dt = 1.0 / config.fps
     sc = config.self_collision
-    if sc is not None and (sc.rebuild_every < 0
-                           or (sc.rebuild_every > 0 and n_sub % sc.rebuild_every)):
+    if sc is not None and (sc.rebuild_every < 1 or n_sub % sc.rebuild_every):
         raise ValueError(f"self_collision.rebuild_every={sc.rebuild_every} must divide "
-                         f"substeps={n_sub} (or be 0: rebuilt on motion)")
-    # Rebuilt on motion: the state's overflow carries a 4th count, the builds since init_fn.
-    n_over = 4 if sc is not None and sc.rebuild_every == 0 else 3
+                         f"substeps={n_sub}")
 
     def init_fn(model: ClothModel, positions) -> ClothState:
         x = jnp.asarray(positions, jnp.float32)
         del model
         return ClothState(x=x, v=jnp.zeros_like(x),
-                          self_overflow=None if sc is None else jnp.zeros(n_over, jnp.int32))
+                          self_overflow=None if sc is None else jnp.zeros(3, jnp.int32))
 
     def step_fn(model: ClothModel, params: SimParams, state: ClothState, drive0: Drive,
                 drive1: Drive) -> ClothState:
-        return step_cached(model, params, state, drive0, drive1, None)[0]
-
-    def step_cached(model, params, state, drive0, drive1, cache):
-        """One frame; cache: None, or (with rebuild_every = 0) the contacts of the last build,
-        the positions x0 (V, 3) they were built at and whether they exist (bool scalar):
-        carried from frame to frame by `run_frames`, so a build happens only on motion, not
-        at every frame's start. Returns (ClothState, the new cache or None)."""
         free = model.free
         w = free / (params.density * model.vertex_area)
         inv_k_h2 = 1.0 / (params.stretch * h * h)
@@ -346,7 +327,21 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
                                      lambda _, c: one_iteration(*c), (q, lam_b, lam_s))[0]
 
         def substep(carry, k):
-            x, v, cand, overflow, x0, have = carry
+            x, v, cand, overflow = carry
+            if sc is not None:
+                # Candidates from the substep's start positions; the margin covers the motion
+                # until the next rebuild.
+                if sc.rebuild_every == 1:
+                    cand, lost = rebuild(x)
+                    overflow = overflow + lost
+                else:
+                    fresh = k % sc.rebuild_every == 0
+                    cand, lost = jax.lax.cond(fresh, rebuild,
+                                              lambda _: (cand, jnp.zeros(3, jnp.int32)), x)
+                    overflow = overflow + lost
+                # Closest points and directions at the substep's start: fixed over the
+                # substep, so computed once for both projection stages.
+                frame = selfcollision.contact_frame(x, model.faces, cand)
             s0 = k / n_sub
             s1 = (k + 1) / n_sub
             acc = frame_acc
@@ -356,37 +351,6 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
             p = x + h * v
             if model.pin_idx is not None:
                 p = p.at[model.pin_idx].set(drive0.pins + s1 * (drive1.pins - drive0.pins))
-            if sc is not None:
-                # Candidates from the substep's start positions; the margin covers the motion
-                # until the next rebuild.
-                if sc.rebuild_every == 1:
-                    cand, lost = rebuild(x)
-                    overflow = overflow + lost
-                elif sc.rebuild_every == 0:
-                    # On motion: when a pair left out at the last build (x0) could come
-                    # within the thickness by the end of this substep (`motion_bound` at the
-                    # start x and the predicted p), and at a frame's first substep (the
-                    # candidates are not carried across frames).
-                    moved = selfcollision_motion.motion_bound(
-                        [x, p], [x - x0, p - x0], model.faces, sc.thickness)
-                    fresh = ~have | (moved >= sc.margin)
-
-                    def build_here(x):
-                        c, lost = rebuild(x)
-                        return c, jnp.concatenate([lost, jnp.ones(1, jnp.int32)]), x
-
-                    cand, lost, x0 = jax.lax.cond(
-                        fresh, build_here, lambda _: (cand, jnp.zeros(4, jnp.int32), x0), x)
-                    overflow = overflow + lost
-                    have = jnp.ones((), bool)
-                else:
-                    fresh = k % sc.rebuild_every == 0
-                    cand, lost = jax.lax.cond(fresh, rebuild,
-                                              lambda _: (cand, jnp.zeros(3, jnp.int32)), x)
-                    overflow = overflow + lost
-                # Closest points and directions at the substep's start: fixed over the
-                # substep, so computed once for both projection stages.
-                frame = selfcollision.contact_frame(x, model.faces, cand)
             c0 = colliders.lerp_colliders(drive0.colliders, drive1.colliders, s0)
             c1 = colliders.lerp_colliders(drive0.colliders, drive1.colliders, s1)
             # Contacts before the constraint sweep too: a moving body's push then spreads
@@ -412,32 +376,17 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
                     p, _ = selfcollision.project_pairs(p, w_held, cand, frame)
             else:
                 p = jnp.where(free[:, None] > 0, moved, p)
-            return (p, (p - x) / h, cand, overflow, x0, have), None
+            return (p, (p - x) / h, cand, overflow), None
 
-        cand0, x00, have0 = None, state.x, jnp.zeros((), bool)
-        if sc is not None:  # rebuilt at k = 0 (on motion: unless carried in the cache)
+        cand0 = None
+        if sc is not None:  # rebuilt at k = 0
             m = selfcollision.max_pairs(state.x.shape[0], sc)
             cand0 = selfcollision.Pairs(jnp.zeros(m, jnp.int32), jnp.zeros(m, jnp.int32),
                                         jnp.zeros(m, jnp.float32), jnp.zeros(m, bool))
-            if cache is not None:
-                cand0, x00, have0 = cache
-        (x, v, cand, overflow, x0, have), _ = jax.lax.scan(
-            substep, (state.x, state.v, cand0, state.self_overflow, x00, have0),
-            jnp.arange(n_sub))
-        new_cache = (cand, x0, have) if sc is not None and sc.rebuild_every == 0 else None
-        return ClothState(x=x, v=v, self_overflow=overflow), new_cache
+        (x, v, _, overflow), _ = jax.lax.scan(
+            substep, (state.x, state.v, cand0, state.self_overflow), jnp.arange(n_sub))
+        return ClothState(x=x, v=v, self_overflow=overflow)
 
-    def empty_cache(state: ClothState):
-        """The cache before a chunk's first frame (none for the fixed-interval rebuilds)."""
-        if sc is None or sc.rebuild_every != 0:
-            return None
-        m = selfcollision.max_pairs(state.x.shape[0], sc)
-        pairs = selfcollision.Pairs(jnp.zeros(m, jnp.int32), jnp.zeros(m, jnp.int32),
-                                    jnp.zeros(m, jnp.float32), jnp.zeros(m, bool))
-        return pairs, state.x, jnp.zeros((), bool)
-
-    step_fn.cached = step_cached  # used by run_frames (a chunk carries the cache)
-    step_fn.empty_cache = empty_cache
     return init_fn, step_fn
 
 
@@ -458,17 +407,13 @@ def run_frames(config: SimConfig, model: ClothModel, params: SimParams, state: C
     count = d0.time.shape[0]
     valid = jnp.arange(count) < (count if num_valid is None else num_valid)
 
-    def frame(carry, inputs):
-        # With self-collision rebuilt on motion the candidates are carried from frame to
-        # frame within the chunk (built once at its start, then only on motion).
-        s, cache = carry
+    def frame(s, inputs):
         a, b, ok = inputs
-        new = step_fn.cached(model, params, s, a, b, cache)
-        s, cache = jax.tree_util.tree_map(lambda n, o: jnp.where(ok, n, o), new, (s, cache))
-        return (s, cache), s.x
+        new = step_fn(model, params, s, a, b)
+        s = jax.tree_util.tree_map(lambda n, o: jnp.where(ok, n, o), new, s)
+        return s, s.x
 
-    (state, _), xs = jax.lax.scan(frame, (state, step_fn.empty_cache(state)), (d0, d1, valid))
-    return state, xs
+    return jax.lax.scan(frame, state, (d0, d1, valid))
 
 
 def slice_drives(drives: Drive, start: int, stop: int) -> Drive:

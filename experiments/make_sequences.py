@@ -38,12 +38,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import time
 from pathlib import Path
 
 from wrinkle_jax import MATERIALS
-from wrinkle_jax.fileio import atomic_write_text
+from wrinkle_jax.fileio import atomic_write_text, git_commit
 from wrinkle_jax.sim import scenes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -82,15 +81,6 @@ def self_collision_for(resolution: str, setting: str):
     if setting not in ("on", "off"):
         raise ValueError(f"self-collision setting must be 'on' or 'off', got {setting!r}")
     return scenes.SELF_COLLISION[resolution] if setting == "on" else None
-
-
-def git_commit() -> str:
-    """The project's HEAD commit (short), or "unknown" outside a git checkout."""
-    try:
-        return subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
-                              capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def select(jobs: list[dict], only: str | None) -> list[dict]:
@@ -225,7 +215,7 @@ def main(argv=None) -> int:
             fh.write(line + "\n")
 
     manifest_path = out / "manifest.json"
-    version = {"self_collision": args.self_collision, "commit": git_commit()}
+    version = {"self_collision": args.self_collision, "commit": git_commit(ROOT) or "unknown"}
     if manifest_path.exists():
         old = json.loads(manifest_path.read_text()).get("version")
         if old is not None and old["self_collision"] != version["self_collision"]:

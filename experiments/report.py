@@ -19,13 +19,13 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from wrinkle_jax.evaluation import markdown, suite
+from wrinkle_jax.fileio import git_commit
 
 MODEL, WRONG = "model", "model, wrong material"
 KINDS = ("seen garment, seen motion", "seen garment, unseen motion", "unseen garment")
@@ -682,14 +682,6 @@ def machines_section(rep: Report) -> None:
                                         for n, c in rep.missing], "")
 
 
-def _git_commit() -> str | None:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                              text=True, check=True, cwd=suite.ROOT).stdout.strip() or None
-    except (OSError, subprocess.CalledProcessError):
-        return None
-
-
 def build(results: Path) -> Report:
     """Read every stored result under `results` and lay out the report."""
     rep = Report(results)
@@ -701,7 +693,7 @@ def build(results: Path) -> Report:
     rep.add("# wrinkle-jax evaluation report", "",
             f"Generated {datetime.date.today().isoformat()} by `python -m experiments.report` "
             f"from the stored results under `experiments/results/` (commit "
-            f"{_git_commit() or 'unknown'}). Scores: the improvement score on the Gram "
+            f"{git_commit(suite.ROOT) or 'unknown'}). Scores: the improvement score on the Gram "
             "matrices of relu1_2 ... relu5_1 (100 = the fine simulation's style, 0 = the "
             "coarse input's, < 0 = further away; the paper's form takes |.|, which counts "
             "overshoot as improvement).", "")

@@ -24,3 +24,11 @@ def test_resume_refuses_another_self_collision_setting(tmp_path):
         make_sequences.main(["--out", str(tmp_path), "--tiny", "--only", "apron_dance"])
     assert e.value.code == 2
     assert not (tmp_path / "apron_dance").exists()
+
+
+def test_git_commit_of_the_checkout_and_of_a_plain_folder(tmp_path):
+    from wrinkle_jax.fileio import git_commit
+
+    head = git_commit(make_sequences.ROOT)
+    assert head is None or (4 <= len(head) <= 40 and int(head, 16) >= 0)  # None without git
+    assert git_commit(tmp_path) is None

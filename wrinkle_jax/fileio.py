@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+import subprocess
 import tempfile
 from pathlib import Path
 
@@ -56,3 +57,12 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, fsync: bool = Fa
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def git_commit(root: str | os.PathLike) -> str | None:
+    """The short HEAD commit of the git checkout at `root`, or None (no git, not a checkout)."""
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, check=True, cwd=root).stdout.strip() or None
+    except (OSError, subprocess.CalledProcessError):
+        return None

@@ -31,9 +31,26 @@ import jax
 import numpy as np
 import pytest
 from evaluation_fixtures import tiny_model, tiny_vgg_params  # tests/ is on sys.path
+from jax._src import xla_bridge  # backends_are_initialized: no public form
 
 from wrinkle_jax import data, primitives
 from wrinkle_jax.meshio import make_sequence, save_sequence
+
+# XLA's CPU "fusion emitters" (its default code generator) cost ~36 ms of CPU to compile even a
+# one-op program, the legacy emitters ~23 ms; the suite compiles ~7,600 programs (about 5,000 of
+# them op-by-op dispatch in test set-up and assertions). Measured per file, alternating, in one
+# process each (session 20, load 2.3-3.2): test_sharpen 47 -> 35, test_sim_xpbd 33 -> 28,
+# test_train 74 -> 55, test_lift 59 -> 48, test_sim_selfcollision 80 -> 52 s of CPU, all passing.
+# The suite therefore runs with the legacy emitters. JAX reads XLA_FLAGS when it creates its CPU
+# backend (the imports above create none), and the processes that tests start (CLI runs,
+# notebook kernels) inherit it. Users' programs run with XLA's defaults, so the suite must pass
+# under those too: WRINKLE_JAX_TEST_XLA_DEFAULTS=1 make test runs it without the flag.
+_LEGACY_EMITTERS = "--xla_cpu_use_fusion_emitters=false"
+if (not os.environ.get("WRINKLE_JAX_TEST_XLA_DEFAULTS")
+        and "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", "")):
+    if xla_bridge.backends_are_initialized():  # an import above used a device: too late
+        raise RuntimeError("tests/conftest.py: set XLA_FLAGS before JAX's backend starts")
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_LEGACY_EMITTERS}".strip()
 
 _CACHE_ENV = "WRINKLE_JAX_TEST_JIT_CACHE"
 _owned_cache_dir: str | None = None
@@ -63,24 +80,22 @@ def pytest_unconfigure(config):
 # Makefile) hands files to the workers in collection order as they free up, so a long file
 # collected last would run alone at the end. (Without --no-loadscope-reorder xdist orders files
 # by their number of tests instead.) The order within a file is kept. Ranked by per-file CPU
-# (process + reaped children, setup to teardown) in the 2-worker run of session 16
-# (WRINKLE_JAX_TEST_PROFILE below), every file of 6 s or more, less what session 17 measured
-# cutting (test_train -4, test_sharpen -9, test_patchgan -4, test_lift -2 s); test_notebooks by
-# its kernels' CPU measured alone (~41 s for the notebooks' code in one process, ~48 s with
-# three kernel start-ups; the kernels are not reaped children). Files not listed follow in
+# (process + reaped children, setup to teardown) in the 2-worker run of session 20 with the
+# legacy emitters (WRINKLE_JAX_TEST_PROFILE below), every file of 5 s or more; test_notebooks'
+# kernels are not reaped children, so its rank is by wall time. Files not listed follow in
 # collection order.
-SLOW_FILES_FIRST = ("test_train.py", "test_lift.py", "test_sharpen.py", "test_notebooks.py",
-                    "test_sim_selfcollision.py", "test_unet.py", "test_patchgan.py",
-                    "test_eval_experiments.py", "test_sim_xpbd.py", "test_pipeline.py",
-                    "test_fastconv.py", "test_cli_train.py", "test_patches.py",
-                    "test_classifier.py", "test_enhancer.py", "test_character.py",
-                    "test_vgg.py", "test_train_bands.py", "test_frame_fn.py", "test_losses.py",
-                    "test_gram_bank.py", "test_bodies_mesh.py", "test_sim_detail.py",
-                    "test_lift_quality.py", "test_normalmap.py", "test_mesh.py",
-                    "test_nn_widen.py", "test_hard_inputs.py", "test_sim_colliders.py",
-                    "test_bodies.py", "test_detail.py", "test_sim_textile.py",
-                    "test_lift_warmstart.py", "test_sim_scenes.py", "test_readme.py",
-                    "test_fidelity_previews.py", "test_cli.py")
+SLOW_FILES_FIRST = ("test_train.py", "test_sim_selfcollision.py", "test_lift.py",
+                    "test_patchgan.py", "test_notebooks.py", "test_eval_experiments.py",
+                    "test_sharpen.py", "test_unet.py", "test_sim_xpbd.py", "test_pipeline.py",
+                    "test_cli_train.py", "test_fastconv.py", "test_patches.py",
+                    "test_enhancer.py", "test_classifier.py", "test_train_bands.py",
+                    "test_character.py", "test_losses.py", "test_normalmap.py",
+                    "test_gram_bank.py", "test_hard_inputs.py", "test_bodies_mesh.py",
+                    "test_sim_detail.py", "test_lift_quality.py", "test_frame_fn.py",
+                    "test_mesh.py", "test_vgg.py", "test_nn_widen.py", "test_detail.py",
+                    "test_sim_textile.py", "test_sim_colliders.py", "test_lift_resolve_coarse.py",
+                    "test_sim_scenes.py", "test_bodies.py", "test_readme.py",
+                    "test_bench_reference_train.py", "test_lift_warmstart.py")
 
 
 def pytest_collection_modifyitems(config, items):

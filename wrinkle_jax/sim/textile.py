@@ -76,19 +76,22 @@ class SettleConfig:
     max_frames: int = 900
 
 
-def settle(mesh, pinned: np.ndarray, fab: Fabric,
-           cfg: SettleConfig = SettleConfig()) -> tuple[np.ndarray, dict]:
+def settle(mesh, pinned: np.ndarray, fab: Fabric, cfg: SettleConfig = SettleConfig(),
+           limit_spans: bool = True) -> tuple[np.ndarray, dict]:
     """Let a mesh with static pins come to rest under gravity.
 
     Args:
       mesh: a `PatternMesh` or `StripMesh` (initial positions = its garment's vertices, m).
       pinned: (P,) vertex ids held at their initial positions.
       fab: fabric parameters.
+      limit_spans: keep the material-independent multi-scale stretch limits of
+        `cloth_model.stretch_limits` (slack 0.5 %), as the data set's scenes do.
     Returns:
       (positions (V, 3) float64 m, info {frames, max_speed_m_s, settled}).
     """
     g = mesh.garment
-    model = xpbd.build_cloth(g, pinned, use_aero=False, attachments=False)
+    model = xpbd.build_cloth(g, pinned, use_aero=False, attachments=False,
+                             limit_spans=limit_spans)
     config = xpbd.SimConfig(fps=30.0, substeps=cfg.substeps, stretch_sweeps=cfg.stretch_sweeps,
                             iterations=cfg.iterations)
     params = xpbd.fabric_params(fab)
@@ -306,29 +309,83 @@ def cantilever(fab: Fabric, pd: float, overhangs=None, width: float = 0.025,
 
 
 # --------------------------------------------------------------------------------------------
+# Hanging strip (elongation under its own weight)
+# --------------------------------------------------------------------------------------------
+
+
+def hanging_strip_mesh(pd: float, length: float = 0.5, width: float = 0.1,
+                       z: float = 1.0) -> StripMesh:
+    """A strip hanging in the x-z plane from its top row (x in [0, width], z from `z` down to
+    z - length); UVs = the flat pattern (x, length - depth), meters; a structured grid with
+    alternating diagonals. `clamped` = the top row, `tips` = (the bottom row,)."""
+    nx = max(1, round(width / pd))
+    nz = max(1, round(length / pd))
+    xs = np.linspace(0.0, width, nx + 1)
+    ds = np.linspace(0.0, length, nz + 1)  # depth below the top row
+    gx, gd = np.meshgrid(xs, ds, indexing="ij")  # (nx + 1, nz + 1)
+    idx = np.arange(gx.size).reshape(gx.shape)
+    faces = []
+    for i in range(nx):
+        for j in range(nz):
+            a, b, c, d = idx[i, j], idx[i + 1, j], idx[i + 1, j + 1], idx[i, j + 1]
+            faces += [(a, b, c), (a, c, d)] if (i + j) % 2 == 0 else [(a, b, d), (b, c, d)]
+    f = np.asarray(faces, np.int32)
+    x = np.stack([gx.ravel(), np.zeros(gx.size), z - gd.ravel()], 1)
+    uv = np.stack([gx.ravel(), length - gd.ravel()], 1)
+    g = make_garment(x, f, uv, f, np.zeros(len(f), np.int32),
+                     source=f"hanging strip (pd={pd})")
+    return StripMesh(g, idx[:, 0].astype(np.int32), (idx[:, -1].astype(np.int32),), float(z))
+
+
+def hanging_strip(fab: Fabric, pd: float, length: float = 0.5, width: float = 0.1,
+                  cfg: SettleConfig = SettleConfig(), limit_spans: bool = True) -> dict:
+    """Elongation of a strip hung from its top edge under its own weight.
+
+    Returns {mean_strain (length change / length), nominal_strain (rho g L / (2 k_s): a 1-D
+    linear membrane of stiffness k_s, lateral contraction ignored), frames, settled, ...}.
+    """
+    m = hanging_strip_mesh(pd, length, width)
+    x, info = settle(m, m.clamped, fab, cfg, limit_spans=limit_spans)
+    drop = m.z_edge - float(np.asarray(x)[m.tips[0], 2].mean())
+    return {"mean_strain": drop / length - 1.0,
+            "nominal_strain": fab.density * G * length / (2.0 * fab.stretch),
+            "length_m": length, "width_m": width, "limit_spans": limit_spans,
+            "vertices": int(len(x)), **info}
+
+
+# --------------------------------------------------------------------------------------------
 # Reference ranges
 # --------------------------------------------------------------------------------------------
 
 # Per fabric class: the KES bending-rigidity range (gf cm^2/cm) and the trade-weight range
-# (g/m^2) quoted in `materials` (Kawabata & Niwa 1989 and the KES literature; momme and oz/yd^2
-# conversions), and a drape-coefficient range. The bending-length range is DERIVED from the
-# first two with Peirce's relation c = (B / (rho g))^(1/3) (Peirce 1930; ASTM D1388), i.e. an
-# estimate from cited quantities, not a quoted bending length. The DC ranges are OUR ESTIMATES:
-# the only sources found for this work give the DC definition and general statements
-# (Cusick 1968: DC from 0 for a limp to 1 for a rigid specimen; low DC = drapeable), not
-# per-class measured ranges; treat them as placeholders to be replaced by measured values.
+# (g/m^2) quoted in `materials`, and a drape-coefficient range. The bending-length range is
+# DERIVED from the first two with Peirce's relation c = (B / (rho g))^(1/3) (Peirce 1930; ASTM
+# D1388): an estimate from the quoted ranges, not a quoted bending length (the KES sources named
+# in `materials` were not re-read in the tex20 search, see SOURCES.md). The DC ranges are
+# UNCITED ESTIMATES ("dc_source": None): repeated searches (experiments/results/sim/textile/
+# SOURCES.md) found the DC definition, the instrument and general statements (Cusick 1968: 0
+# limp to 1 rigid), but no retrievable per-class measured DC for these five fabric classes. By
+# DECISION.md an uncited range is reported, never used to choose a parameter.
 REFERENCE = {
     "silk_charmeuse": {"bending_gf_cm2_cm": (0.01, 0.05), "density_g_m2": (69.0, 95.0),
-                       "dc": (0.15, 0.45)},
+                       "dc": (0.15, 0.45), "dc_source": None},
     "wool_melton": {"bending_gf_cm2_cm": (0.3, 0.8), "density_g_m2": (475.0, 678.0),
-                    "dc": (0.55, 0.90)},
+                    "dc": (0.55, 0.90), "dc_source": None},
     "knit_terry": {"bending_gf_cm2_cm": (0.03, 0.1), "density_g_m2": (200.0, 300.0),
-                   "dc": (0.25, 0.60)},
+                   "dc": (0.25, 0.60), "dc_source": None},
     "silk_chiffon": {"bending_gf_cm2_cm": (0.005, 0.02), "density_g_m2": (26.0, 35.0),
-                     "dc": (0.10, 0.40)},
+                     "dc": (0.10, 0.40), "dc_source": None},
     "denim_light": {"bending_gf_cm2_cm": (0.2, 0.5), "density_g_m2": (203.0, 271.0),
-                    "dc": (0.45, 0.85)},
+                    "dc": (0.45, 0.85), "dc_source": None},
 }
+DC_UNCITED = "uncited estimate"
+
+
+def dc_cited(name: str) -> bool:
+    """True when the class's DC range carries a citation (`REFERENCE[name]["dc_source"]`)."""
+    return bool(REFERENCE[name].get("dc_source"))
+
+
 GF_CM2_PER_CM = 9.80665e-5
 
 

@@ -100,7 +100,9 @@ def main(argv=None):
                       f"{check['cantilever']['bending_length_m'] * 1e3:.1f} mm", flush=True)
     doc = {"settle": T.SettleConfig().__dict__, "overhangs_m": list(T.OVERHANGS),
            "reference": T.REFERENCE, "stretch_overrides_N_m": overrides, "rows": rows,
-           "proposed": proposals, "hanging_strip": hangs}
+           "proposed": proposals, "hanging_strip": hangs,
+           "stretch_comparison": {n: T.stretch_comparison(n, M.fabric(n).stretch)
+                                  for n in args.materials}}
     (out / "textile.json").write_text(json.dumps(doc, indent=1, default=float))
     lines = ["| fabric | PD mm | DC | DC range | DC range source | in | bending length mm | "
              "c range mm (derived from KES B, weight) | in | nominal (B/rho g)^1/3 mm |",
@@ -131,7 +133,20 @@ def main(argv=None):
         hang.append(f"| {h['material']} | {h['pd_mm']:g} | {h['stretch_N_m']:g} | "
                     f"{'on' if h['limit_spans'] else 'off'} | {100 * h['mean_strain']:.3f} | "
                     f"{100 * h['nominal_strain']:.3f} | {h['settled']} |")
-    blocks = [lines, surv] + ([prop] if proposals else []) + ([hang] if hangs else [])
+    comp = ["| fabric | k_s now N/m | uniaxial 0.335 k_s N/m | measured zero-strain N/m (min-max)"
+            " | median | uniaxial / median | k_s / median | proposed k_s (rule 4) |",
+            "|---|---|---|---|---|---|---|---|"]
+    for name, cmp_ in doc["stretch_comparison"].items():
+        if cmp_ is None:
+            comp.append(f"| {name} | {M.fabric(name).stretch:g} | | no measured analogue | | | | |")
+            continue
+        prop_s = f"{cmp_['proposed_N_m']:g}" if cmp_["proposed_N_m"] else "none"
+        comp.append(f"| {name} | {cmp_['ours_k_s_N_m']:g} | {cmp_['ours_uniaxial_N_m']:.0f} | "
+                    f"{cmp_['measured_min_N_m']:.0f}-{cmp_['measured_max_N_m']:.0f} | "
+                    f"{cmp_['median_N_m']:.0f} | {cmp_['ratio']:.1f} | "
+                    f"{cmp_['ratio_raw_k_s']:.1f} | {prop_s} |")
+    blocks = ([lines, surv] + ([prop] if proposals else []) + ([hang] if hangs else [])
+              + [comp])
     text = "\n\n".join("\n".join(b) for b in blocks) + "\n"
     (out / "table.md").write_text(text)
     print(text)

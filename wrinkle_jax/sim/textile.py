@@ -389,6 +389,91 @@ def dc_cited(name: str) -> bool:
 GF_CM2_PER_CM = 9.80665e-5
 
 
+# Low-load stretch stiffness (N/m) of measured fabrics, for comparison with `Fabric.stretch`.
+# Source: H. Wang, J. F. O'Brien & R. Ramamoorthi, "Data-driven elastic models for cloth:
+# modeling and measurement", ACM Trans. Graph. 30(4), 71 (SIGGRAPH 2011), doi 10.1145/2010324.
+# 1964966: the released ARCSim material files of its ten measured fabrics (read in the copies at
+# github.com/wxhaooo/lyra, materials/*.json, whose README credits that database). Per fabric:
+# the (axis-0, axis-90) diagonal stiffnesses k0, k2 at zero strain as ARCSim evaluates the file
+# (row 0, each component clamped >= 0 and doubled, dde.cpp; energy per area (k0 G00^2 + k2 G11^2
+# + 2 k1 G00 G11 + k3 G01^2) / 2 in Green strain G, physics.cpp), i.e. the uniaxial tangent
+# stiffness; with lateral contraction free (k0 - k1^2 / k2) they change by < 0.1 % (k1 is small
+# or clamped to 0). Derivation and the values at 1/12 and 1/6 strain: SOURCES.md. Classes with
+# no comparable measured fabric in that set (the silks, melton) have no entry.
+STRETCH_REFERENCE = {
+    "knit_terry": {  # weft knits of garment weight, 187-284 g/m^2
+        "navy-sparkle-sweat (sweater, 96 % polyester 4 % spandex)": (25.0, 6.5),
+        "gray-interlock (t-shirt, 60 % cotton 40 % polyester)": (33.2, 69.0),
+        "ivory-rib-knit (underwear, 95 % cotton 5 % spandex)": (85.7, 130.3),
+        "camel-ponte-roma (jacket, 60 % polyester 40 % rayon)": (62.3, 88.1),
+    },
+    "denim_light": {  # cotton-rich twill bottom-weights, 220-324 g/m^2
+        "11oz-black-denim (jeans, 99 % cotton 1 % spandex)": (410.7, 2027.8),
+        "royal-target (pants, 65 % cotton 35 % polyester)": (4033.1, 4070.0),
+    },
+}
+STRETCH_SOURCE = ("Wang, O'Brien & Ramamoorthi, SIGGRAPH 2011 (ACM TOG 30(4) 71), released "
+                  "ARCSim material files")
+STRETCH_RATIO_RULE = 3.0  # DECISION.md (tex20) rule 4: propose when ours > 3 x the median
+# The edge membrane's uniaxial stiffness is NOT k_s: an affine uniaxial strain eps (lateral
+# strain free) of sum_e k_s A_e C_e^2 / 2 stores MEMBRANE_UNIAXIAL k_s eps^2 / 2 per area on the
+# data set's jittered meshes (0.330-0.344 at PD 10 and 30 mm, axes 0/45/90 deg; Poisson ratio
+# 0.32-0.35; `membrane_uniaxial_stiffness`, tests/test_sim_textile.py). Measured stiffnesses
+# are compared with MEMBRANE_UNIAXIAL x k_s.
+MEMBRANE_UNIAXIAL = 0.335
+
+
+def membrane_uniaxial_stiffness(garment: Garment, angle: float = 0.0,
+                                eps: float = 1e-3) -> tuple[float, float]:
+    """(E_eff / k_s, lateral strain / eps) of the simulator's edge membrane (weights A_e as in
+    `cloth_model.build_cloth`) under an affine uniaxial strain `eps` along `angle` (rad, in the
+    UV plane), the lateral strain minimising the energy. NumPy; rest state = the UVs (m)."""
+    model = xpbd.build_cloth(garment, None, use_aero=False, attachments=False,
+                             limit_spans=False)
+    cat = lambda f: np.concatenate([np.asarray(getattr(c, f)) for c in model.stretch])  # noqa: E731
+    i, j = cat("i"), cat("j")
+    rest, a = cat("rest").astype(np.float64), 1.0 / cat("inv_area").astype(np.float64)
+    uv = np.zeros((garment.num_vertices, 2))
+    uv[np.asarray(garment.faces).ravel()] = np.asarray(garment.uvs)[
+        np.asarray(garment.uv_faces).ravel()]
+    d = uv[j] - uv[i]
+    t = np.array([math.cos(angle), math.sin(angle)])
+    n = np.array([-t[1], t[0]])
+
+    def energy(lat):
+        f = (1 + eps) * np.outer(t, t) + (1 + lat) * np.outer(n, n)
+        c = (np.linalg.norm(d @ f.T, axis=1) - rest) / rest
+        return 0.5 * float(np.sum(a * c * c))
+
+    # The energy is quadratic in the lateral strain to O(eps): the vertex of the parabola
+    # through three samples is its minimiser.
+    e_m, e_0, e_p = energy(-eps), energy(0.0), energy(eps)
+    lat = 0.5 * eps * (e_m - e_p) / max(e_m - 2 * e_0 + e_p, 1e-300)
+    return float(2.0 * energy(lat) / (a.sum() * eps * eps)), float(lat / eps)
+
+
+def stretch_comparison(name: str, stretch: float) -> dict | None:
+    """Our membrane's uniaxial stiffness (MEMBRANE_UNIAXIAL x k_s, N/m) against the median of
+    the class's measured zero-strain stiffnesses (both axes of every comparable fabric in
+    `STRETCH_REFERENCE`); None without measured analogues. "proposed_N_m" is the k_s whose
+    uniaxial stiffness equals that median (2 significant digits) when ours exceeds it by more
+    than `STRETCH_RATIO_RULE` (a proposal: DECISION.md decides whether it is applied);
+    "ratio_raw_k_s" compares k_s itself, as rule 4 was first worded (see DECISION.md)."""
+    ref = STRETCH_REFERENCE.get(name)
+    if not ref:
+        return None
+    vals = np.asarray([v for pair in ref.values() for v in pair], np.float64)
+    med = float(np.median(vals))
+    eff = MEMBRANE_UNIAXIAL * stretch
+    ratio = eff / med
+    return {"ours_k_s_N_m": stretch, "ours_uniaxial_N_m": eff,
+            "measured_min_N_m": float(vals.min()), "measured_max_N_m": float(vals.max()),
+            "median_N_m": med, "ratio": ratio, "ratio_raw_k_s": stretch / med,
+            "proposed_N_m": (float(f"{med / MEMBRANE_UNIAXIAL:.2g}")
+                             if ratio > STRETCH_RATIO_RULE else None),
+            "fabrics": {k: list(v) for k, v in ref.items()}, "source": STRETCH_SOURCE}
+
+
 def reference_bending_length(name: str) -> tuple[float, float]:
     """(min, max) bending length (m) of a fabric class from its KES rigidity and weight ranges:
     stiffest-lightest and limpest-heaviest corners of c = (B / (rho g))^(1/3)."""

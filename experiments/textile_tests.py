@@ -2,7 +2,7 @@
 30 mm, compared with the reference ranges of `sim.textile.REFERENCE` (issue 24, item 2).
 
     python -m experiments.textile_tests [--pds 0.01 0.03] [--materials NAME ...]
-        [--stretch NAME=N_PER_M ...] [--hang] [--out DIR]
+        [--stretch NAME=N_PER_M ...] [--hang] [--substeps N] [--out DIR]
 
 Writes DIR/textile.json (every measurement, settling info, proposed bending rigidities and
 their check runs) and DIR/table.md (the tables). Default materials are NOT changed. A proposal
@@ -27,10 +27,11 @@ from wrinkle_jax.sim import materials as M
 from wrinkle_jax.sim import textile as T
 
 
-def measure(fab, pd):
+def measure(fab, pd, cfg=None):
+    cfg = T.SettleConfig() if cfg is None else cfg
     t0 = time.perf_counter()
-    d = T.cusick_drape(fab, pd)
-    c = T.cantilever(fab, pd)
+    d = T.cusick_drape(fab, pd, cfg=cfg)
+    c = T.cantilever(fab, pd, cfg=cfg)
     d = {k: v for k, v in d.items() if k not in ("x", "faces")}
     return {"drape": d, "cantilever": c, "wall_s": round(time.perf_counter() - t0, 1)}
 
@@ -51,9 +52,12 @@ def main(argv=None):
     ap.add_argument("--stretch", nargs="*", default=[], metavar="NAME=N_PER_M",
                     help="override the stretch stiffness k_s (N/m) of a fabric")
     ap.add_argument("--hang", action="store_true", help="add the hanging-strip elongation")
+    ap.add_argument("--substeps", type=int, default=T.SettleConfig().substeps,
+                    help="solver substeps (default: the data set's)")
     ap.add_argument("--out", default="experiments/results/sim/textile")
     args = ap.parse_args(argv)
     overrides = _stretch_overrides(args.stretch)
+    cfg = T.SettleConfig(substeps=args.substeps)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows, proposals, hangs = [], {}, []
@@ -62,7 +66,7 @@ def main(argv=None):
             fab = M.fabric(name)
             if name in overrides:
                 fab = fab.replace(stretch=overrides[name])
-            r = measure(fab, pd)
+            r = measure(fab, pd, cfg)
             c_rng = T.reference_bending_length(name)
             dc_rng = T.REFERENCE[name]["dc"]
             c = r["cantilever"]["bending_length_m"]
@@ -77,7 +81,7 @@ def main(argv=None):
             print(name, pd, f"DC {dc:.3f} c {c * 1e3:.1f} mm ({r['wall_s']} s)", flush=True)
             if args.hang:
                 for limits in (True, False):
-                    h = T.hanging_strip(fab, pd, limit_spans=limits)
+                    h = T.hanging_strip(fab, pd, cfg=cfg, limit_spans=limits)
                     hangs.append({"material": name, "pd_mm": round(pd * 1e3, 1),
                                   "stretch_N_m": fab.stretch, **h})
                     print(f"  hang (limits {limits}): strain {100 * h['mean_strain']:.3f} % "
@@ -86,7 +90,7 @@ def main(argv=None):
             if abs(pd - 0.01) < 1e-9 and (outside_cited_dc or not row["c_inside"]):
                 target = math.sqrt(c_rng[0] * c_rng[1])
                 b = T.proposed_bending(fab, c, target)
-                check = measure(fab.replace(bending=b), pd)
+                check = measure(fab.replace(bending=b), pd, cfg)
                 proposals[name] = {
                     "bending_N_m": b, "bending_gf_cm2_cm": b / M.GF_CM2_PER_CM,
                     "scale": b / fab.bending, "target_c_mm": target * 1e3,
@@ -98,7 +102,7 @@ def main(argv=None):
                 print("  proposed B x", round(b / fab.bending, 2), "->",
                       f"DC {check['drape']['dc']:.3f} c "
                       f"{check['cantilever']['bending_length_m'] * 1e3:.1f} mm", flush=True)
-    doc = {"settle": T.SettleConfig().__dict__, "overhangs_m": list(T.OVERHANGS),
+    doc = {"settle": cfg.__dict__, "overhangs_m": list(T.OVERHANGS),
            "reference": T.REFERENCE, "stretch_overrides_N_m": overrides, "rows": rows,
            "proposed": proposals, "hanging_strip": hangs,
            "stretch_comparison": {n: T.stretch_comparison(n, M.fabric(n).stretch)

@@ -73,7 +73,7 @@ Validation against textile tests (`sim.textile`, `experiments/textile_tests.py`,
   Reference ranges (`textile.REFERENCE`): bending lengths are derived from the KES rigidity
   and weight ranges listed above (an estimate, not a quoted bending length; the KES sources
   named above were not re-read in the tex20 search: no retrieved text contains those ranges);
-  drape-coefficient ranges are UNCITED ESTIMATES (35 searches, SOURCES.md: the DC definition
+  drape-coefficient ranges are UNCITED ESTIMATES (38 searches, SOURCES.md: the DC definition
   and instrument, no retrievable per-class measured DC). After the clamp
   fix every fabric's PD 10 mm bending length is inside its range with these parameters,
   chiffon only after B 0.006 -> 0.008 gf cm^2/cm (inside the sheer-silk KES range; rule in

@@ -15,11 +15,19 @@ All values are APPROXIMATE, typical-of-the-class numbers (not fits to one measur
     clothing and clothing manufacture", J. Text. Inst. 80, 1989; and the KES literature on
     silks, suitings and denims): sheer silks 0.005-0.02, silk satins 0.01-0.05, knits
     0.03-0.1, light denim 0.2-0.5, melton 0.3-0.8 gf cm^2/cm.
-  * Stretch stiffness k_s (N/m): initial tensile modulus times thickness from KES-FB1 /
-    strip tensile tests: woven silks 1e3-5e3, denim ~1e4-5e4, felted wool ~5e3, and loop
-    knits 1e2-1e3 N/m. Data-driven cloth models (Wang, O'Brien & Ramamoorthi, SIGGRAPH 2011;
-    Miguel et al., Eurographics 2012) report stretch and bending stiffnesses of the same
-    orders for comparable fabrics.
+  * Stretch stiffness k_s (N/m): the weight of the edge membrane (see below). Its uniaxial
+    stiffness is NOT k_s but 0.33-0.34 k_s on the data set's jittered meshes (Poisson ratio
+    ~1/3; `textile.membrane_uniaxial_stiffness`, `textile.MEMBRANE_UNIAXIAL`). Cited
+    comparison (`textile.STRETCH_REFERENCE`, experiments/results/sim/textile/SOURCES.md): the
+    measured fabrics of Wang, O'Brien & Ramamoorthi, "Data-driven elastic models for cloth",
+    ACM TOG 30(4) 71 (SIGGRAPH 2011), released ARCSim material files, give at zero strain 6.5-130
+    N/m for four garment-weight weft knits (median 66) and 411-4070 N/m for two cotton twill
+    bottom-weights (an 11 oz stretch denim and a cotton/polyester pants twill; median 3030).
+    Ours: terry 0.335 x 400 = 134 N/m (2.0 x the knit median), denim 0.335 x 2e4 = 6.7e3 N/m
+    (2.2 x the twill median); the terry/denim contrast is 50 x here, 46 x in the measurements.
+    No comparable measured silk or wool was found (their k_s are unverified estimates). At the
+    data set's solver settings elongation under own weight is set by the solver and the 0.5 %
+    stretch limits, not by k_s (hanging strip, `textile.hanging_strip`).
   * Shear is not a separate parameter: the edge-based membrane of `xpbd` couples stretch and
     shear (an isotropic triangulation gives an isotropic membrane), so shear stiffness is
     ~k_s/3, stiffer than real wovens in shear; wrinkle scale is set by bending/density.
@@ -63,8 +71,10 @@ Validation against textile tests (`sim.textile`, `experiments/textile_tests.py`,
     at 41.5 degrees gives c = overhang / 2 and flexural rigidity G = W c^3, so a fabric with
     rigidity B and areal density rho should show c = (B / (rho g))^(1/3) = `fold_length`.
   Reference ranges (`textile.REFERENCE`): bending lengths are derived from the KES rigidity
-  and weight ranges listed above (an estimate, not a quoted bending length); drape-coefficient
-  ranges are our estimates (no per-class measured DC found for this work). After the clamp
+  and weight ranges listed above (an estimate, not a quoted bending length; the KES sources
+  named above were not re-read in the tex20 search: no retrieved text contains those ranges);
+  drape-coefficient ranges are UNCITED ESTIMATES (38 searches, SOURCES.md: the DC definition
+  and instrument, no retrievable per-class measured DC). After the clamp
   fix every fabric's PD 10 mm bending length is inside its range with these parameters,
   chiffon only after B 0.006 -> 0.008 gf cm^2/cm (inside the sheer-silk KES range; rule in
   `experiments/results/sim/textile/DECISION.md`). The data set must be regenerated with

@@ -76,19 +76,22 @@ class SettleConfig:
     max_frames: int = 900
 
 
-def settle(mesh, pinned: np.ndarray, fab: Fabric,
-           cfg: SettleConfig = SettleConfig()) -> tuple[np.ndarray, dict]:
+def settle(mesh, pinned: np.ndarray, fab: Fabric, cfg: SettleConfig = SettleConfig(),
+           limit_spans: bool = True) -> tuple[np.ndarray, dict]:
     """Let a mesh with static pins come to rest under gravity.
 
     Args:
       mesh: a `PatternMesh` or `StripMesh` (initial positions = its garment's vertices, m).
       pinned: (P,) vertex ids held at their initial positions.
       fab: fabric parameters.
+      limit_spans: keep the material-independent multi-scale stretch limits of
+        `cloth_model.stretch_limits` (slack 0.5 %), as the data set's scenes do.
     Returns:
       (positions (V, 3) float64 m, info {frames, max_speed_m_s, settled}).
     """
     g = mesh.garment
-    model = xpbd.build_cloth(g, pinned, use_aero=False, attachments=False)
+    model = xpbd.build_cloth(g, pinned, use_aero=False, attachments=False,
+                             limit_spans=limit_spans)
     config = xpbd.SimConfig(fps=30.0, substeps=cfg.substeps, stretch_sweeps=cfg.stretch_sweeps,
                             iterations=cfg.iterations)
     params = xpbd.fabric_params(fab)
@@ -306,30 +309,169 @@ def cantilever(fab: Fabric, pd: float, overhangs=None, width: float = 0.025,
 
 
 # --------------------------------------------------------------------------------------------
+# Hanging strip (elongation under its own weight)
+# --------------------------------------------------------------------------------------------
+
+
+def hanging_strip_mesh(pd: float, length: float = 0.5, width: float = 0.1,
+                       z: float = 1.0) -> StripMesh:
+    """A strip hanging in the x-z plane from its top row (x in [0, width], z from `z` down to
+    z - length); UVs = the flat pattern (x, length - depth), meters; a structured grid with
+    alternating diagonals. `clamped` = the top row, `tips` = (the bottom row,)."""
+    nx = max(1, round(width / pd))
+    nz = max(1, round(length / pd))
+    xs = np.linspace(0.0, width, nx + 1)
+    ds = np.linspace(0.0, length, nz + 1)  # depth below the top row
+    gx, gd = np.meshgrid(xs, ds, indexing="ij")  # (nx + 1, nz + 1)
+    idx = np.arange(gx.size).reshape(gx.shape)
+    faces = []
+    for i in range(nx):
+        for j in range(nz):
+            a, b, c, d = idx[i, j], idx[i + 1, j], idx[i + 1, j + 1], idx[i, j + 1]
+            faces += [(a, b, c), (a, c, d)] if (i + j) % 2 == 0 else [(a, b, d), (b, c, d)]
+    f = np.asarray(faces, np.int32)
+    x = np.stack([gx.ravel(), np.zeros(gx.size), z - gd.ravel()], 1)
+    uv = np.stack([gx.ravel(), length - gd.ravel()], 1)
+    g = make_garment(x, f, uv, f, np.zeros(len(f), np.int32),
+                     source=f"hanging strip (pd={pd})")
+    return StripMesh(g, idx[:, 0].astype(np.int32), (idx[:, -1].astype(np.int32),), float(z))
+
+
+def hanging_strip(fab: Fabric, pd: float, length: float = 0.5, width: float = 0.1,
+                  cfg: SettleConfig = SettleConfig(), limit_spans: bool = True) -> dict:
+    """Elongation of a strip hung from its top edge under its own weight.
+
+    Returns {mean_strain (length change / length), nominal_strain (rho g L / (2 k_s): a 1-D
+    linear membrane of stiffness k_s, lateral contraction ignored), frames, settled, ...}.
+    """
+    m = hanging_strip_mesh(pd, length, width)
+    x, info = settle(m, m.clamped, fab, cfg, limit_spans=limit_spans)
+    drop = m.z_edge - float(np.asarray(x)[m.tips[0], 2].mean())
+    return {"mean_strain": drop / length - 1.0,
+            "nominal_strain": fab.density * G * length / (2.0 * fab.stretch),
+            "length_m": length, "width_m": width, "limit_spans": limit_spans,
+            "vertices": int(len(x)), **info}
+
+
+# --------------------------------------------------------------------------------------------
 # Reference ranges
 # --------------------------------------------------------------------------------------------
 
 # Per fabric class: the KES bending-rigidity range (gf cm^2/cm) and the trade-weight range
-# (g/m^2) quoted in `materials` (Kawabata & Niwa 1989 and the KES literature; momme and oz/yd^2
-# conversions), and a drape-coefficient range. The bending-length range is DERIVED from the
-# first two with Peirce's relation c = (B / (rho g))^(1/3) (Peirce 1930; ASTM D1388), i.e. an
-# estimate from cited quantities, not a quoted bending length. The DC ranges are OUR ESTIMATES:
-# the only sources found for this work give the DC definition and general statements
-# (Cusick 1968: DC from 0 for a limp to 1 for a rigid specimen; low DC = drapeable), not
-# per-class measured ranges; treat them as placeholders to be replaced by measured values.
+# (g/m^2) quoted in `materials`, and a drape-coefficient range. The bending-length range is
+# DERIVED from the first two with Peirce's relation c = (B / (rho g))^(1/3) (Peirce 1930; ASTM
+# D1388): an estimate from the quoted ranges, not a quoted bending length (the KES sources named
+# in `materials` were not re-read in the tex20 search, see SOURCES.md). The DC ranges are
+# UNCITED ESTIMATES ("dc_source": None): repeated searches (experiments/results/sim/textile/
+# SOURCES.md) found the DC definition, the instrument and general statements (Cusick 1968: 0
+# limp to 1 rigid), but no retrievable per-class measured DC for these five fabric classes. By
+# DECISION.md an uncited range is reported, never used to choose a parameter.
 REFERENCE = {
     "silk_charmeuse": {"bending_gf_cm2_cm": (0.01, 0.05), "density_g_m2": (69.0, 95.0),
-                       "dc": (0.15, 0.45)},
+                       "dc": (0.15, 0.45), "dc_source": None},
     "wool_melton": {"bending_gf_cm2_cm": (0.3, 0.8), "density_g_m2": (475.0, 678.0),
-                    "dc": (0.55, 0.90)},
+                    "dc": (0.55, 0.90), "dc_source": None},
     "knit_terry": {"bending_gf_cm2_cm": (0.03, 0.1), "density_g_m2": (200.0, 300.0),
-                   "dc": (0.25, 0.60)},
+                   "dc": (0.25, 0.60), "dc_source": None},
     "silk_chiffon": {"bending_gf_cm2_cm": (0.005, 0.02), "density_g_m2": (26.0, 35.0),
-                     "dc": (0.10, 0.40)},
+                     "dc": (0.10, 0.40), "dc_source": None},
     "denim_light": {"bending_gf_cm2_cm": (0.2, 0.5), "density_g_m2": (203.0, 271.0),
-                    "dc": (0.45, 0.85)},
+                    "dc": (0.45, 0.85), "dc_source": None},
 }
+DC_UNCITED = "uncited estimate"
+
+
+def dc_cited(name: str) -> bool:
+    """True when the class's DC range carries a citation (`REFERENCE[name]["dc_source"]`)."""
+    return bool(REFERENCE[name].get("dc_source"))
+
+
 GF_CM2_PER_CM = 9.80665e-5
+
+
+# Low-load stretch stiffness (N/m) of measured fabrics, for comparison with `Fabric.stretch`.
+# Source: H. Wang, J. F. O'Brien & R. Ramamoorthi, "Data-driven elastic models for cloth:
+# modeling and measurement", ACM Trans. Graph. 30(4), 71 (SIGGRAPH 2011), doi 10.1145/2010324.
+# 1964966: the released ARCSim material files of its ten measured fabrics (read in the copies at
+# github.com/wxhaooo/lyra, materials/*.json, whose README credits that database). Per fabric:
+# the (axis-0, axis-90) diagonal stiffnesses k0, k2 at zero strain as ARCSim evaluates the file
+# (row 0, each component clamped >= 0 and doubled, dde.cpp; energy per area (k0 G00^2 + k2 G11^2
+# + 2 k1 G00 G11 + k3 G01^2) / 2 in Green strain G, physics.cpp), i.e. the uniaxial tangent
+# stiffness; with lateral contraction free (k0 - k1^2 / k2) they change by < 0.1 % (k1 is small
+# or clamped to 0). Derivation and the values at 1/12 and 1/6 strain: SOURCES.md. Classes with
+# no comparable measured fabric in that set (the silks, melton) have no entry.
+STRETCH_REFERENCE = {
+    "knit_terry": {  # weft knits of garment weight, 187-284 g/m^2
+        "navy-sparkle-sweat (sweater, 96 % polyester 4 % spandex)": (25.0, 6.5),
+        "gray-interlock (t-shirt, 60 % cotton 40 % polyester)": (33.2, 69.0),
+        "ivory-rib-knit (underwear, 95 % cotton 5 % spandex)": (85.7, 130.3),
+        "camel-ponte-roma (jacket, 60 % polyester 40 % rayon)": (62.3, 88.1),
+    },
+    "denim_light": {  # cotton-rich twill bottom-weights, 220-324 g/m^2
+        "11oz-black-denim (jeans, 99 % cotton 1 % spandex)": (410.7, 2027.8),
+        "royal-target (pants, 65 % cotton 35 % polyester)": (4033.1, 4070.0),
+    },
+}
+STRETCH_SOURCE = ("Wang, O'Brien & Ramamoorthi, SIGGRAPH 2011 (ACM TOG 30(4) 71), released "
+                  "ARCSim material files")
+STRETCH_RATIO_RULE = 3.0  # DECISION.md (tex20) rule 4: propose when ours > 3 x the median
+# The edge membrane's uniaxial stiffness is NOT k_s: an affine uniaxial strain eps (lateral
+# strain free) of sum_e k_s A_e C_e^2 / 2 stores MEMBRANE_UNIAXIAL k_s eps^2 / 2 per area on the
+# data set's jittered meshes (0.330-0.344 at PD 10 and 30 mm, axes 0/45/90 deg; Poisson ratio
+# 0.32-0.35; `membrane_uniaxial_stiffness`, tests/test_sim_textile.py). Measured stiffnesses
+# are compared with MEMBRANE_UNIAXIAL x k_s.
+MEMBRANE_UNIAXIAL = 0.335
+
+
+def membrane_uniaxial_stiffness(garment: Garment, angle: float = 0.0,
+                                eps: float = 1e-3) -> tuple[float, float]:
+    """(E_eff / k_s, lateral strain / eps) of the simulator's edge membrane (weights A_e as in
+    `cloth_model.build_cloth`) under an affine uniaxial strain `eps` along `angle` (rad, in the
+    UV plane), the lateral strain minimising the energy. NumPy; rest state = the UVs (m)."""
+    model = xpbd.build_cloth(garment, None, use_aero=False, attachments=False,
+                             limit_spans=False)
+    cat = lambda f: np.concatenate([np.asarray(getattr(c, f)) for c in model.stretch])  # noqa: E731
+    i, j = cat("i"), cat("j")
+    rest, a = cat("rest").astype(np.float64), 1.0 / cat("inv_area").astype(np.float64)
+    uv = np.zeros((garment.num_vertices, 2))
+    uv[np.asarray(garment.faces).ravel()] = np.asarray(garment.uvs)[
+        np.asarray(garment.uv_faces).ravel()]
+    d = uv[j] - uv[i]
+    t = np.array([math.cos(angle), math.sin(angle)])
+    n = np.array([-t[1], t[0]])
+
+    def energy(lat):
+        f = (1 + eps) * np.outer(t, t) + (1 + lat) * np.outer(n, n)
+        c = (np.linalg.norm(d @ f.T, axis=1) - rest) / rest
+        return 0.5 * float(np.sum(a * c * c))
+
+    # The energy is quadratic in the lateral strain to O(eps): the vertex of the parabola
+    # through three samples is its minimiser.
+    e_m, e_0, e_p = energy(-eps), energy(0.0), energy(eps)
+    lat = 0.5 * eps * (e_m - e_p) / max(e_m - 2 * e_0 + e_p, 1e-300)
+    return float(2.0 * energy(lat) / (a.sum() * eps * eps)), float(lat / eps)
+
+
+def stretch_comparison(name: str, stretch: float) -> dict | None:
+    """Our membrane's uniaxial stiffness (MEMBRANE_UNIAXIAL x k_s, N/m) against the median of
+    the class's measured zero-strain stiffnesses (both axes of every comparable fabric in
+    `STRETCH_REFERENCE`); None without measured analogues. "proposed_N_m" is the k_s whose
+    uniaxial stiffness equals that median (2 significant digits) when ours exceeds it by more
+    than `STRETCH_RATIO_RULE` (a proposal: DECISION.md decides whether it is applied);
+    "ratio_raw_k_s" compares k_s itself, as rule 4 was first worded (see DECISION.md)."""
+    ref = STRETCH_REFERENCE.get(name)
+    if not ref:
+        return None
+    vals = np.asarray([v for pair in ref.values() for v in pair], np.float64)
+    med = float(np.median(vals))
+    eff = MEMBRANE_UNIAXIAL * stretch
+    ratio = eff / med
+    return {"ours_k_s_N_m": stretch, "ours_uniaxial_N_m": eff,
+            "measured_min_N_m": float(vals.min()), "measured_max_N_m": float(vals.max()),
+            "median_N_m": med, "ratio": ratio, "ratio_raw_k_s": stretch / med,
+            "proposed_N_m": (float(f"{med / MEMBRANE_UNIAXIAL:.2g}")
+                             if ratio > STRETCH_RATIO_RULE else None),
+            "fabrics": {k: list(v) for k, v in ref.items()}, "source": STRETCH_SOURCE}
 
 
 def reference_bending_length(name: str) -> tuple[float, float]:

@@ -169,7 +169,9 @@ SHARDED = textwrap.dedent("""
 
 
 def test_sharded_step_matches_single_device():
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    # Keep the suite's XLA_FLAGS (tests/conftest.py's compile-time setting) and add two devices.
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2"
+    env = dict(os.environ, XLA_FLAGS=flags.strip())
     root = Path(__file__).resolve().parents[1]
     res = subprocess.run([sys.executable, "-c", SHARDED], capture_output=True, text=True,
                          env=env, cwd=root, timeout=600)

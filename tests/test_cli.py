@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -275,3 +278,33 @@ def test_demo_runs_the_pipeline_with_a_shipped_model(inputs, tmp_path, monkeypat
     assert report["model"]["path"] == str(inputs["model"])  # a user's path, as given
     assert (out / "normal_maps" / "normal_map_00000.png").exists()
     assert "silk_charmeuse (stored)" in capsys.readouterr().err
+
+
+def test_use_fast_compile_adds_the_flag_only_when_it_can_and_may():
+    env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    assert cli.use_fast_compile(env, backend_started=False)
+    assert env["XLA_FLAGS"] == f"--xla_force_host_platform_device_count=2 {cli.FAST_COMPILE_FLAG}"
+    assert not cli.use_fast_compile(env, backend_started=False)  # once
+    env = {}
+    assert cli.use_fast_compile(env, backend_started=False)
+    assert env == {"XLA_FLAGS": cli.FAST_COMPILE_FLAG}
+    for env in ({"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"},  # the user's choice
+                {"WRINKLE_JAX_XLA_DEFAULTS": "1"}):
+        before = dict(env)
+        assert not cli.use_fast_compile(env, backend_started=False) and env == before
+    env = {}
+    assert not cli.use_fast_compile(env, backend_started=True) and env == {}  # too late
+
+
+def test_the_command_process_runs_with_the_flag(tmp_path):
+    # `python -m wrinkle_jax.cli` is main() without arguments: a fresh process whose backend
+    # has not started; --help exits before any compile.
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS",
+                                                            "WRINKLE_JAX_XLA_DEFAULTS")}
+    code = ("import os, sys\nfrom wrinkle_jax import cli\nsys.argv = ['wrinkle-jax', '--version']\n"
+            "try:\n    cli.main()\nexcept SystemExit:\n    pass\n"
+            "print(os.environ.get('XLA_FLAGS'))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                         cwd=tmp_path, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.strip().splitlines()[-1] == cli.FAST_COMPILE_FLAG

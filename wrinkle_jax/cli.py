@@ -17,12 +17,17 @@ Exit codes: 0 success, 1 failure (bad input file, runtime error), 2 bad usage, 1
                                [--export PATH [--export-only] [--export-steps A,B]]
     wrinkle-jax simulate SCENE --material NAME --resolution fine|coarse --frames N --out PATH
     wrinkle-jax train-classifier --data DIR --out PATH;  wrinkle-jax classify INPUT [--json]
+
+The command (`main()` without arguments: the process is `wrinkle-jax`) runs XLA's CPU backend
+with its legacy code generator (`FAST_COMPILE_FLAG`, see `use_fast_compile`): set
+WRINKLE_JAX_XLA_DEFAULTS=1, or any value of that flag in XLA_FLAGS, to keep XLA's own choice.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from importlib import resources
 from pathlib import Path
@@ -274,7 +279,38 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+# XLA's CPU "fusion emitters" (its default code generator) take ~36 ms of CPU to compile even a
+# one-op program, the legacy emitters ~23 ms. On the demo (12 frames, load 2.8-3.3, three
+# alternating rounds) `wrinkle-jax demo` took 17.4-17.9 s with the legacy emitters against
+# 19.7-20.4 s (CPU 20.3 vs 23.8 s); the pipeline stages (benchmarks/bench_pipeline.py
+# stage_times, two alternating rounds) compiled in 2.4 vs 3.6-3.7 s at 0.87-0.88 vs 0.87-1.01 s
+# of CPU per frame. Chosen by a rule written before that run (session 20).
+FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
+
+
+def use_fast_compile(environ=None, backend_started: bool | None = None) -> bool:
+    """Add `FAST_COMPILE_FLAG` to XLA_FLAGS in `environ` (default `os.environ`) unless the user
+    set that flag, set WRINKLE_JAX_XLA_DEFAULTS, or JAX's backend already started (XLA reads
+    the variable once, when the backend starts; `backend_started` None asks JAX). True when it
+    added the flag."""
+    environ = os.environ if environ is None else environ
+    flags = environ.get("XLA_FLAGS", "")
+    if environ.get("WRINKLE_JAX_XLA_DEFAULTS") or "xla_cpu_use_fusion_emitters" in flags:
+        return False
+    if backend_started is None:
+        backend_started = False
+        if "jax" in sys.modules:  # importing JAX starts no backend; using a device does
+            from jax._src import xla_bridge  # no public form of this question
+            backend_started = xla_bridge.backends_are_initialized()
+    if backend_started:
+        return False
+    environ["XLA_FLAGS"] = f"{flags} {FAST_COMPILE_FLAG}".strip()
+    return True
+
+
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:  # the `wrinkle-jax` process itself, not a caller's (notebook, test)
+        use_fast_compile()
     argv = sys.argv[1:] if argv is None else list(argv)
     # The sub-command is the first argument that is not an option (the top level's only
     # options, -h and --version, take no value); only its parser is built in full, so the

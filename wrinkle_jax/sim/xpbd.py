@@ -13,13 +13,20 @@ length h = 1 / (fps * substeps):
      runs of consecutive colours, `SimConfig.color_waste`), in this order:
        bending  C_e = sqrt(1 / (A_1 + A_2)) sum_k K_k x_k (3-vector, quadratic isometric
                 bending, Bergou et al. 2006, normalized so a cylinder of radius R stores
-                B / (2 R^2) per area), compliance 1 / B
+                B / (2 R^2) per area; the rim hinges of a clamped region use their free
+                face's area, `cloth_model._hinges`), compliance 1 / B. With one iteration
+                per substep an interior hinge settles at B / (1 + r), r = h^2 B sum_k w_k
+                K_k^2 (w: inverse masses; denim at PD 10 mm, 20 substeps: r ~0.31, 0.76 B;
+                experiments/results/sim/textile/README.md)
        long-range attachments |x_i - x_pin(i)| <= geodesic rest distance (Kim, Chentanez &
                 Mueller 2012), only when the garment has pins
        then `stretch_sweeps` times (colour order alternating):
          stretch limits |x_i - x_j| <= (1 + 0.5 %) rest UV distance for random same-panel
                 pairs 3, 9 and 27 edges apart (multi-scale: corrects the slow global sag of
-                one sweep per substep on fine meshes; never resists bending)
+                one sweep per substep on fine meshes; never resists bending). The slack
+                is the same for every fabric, and at 20 substeps the solver is softer than
+                any k_s, so every fabric reaches it: a hanging strip lengthens 0.72-0.74 %
+                whatever its k_s (4.3-4.9 % without the limits; textile README, session 20)
          stretch C_e = (|x_j - x_i| - L_e) / L_e, compliance 1 / (k_s A_e) (last, so the
                 local strain left by the hard long-range projections is smoothed)
   4. optional self-collision (`SimConfig.self_collision`, see `selfcollision`): candidates

@@ -2,7 +2,7 @@
 
     nohup nice -n 10 python -m experiments.make_sequences [--out data/sequences] \
         [--train-frames 600] [--test-frames 300] [--tiny] [--only SCENE,...] \
-        [--self-collision on|off] > /dev/null 2>&1 &
+        [--self-collision on|off] [--coarse-substeps N] > /dev/null 2>&1 &
     python -m experiments.make_sequences --previews experiments/results/sim
 
 Writes `<out>/<scene>/<material>_<resolution>_s<seed>.npz` (`scenes.save_simulation`: frames
@@ -19,6 +19,12 @@ tracks) for:
 Self-collision (`--self-collision`, default on since issue 24): each resolution simulates with
 `scenes.SELF_COLLISION[resolution]` (recorded in every file's metadata, with the dropped-
 candidate counts).
+
+Coarse substeps (`--coarse-substeps N`, default: each scene's own, 20): the coarse (PD 30 mm)
+jobs' solver substeps per frame. At 20 the coarse solver is softer than any fabric's stretch
+stiffness, so every fabric strains alike; at 80 terry and melton separate
+(`experiments/coarse_substeps.py`, experiments/results/classifier/README.md). Fine jobs always
+use the scene's. Recorded in the manifest and guarded like the self-collision setting.
 
 Files already present are skipped, each file is written atomically (temporary file + rename),
 and progress goes to `<out>/make_sequences.log` (one line per chunk of frames and per file,
@@ -81,6 +87,14 @@ def self_collision_for(resolution: str, setting: str):
     if setting not in ("on", "off"):
         raise ValueError(f"self-collision setting must be 'on' or 'off', got {setting!r}")
     return scenes.SELF_COLLISION[resolution] if setting == "on" else None
+
+
+def substeps_for(resolution: str, coarse_substeps: int | None) -> int | None:
+    """The solver substeps a job of `resolution` simulates with: `coarse_substeps` for coarse
+    jobs when given, else None (the scene's own)."""
+    if coarse_substeps is not None and coarse_substeps < 1:
+        raise ValueError(f"coarse substeps must be >= 1, got {coarse_substeps}")
+    return coarse_substeps if resolution == "coarse" else None
 
 
 def select(jobs: list[dict], only: str | None) -> list[dict]:
@@ -186,6 +200,8 @@ def main(argv=None) -> int:
                          "so a sheet-only run can start early); the manifest still lists all")
     ap.add_argument("--self-collision", choices=("on", "off"), default="on",
                     help="simulate with scenes.SELF_COLLISION per resolution (default on)")
+    ap.add_argument("--coarse-substeps", type=int, default=None, metavar="N",
+                    help="solver substeps per frame of the coarse jobs (default: the scene's)")
     ap.add_argument("--previews", default=None, metavar="DIR",
                     help="only write fine-vs-coarse preview PNGs into DIR (from --out data)")
     args = ap.parse_args(argv)
@@ -215,12 +231,21 @@ def main(argv=None) -> int:
             fh.write(line + "\n")
 
     manifest_path = out / "manifest.json"
-    version = {"self_collision": args.self_collision, "commit": git_commit(ROOT) or "unknown"}
+    try:
+        substeps_for("coarse", args.coarse_substeps)
+    except ValueError as e:
+        ap.error(str(e))
+    version = {"self_collision": args.self_collision, "coarse_substeps": args.coarse_substeps,
+               "commit": git_commit(ROOT) or "unknown"}
     if manifest_path.exists():
         old = json.loads(manifest_path.read_text()).get("version")
         if old is not None and old["self_collision"] != version["self_collision"]:
             ap.error(f"{out} holds sequences simulated with self-collision "
                      f"{old['self_collision']}; use another --out")
+        # Manifests from before the option hold no entry: the scenes' own substeps (None).
+        if old is not None and old.get("coarse_substeps") != version["coarse_substeps"]:
+            ap.error(f"{out} holds coarse sequences simulated with substeps "
+                     f"{old.get('coarse_substeps') or 'of the scene'}; use another --out")
         if old is not None and old["commit"] != version["commit"]:
             log(f"note: resuming files written at commit {old['commit']} at {version['commit']}")
     todo = [j for j in selected if not job_path(out, j).exists()]
@@ -252,6 +277,7 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             seq = scenes.simulate(job["scene"], job["material"], job["resolution"],
                                   job["frames"], job["seed"], progress=progress, setup=setup,
+                                  substeps=substeps_for(job["resolution"], args.coarse_substeps),
                                   self_collision=self_collision_for(job["resolution"],
                                                                     args.self_collision))
             scenes.save_simulation(path, seq)

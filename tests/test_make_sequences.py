@@ -32,3 +32,43 @@ def test_git_commit_of_the_checkout_and_of_a_plain_folder(tmp_path):
     head = git_commit(make_sequences.ROOT)
     assert head is None or (4 <= len(head) <= 40 and int(head, 16) >= 0)  # None without git
     assert git_commit(tmp_path) is None
+
+
+def test_coarse_substeps_apply_to_coarse_jobs_only():
+    assert make_sequences.substeps_for("coarse", 80) == 80
+    assert make_sequences.substeps_for("fine", 80) is None  # the scene's own
+    assert make_sequences.substeps_for("coarse", None) is None
+    with pytest.raises(ValueError, match=">= 1"):
+        make_sequences.substeps_for("coarse", 0)
+
+
+@pytest.mark.parametrize("stored, given", [(None, ["--coarse-substeps", "80"]),
+                                           (80, []), (80, ["--coarse-substeps", "40"])])
+def test_resume_refuses_other_coarse_substeps(tmp_path, stored, given):
+    version = {"self_collision": "on", "commit": "abc"}
+    if stored is not None:
+        version["coarse_substeps"] = stored  # a manifest from before the option has no entry
+    (tmp_path / "manifest.json").write_text(json.dumps({"jobs": 1, "version": version,
+                                                        "done": []}))
+    with pytest.raises(SystemExit) as e:
+        make_sequences.main(["--out", str(tmp_path), "--tiny", "--only", "apron_dance", *given])
+    assert e.value.code == 2
+    assert not (tmp_path / "apron_dance").exists()
+
+
+def test_the_coarse_substeps_reach_the_simulation(tmp_path, monkeypatch):
+    calls = []
+
+    class Stop(Exception):
+        pass
+
+    def fake_simulate(scene, material, resolution, frames, seed, substeps=None, **kw):
+        calls.append((resolution, substeps))
+        raise Stop  # logged as a failed job; nothing is simulated
+
+    monkeypatch.setattr(make_sequences.scenes, "setup_scene", lambda *a, **k: None)
+    monkeypatch.setattr(make_sequences.scenes, "simulate", fake_simulate)
+    code = make_sequences.main(["--out", str(tmp_path), "--tiny", "--only", "apron_dance",
+                                "--coarse-substeps", "80"])
+    assert code == 1 and calls == [("coarse", 80)]  # --tiny: one coarse job per scene
+    assert "FAILED" in (tmp_path / "make_sequences.log").read_text()

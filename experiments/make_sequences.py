@@ -24,7 +24,8 @@ Coarse substeps (`--coarse-substeps N`, default: each scene's own, 20): the coar
 jobs' solver substeps per frame. At 20 the coarse solver is softer than any fabric's stretch
 stiffness, so every fabric strains alike; at 80 terry and melton separate
 (`experiments/coarse_substeps.py`, experiments/results/classifier/README.md). Fine jobs always
-use the scene's. Recorded in the manifest and guarded like the self-collision setting.
+use the scene's. Recorded in the manifest; a folder that already holds coarse files refuses
+another value (fine files do not depend on it, so a folder of fine files can take any).
 
 Files already present are skipped, each file is written atomically (temporary file + rename),
 and progress goes to `<out>/make_sequences.log` (one line per chunk of frames and per file,
@@ -238,12 +239,16 @@ def main(argv=None) -> int:
     version = {"self_collision": args.self_collision, "coarse_substeps": args.coarse_substeps,
                "commit": git_commit(ROOT) or "unknown"}
     if manifest_path.exists():
-        old = json.loads(manifest_path.read_text()).get("version")
+        stored = json.loads(manifest_path.read_text())
+        old = stored.get("version")
+        coarse_done = any(e.get("resolution") == "coarse" for e in stored.get("done", []))
         if old is not None and old["self_collision"] != version["self_collision"]:
             ap.error(f"{out} holds sequences simulated with self-collision "
                      f"{old['self_collision']}; use another --out")
-        # Manifests from before the option hold no entry: the scenes' own substeps (None).
-        if old is not None and old.get("coarse_substeps") != version["coarse_substeps"]:
+        # Manifests from before the option hold no entry: the scenes' own substeps (None). Fine
+        # files do not depend on it, so only a folder that holds coarse files is guarded.
+        if (old is not None and coarse_done
+                and old.get("coarse_substeps") != version["coarse_substeps"]):
             ap.error(f"{out} holds coarse sequences simulated with substeps "
                      f"{old.get('coarse_substeps') or 'of the scene'}; use another --out")
         if old is not None and old["commit"] != version["commit"]:

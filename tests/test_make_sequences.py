@@ -48,12 +48,28 @@ def test_resume_refuses_other_coarse_substeps(tmp_path, stored, given):
     version = {"self_collision": "on", "commit": "abc"}
     if stored is not None:
         version["coarse_substeps"] = stored  # a manifest from before the option has no entry
+    done = [{"scene": "dress_dance", "resolution": "coarse", "material": "silk_charmeuse",
+             "seed": 1, "frames": 300, "path": "dress_dance/silk_charmeuse_coarse_s1.npz"}]
     (tmp_path / "manifest.json").write_text(json.dumps({"jobs": 1, "version": version,
-                                                        "done": []}))
+                                                        "done": done}))
     with pytest.raises(SystemExit) as e:
         make_sequences.main(["--out", str(tmp_path), "--tiny", "--only", "apron_dance", *given])
     assert e.value.code == 2
     assert not (tmp_path / "apron_dance").exists()
+
+
+def test_a_folder_of_fine_files_takes_any_coarse_substeps(tmp_path, monkeypatch):
+    done = [{"scene": "skirt_dance", "resolution": "fine", "material": "silk_charmeuse",
+             "seed": 0, "frames": 600, "path": "skirt_dance/silk_charmeuse_fine_s0.npz"}]
+    (tmp_path / "manifest.json").write_text(json.dumps(
+        {"jobs": 1, "version": {"self_collision": "on", "commit": "abc"}, "done": done}))
+    calls = []
+    monkeypatch.setattr(make_sequences.scenes, "setup_scene", lambda *a, **k: None)
+    monkeypatch.setattr(make_sequences.scenes, "simulate",
+                        lambda *a, substeps=None, **k: calls.append(substeps) or 1 / 0)
+    assert make_sequences.main(["--out", str(tmp_path), "--tiny", "--only", "apron_dance",
+                                "--coarse-substeps", "80"]) == 1  # the fake job fails
+    assert calls == [80]
 
 
 def test_the_coarse_substeps_reach_the_simulation(tmp_path, monkeypatch):

@@ -33,7 +33,7 @@ import pytest
 from evaluation_fixtures import tiny_model, tiny_vgg_params  # tests/ is on sys.path
 from jax._src import xla_bridge  # backends_are_initialized: no public form
 
-from wrinkle_jax import data, primitives
+from wrinkle_jax import cli, data, primitives
 from wrinkle_jax.meshio import make_sequence, save_sequence
 
 # XLA's CPU "fusion emitters" (its default code generator) cost ~36 ms of CPU to compile even a
@@ -43,14 +43,15 @@ from wrinkle_jax.meshio import make_sequence, save_sequence
 # test_train 74 -> 55, test_lift 59 -> 48, test_sim_selfcollision 80 -> 52 s of CPU, all passing.
 # The suite therefore runs with the legacy emitters. JAX reads XLA_FLAGS when it creates its CPU
 # backend (the imports above create none), and the processes that tests start (CLI runs,
-# notebook kernels) inherit it. Users' programs run with XLA's defaults, so the suite must pass
-# under those too: WRINKLE_JAX_TEST_XLA_DEFAULTS=1 make test runs it without the flag.
-_LEGACY_EMITTERS = "--xla_cpu_use_fusion_emitters=false"
-if (not os.environ.get("WRINKLE_JAX_TEST_XLA_DEFAULTS")
-        and "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", "")):
+# notebook kernels) inherit it. It is the `wrinkle-jax` command's own setting (`cli.
+# use_fast_compile`, which leaves a value of the flag already in XLA_FLAGS alone). Library
+# users' programs run with XLA's defaults, so the suite must pass under those too:
+# WRINKLE_JAX_TEST_XLA_DEFAULTS=1 (or the command's WRINKLE_JAX_XLA_DEFAULTS=1) make test runs
+# it without the flag.
+if not os.environ.get("WRINKLE_JAX_TEST_XLA_DEFAULTS"):
     if xla_bridge.backends_are_initialized():  # an import above used a device: too late
         raise RuntimeError("tests/conftest.py: set XLA_FLAGS before JAX's backend starts")
-    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_LEGACY_EMITTERS}".strip()
+    cli.use_fast_compile(backend_started=False)
 
 _CACHE_ENV = "WRINKLE_JAX_TEST_JIT_CACHE"
 _owned_cache_dir: str | None = None

@@ -73,8 +73,23 @@ def lbs_entries(lbs_root: Path | None, cfg) -> list[dict]:
     return out
 
 
+def sim_settings(path: Path) -> str:
+    """The solver settings a simulated sequence was made with, as a short key: substeps and
+    self-collision, e.g. "sub80_sc" (from the file's metadata; "sub?" when not recorded)."""
+    with np.load(path) as z:
+        meta = json.loads(str(z["metadata"])) if "metadata" in z.files else {}
+    contacts = "_sc" if meta.get("self_collision") else ""
+    return f"sub{meta.get('substeps', '?')}{contacts}"
+
+
 def build_cache(train_root: Path, heldout_root: Path, cache: Path, cfg) -> list[dict]:
-    """Window features of every sequence, cached as <cache>/<split>/<scene>/<material>.npy."""
+    """Window features of every sequence, cached as
+    <cache>/d<dim>_<settings>/<split>/<scene>/<material>.npy (`sim_settings`).
+
+    Raises:
+      SystemExit: the sequences were simulated with different solver settings (training and
+        held-out must match, or the classifier would read the solver instead of the fabric).
+    """
     jobs = []
     for sc in scenes.TRAINING_SCENES + scenes.VAL_SCENES:
         for m in MATERIALS:
@@ -84,19 +99,26 @@ def build_cache(train_root: Path, heldout_root: Path, cache: Path, cfg) -> list[
             p = d / f"{m}_coarse_s1.npz"
             jobs.append(("heldout", d.name, m, p, False))
             jobs.append(("skinned", d.name, m, p, True))
+    for j in jobs:
+        if not j[3].exists():
+            print(f"missing {j[3]}", flush=True)
+    jobs = [j for j in jobs if j[3].exists()]
+    settings = {src: sim_settings(src) for _, _, _, src, _ in jobs}
+    if len(set(settings.values())) > 1:
+        counts = {k: list(settings.values()).count(k) for k in sorted(set(settings.values()))}
+        raise SystemExit(f"sequences simulated with different solver settings {counts}; "
+                         "re-simulate them alike (experiments.classifier_sequences, "
+                         "experiments.make_coarse_training_sequences)")
     entries = []
     for split, sc, m, src, skinned in jobs:
-        if not src.exists():
-            print(f"missing {src}", flush=True)
-            continue
-        dst = cache / f"d{motion.FEATURE_DIM}" / split / sc / f"{m}.npy"
+        dst = cache / f"d{motion.FEATURE_DIM}_{settings[src]}" / split / sc / f"{m}.npy"
         if not dst.exists():
             t0 = time.perf_counter()
             f = _seq_features(src, cfg, skinned)
             dst.parent.mkdir(parents=True, exist_ok=True)
             np.save(dst, f)
             print(f"{split} {sc} {m}: {f.shape} {time.perf_counter() - t0:.1f} s", flush=True)
-        entries.append({"split": split, "scene": sc, "material": m,
+        entries.append({"split": split, "scene": sc, "material": m, "settings": settings[src],
                         "label": MATERIALS.index(m), "features": np.load(dst)})
     return entries
 
@@ -330,6 +352,7 @@ def main(argv=None) -> int:
            "heldout": evaluate(model, heldout), "skinned": evaluate(model, skinned)}
     curve = accuracy_vs_windows(model, heldout)
     res["heldout_vs_windows"] = curve
+    res["simulation"] = entries[0]["settings"] if entries else None  # one setting (build_cache)
     res["lbs"] = []
     for e in lbs_entries(Path(args.lbs_data), base):
         r = cal.classify_features(model, e["features"])

@@ -2,12 +2,15 @@
 
     nice -n 5 python -m experiments.classifier_sequences [--out data/classifier_sequences]
         [--frames 300] [--seed 1] [--cells dress_dance,cape_walk,skirt_walk,dress_walk,cape_dance]
+        [--substeps 80] [--self-collision on|off]
 
 Writes `<out>/<scene>/<material>_coarse_s<seed>.npz` (`scenes.save_simulation`) for every
-material of every cell: PD 30 mm, the scene's substeps. `dress_walk` and `cape_dance` are the
-dress and cape with the motion replaced (`evaluation.cells.scene_for`). Existing files are
-skipped; one mesh and solver model per scene serve all five materials. These garments and
-motions are never used to choose features or models (the classifier is selected by
+material of every cell: PD 30 mm, simulated as the data set's coarse sequences are
+(`scenes.DATASET_COARSE_SUBSTEPS` substeps, `scenes.self_collision_config`; the settings are in
+each file's metadata, and `experiments.classifier_motion` refuses a mix). `dress_walk` and
+`cape_dance` are the dress and cape with the motion replaced (`evaluation.cells.scene_for`).
+Existing files are skipped; one mesh and solver model per scene serve all five materials. These
+garments and motions are never used to choose features or models (the classifier is selected by
 leave-one-training-scene-out cross-validation); they only score the final choice.
 """
 
@@ -40,7 +43,11 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--cells", default=",".join(CELLS))
+    ap.add_argument("--substeps", type=int, default=scenes.DATASET_COARSE_SUBSTEPS)
+    ap.add_argument("--self-collision", choices=("on", "off"), default="on")
     args = ap.parse_args(argv)
+    contacts = (scenes.self_collision_config("coarse", args.substeps)
+                if args.self_collision == "on" else None)
     out = Path(args.out)
     for cell in args.cells.split(","):
         sc = scene_config(cell)
@@ -52,7 +59,7 @@ def main(argv=None) -> int:
         for mat in todo:
             t0 = time.perf_counter()
             seq = scenes.simulate(sc, mat, "coarse", frames=args.frames, seed=args.seed,
-                                  setup=setup)
+                                  setup=setup, substeps=args.substeps, self_collision=contacts)
             path = out / sc.name / f"{mat}_coarse_s{args.seed}.npz"
             path.parent.mkdir(parents=True, exist_ok=True)
             scenes.save_simulation(path, seq)

@@ -1,7 +1,7 @@
 """Coarse (PD 30 mm) simulations of the TRAINING scenes, for the material classifier.
 
     nice -n 10 python -m experiments.make_coarse_training_sequences [--out data/sequences] \
-        [--frames 600] [--scenes sheet_balls_wind ...]
+        [--frames 600] [--scenes sheet_balls_wind ...] [--substeps 80] [--self-collision on|off]
 
 The classifier sees coarse normal maps at test time; `experiments.make_sequences` only
 simulates the training scenes at fine resolution. This writes
@@ -29,7 +29,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=600)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--scenes", nargs="+", default=list(scenes.TRAINING_SCENES))
+    ap.add_argument("--substeps", type=int, default=scenes.DATASET_COARSE_SUBSTEPS)
+    ap.add_argument("--self-collision", choices=("on", "off"), default="on")
     args = ap.parse_args(argv)
+    contacts = (scenes.self_collision_config("coarse", args.substeps)
+                if args.self_collision == "on" else None)
     out = Path(args.out)
     for name in args.scenes:
         if scenes.get_scene(name).test_only:
@@ -44,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
             if setup is None:  # one mesh, model and compiled solver per scene
                 setup = scenes.setup_scene(name, "coarse", args.frames, args.seed)
             seq = scenes.simulate(setup.scene, mat, "coarse", args.frames, args.seed,
-                                  setup=setup)
+                                  setup=setup, substeps=args.substeps, self_collision=contacts)
             path.parent.mkdir(parents=True, exist_ok=True)
             scenes.save_simulation(path, seq)
             print(f"wrote {path} ({seq.garment.num_vertices} vertices, {len(seq)} frames) in "

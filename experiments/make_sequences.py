@@ -20,12 +20,14 @@ Self-collision (`--self-collision`, default on since issue 24): each resolution 
 `scenes.SELF_COLLISION[resolution]` (recorded in every file's metadata, with the dropped-
 candidate counts).
 
-Coarse substeps (`--coarse-substeps N`, default: each scene's own, 20): the coarse (PD 30 mm)
-jobs' solver substeps per frame. At 20 the coarse solver is softer than any fabric's stretch
-stiffness, so every fabric strains alike; at 80 terry and melton separate
-(`experiments/coarse_substeps.py`, experiments/results/classifier/README.md). Fine jobs always
-use the scene's. Recorded in the manifest; a folder that already holds coarse files refuses
-another value (fine files do not depend on it, so a folder of fine files can take any).
+Coarse substeps (`--coarse-substeps N`, default `scenes.DATASET_COARSE_SUBSTEPS` = 80; the
+scenes' own is 20): the coarse (PD 30 mm) jobs' solver substeps per frame. At 20 the coarse
+solver is softer than any fabric's stretch stiffness, so every fabric strains alike; at 80 terry
+and melton separate (`experiments/coarse_substeps.py`,
+experiments/results/classifier/README.md). Self-collision candidates are then rebuilt at the
+same interval in time (`scenes.self_collision_config`). Fine jobs always use the scene's.
+Recorded in the manifest; a folder that already holds coarse files refuses another value (fine
+files do not depend on it, so a folder of fine files can take any).
 
 Files already present are skipped, each file is written atomically (temporary file + rename),
 and progress goes to `<out>/make_sequences.log` (one line per chunk of frames and per file,
@@ -82,12 +84,13 @@ def plan(train_frames: int, test_frames: int, val_frames: int = 150) -> list[dic
     return jobs
 
 
-def self_collision_for(resolution: str, setting: str):
-    """The `SelfCollisionConfig` a job of `resolution` simulates with: `scenes.SELF_COLLISION`'s
-    for "on", None for "off"."""
+def self_collision_for(resolution: str, setting: str, substeps: int | None = None):
+    """The `SelfCollisionConfig` a job of `resolution` simulates with at `substeps` per frame:
+    `scenes.self_collision_config`'s for "on" (the same rebuild interval in time at any
+    substeps), None for "off"."""
     if setting not in ("on", "off"):
         raise ValueError(f"self-collision setting must be 'on' or 'off', got {setting!r}")
-    return scenes.SELF_COLLISION[resolution] if setting == "on" else None
+    return scenes.self_collision_config(resolution, substeps) if setting == "on" else None
 
 
 def substeps_for(resolution: str, coarse_substeps: int | None) -> int | None:
@@ -201,8 +204,9 @@ def main(argv=None) -> int:
                          "so a sheet-only run can start early); the manifest still lists all")
     ap.add_argument("--self-collision", choices=("on", "off"), default="on",
                     help="simulate with scenes.SELF_COLLISION per resolution (default on)")
-    ap.add_argument("--coarse-substeps", type=int, default=None, metavar="N",
-                    help="solver substeps per frame of the coarse jobs (default: the scene's)")
+    ap.add_argument("--coarse-substeps", type=int, default=scenes.DATASET_COARSE_SUBSTEPS,
+                    metavar="N", help="solver substeps per frame of the coarse jobs (default "
+                    "%(default)s: scenes.DATASET_COARSE_SUBSTEPS)")
     ap.add_argument("--previews", default=None, metavar="DIR",
                     help="only write fine-vs-coarse preview PNGs into DIR (from --out data)")
     args = ap.parse_args(argv)
@@ -280,11 +284,12 @@ def main(argv=None) -> int:
                         f"frame {done}/{total}")
 
             t0 = time.perf_counter()
+            substeps = substeps_for(job["resolution"], args.coarse_substeps)
             seq = scenes.simulate(job["scene"], job["material"], job["resolution"],
                                   job["frames"], job["seed"], progress=progress, setup=setup,
-                                  substeps=substeps_for(job["resolution"], args.coarse_substeps),
+                                  substeps=substeps,
                                   self_collision=self_collision_for(job["resolution"],
-                                                                    args.self_collision))
+                                                                    args.self_collision, substeps))
             scenes.save_simulation(path, seq)
             wall = time.perf_counter() - t0
         except Exception as e:  # log and go on with the next job; rerun to retry

@@ -13,6 +13,9 @@ def test_self_collision_per_resolution():
     for res in ("fine", "coarse"):
         assert make_sequences.self_collision_for(res, "on") is scenes.SELF_COLLISION[res]
         assert make_sequences.self_collision_for(res, "off") is None
+        assert make_sequences.self_collision_for(res, "off", 80) is None
+        on80 = make_sequences.self_collision_for(res, "on", 80)
+        assert on80 == scenes.self_collision_config(res, 80) and on80.rebuild_every == 16
     with pytest.raises(ValueError, match="'on' or 'off'"):
         make_sequences.self_collision_for("fine", "yes")
 
@@ -42,8 +45,8 @@ def test_coarse_substeps_apply_to_coarse_jobs_only():
         make_sequences.substeps_for("coarse", 0)
 
 
-@pytest.mark.parametrize("stored, given", [(None, ["--coarse-substeps", "80"]),
-                                           (80, []), (80, ["--coarse-substeps", "40"])])
+@pytest.mark.parametrize("stored, given", [(None, []), (None, ["--coarse-substeps", "80"]),
+                                           (20, []), (80, ["--coarse-substeps", "40"])])
 def test_resume_refuses_other_coarse_substeps(tmp_path, stored, given):
     version = {"self_collision": "on", "commit": "abc"}
     if stored is not None:

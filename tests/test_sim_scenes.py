@@ -151,3 +151,27 @@ def test_self_collision_settings_fit_every_scene():
             config = xpbd.SimConfig(substeps=scene.substeps, self_collision=sc)
             xpbd.cloth_simulator(config)  # raises when rebuild_every does not divide
             assert sc.margin >= 2.0 * sc.rebuild_every * config.h
+
+
+def test_self_collision_config_keeps_the_rebuild_interval_in_time():
+    # More substeps must not rebuild candidates more often in time than the tuned settings (the
+    # build dominates the cost), nor less often than the margin covers (2 m/s between rebuilds),
+    # and rebuild_every must divide the substeps (else the solver cannot be built).
+    from wrinkle_jax.sim import xpbd
+
+    for res, base in scenes.SELF_COLLISION.items():
+        assert scenes.self_collision_config(res) is base
+        assert scenes.self_collision_config(res, scenes.SELF_COLLISION_SUBSTEPS) is base
+        assert scenes.self_collision_config(res, 80).rebuild_every == 16
+        for n in (5, 7, 33, 40, 80, 90):
+            sc = scenes.self_collision_config(res, n)
+            assert dataclasses.replace(sc, rebuild_every=base.rebuild_every) == base
+            assert n % sc.rebuild_every == 0
+            assert sc.rebuild_every / n <= base.rebuild_every / scenes.SELF_COLLISION_SUBSTEPS
+            config = xpbd.SimConfig(substeps=n, self_collision=sc)
+            xpbd.cloth_simulator(config)
+            assert sc.margin >= 2.0 * sc.rebuild_every * config.h
+    with pytest.raises(scenes.SceneError, match="resolution"):
+        scenes.self_collision_config("medium", 80)
+    with pytest.raises(scenes.SceneError, match=">= 1"):
+        scenes.self_collision_config("coarse", 0)

@@ -86,6 +86,43 @@ SELF_COLLISION = {
                                   raw_per_vertex=400.0, box_per_vertex=16.0, block=8),
 }
 
+# The substeps per frame SELF_COLLISION was tuned at. Its margin covers the relative motion over
+# one rebuild interval (4 substeps = 1/150 s at 30 fps), so `self_collision_config` keeps that
+# interval in time, not in substeps, when a run uses more substeps.
+SELF_COLLISION_SUBSTEPS = 20
+
+# Solver substeps of the data set's coarse (PD 30 mm) sequences (make_sequences, the classifier's
+# training and held-out sequences). At the scenes' 20 the coarse solver is softer than any
+# fabric's stretch stiffness and every fabric strains alike; at 80 the knit and the heavy woven
+# separate (mean log strain, experiments/results/classifier/coarse_substeps_s20.json).
+DATASET_COARSE_SUBSTEPS = 80
+
+
+def self_collision_config(resolution: str, substeps: int | None = None) -> SelfCollisionConfig:
+    """`SELF_COLLISION[resolution]` for a run of `substeps` solver substeps per frame.
+
+    Candidates are rebuilt at most as far apart in time as at `SELF_COLLISION_SUBSTEPS`:
+    rebuild_every becomes the largest divisor of `substeps` (the solver needs one) not above
+    rebuild_every x substeps / 20, so the margin still covers the motion between rebuilds and
+    more substeps do not multiply the build cost (80 substeps: every 16).
+
+    Args:
+      resolution: "fine" or "coarse". substeps: solver substeps per frame (None: 20).
+    Raises:
+      SceneError: unknown resolution or substeps < 1.
+    """
+    if resolution not in SELF_COLLISION:
+        raise SceneError(f"no self-collision settings for resolution {resolution!r}; "
+                         f"choose one of {sorted(SELF_COLLISION)}")
+    base = SELF_COLLISION[resolution]
+    if substeps is None or substeps == SELF_COLLISION_SUBSTEPS:
+        return base
+    if substeps < 1:
+        raise SceneError(f"substeps must be >= 1, got {substeps}")
+    ideal = base.rebuild_every * substeps // SELF_COLLISION_SUBSTEPS
+    every = max([d for d in range(1, ideal + 1) if substeps % d == 0], default=1)
+    return dataclasses.replace(base, rebuild_every=every)
+
 
 class SceneError(ValueError):
     """Unknown scene, material or resolution, or invalid simulation arguments."""

@@ -88,6 +88,31 @@ def test_stretch_of_uniformly_scaled_sheet():
     assert g[3] == pytest.approx(np.log(1.03), abs=1e-6)        # vertical - horizontal
 
 
+def test_gravity_slope_of_a_strip_hanging_under_its_own_weight():
+    # Rest height v above the free end; strain a + b v, as weight g rho v / k would give:
+    # deformed height Z(v) = v (1 + a) + b v^2 / 2. Each vertical side's strain is exactly
+    # a + b v_mid, so the fit must return the slope b (per meter) and the intercept a.
+    a, b = 1e-3, 6e-3
+    verts, faces, uv = _grid(n=8, pitch=0.04)
+    v = verts[:, 2] - verts[:, 2].min()
+    hung = verts.copy()
+    hung[:, 2] = v * (1 + a) + 0.5 * b * v * v
+    frames = np.repeat(hung[None], 10, 0)
+    topo = motion.make_topology(faces, uv)
+    g = motion.window_features(frames, np.zeros((10, 3)), topo, 30.0)
+    slope, icpt, corr = g[motion.family_slices()["gravity"]]
+    assert slope == pytest.approx(b, rel=0.02)
+    assert icpt == pytest.approx(a, abs=2e-5)
+    assert corr > 0.99
+    # A stiffer fabric (a tenth of the slope) reads a tenth; a uniform stretch reads none.
+    hung[:, 2] = v * (1 + a) + 0.05 * b * v * v
+    g = motion.window_features(np.repeat(hung[None], 10, 0), np.zeros((10, 3)), topo, 30.0)
+    assert g[motion.family_slices()["gravity"]][0] == pytest.approx(0.1 * b, rel=0.02)
+    g = motion.window_features(np.repeat(verts[None] * 1.01, 10, 0), np.zeros((10, 3)), topo,
+                               30.0)
+    assert g[motion.family_slices()["gravity"]][0] == pytest.approx(0.0, abs=1e-6)
+
+
 def test_dihedral_angle_of_folded_pair():
     verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], float)
     faces = np.array([[0, 1, 2], [2, 1, 3]])

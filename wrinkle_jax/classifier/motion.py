@@ -20,7 +20,11 @@ measurements, grouped in families so each can be scored alone:
   * ``sag``: log-strain of hanging (near-vertical) sides against horizontal and diagonal
     ones, and of the top third against the bottom third (the weight a side carries);
   * ``rigidity``: motion of each vertex in the frame of its nearest body capsule (zero for a
-    garment that rides its bones, as skinned input does).
+    garment that rides its bones, as skinned input does);
+  * ``gravity``: the log strain of hanging sides regressed on their height above the hem
+    (meters): cloth hanging under its own weight strains as mass per area x g / stretch
+    stiffness x the length below, so the slope is a material constant that the garment's
+    size and cut do not set (the other stretch statistics mix both).
 
 Conventions: positions in meters, z up (gravity along -z, as in `wrinkle_jax.sim`), time in
 seconds. Every feature is a function of distances, speeds, heights and times only, so it is
@@ -35,7 +39,8 @@ import dataclasses
 
 import numpy as np
 
-FAMILIES = ("kinematic", "spectral", "lag", "stretch", "curvature", "sag", "rigidity")
+FAMILIES = ("kinematic", "spectral", "lag", "stretch", "curvature", "sag", "rigidity",
+            "gravity")
 # Band edges (Hz) of the spectral family: below the body's stride rate, around it, the first
 # harmonics and the fast flutter a light fabric adds.
 BANDS_HZ = (0.0, 1.0, 2.0, 3.5, 6.0, 10.0, 16.0)
@@ -235,6 +240,32 @@ def _sag(x, topo):
                      mean(vert & (height >= hi)), mean(vert & (height <= lo))])
 
 
+def _gravity(x, topo, hem_quantile=0.02):
+    """Least-squares line of hanging sides' log strain against their midpoint's height above
+    the hem (the `hem_quantile` of the frame's heights), over the window: [slope (1/m),
+    intercept, correlation]. A strip of length L hanging under gravity has strain
+    rho g h / k at height h above its free end (the weight below), so the slope reads
+    rho g / k; the intercept holds what does not grow with the weight (the solver's floor,
+    the body's pull)."""
+    if topo.rest_lengths is None:
+        return np.zeros(3)
+    ce = topo.corner_edges
+    ok = np.isfinite(topo.rest_lengths)
+    d = x[:, ce[ok, 0]] - x[:, ce[ok, 1]]                                      # (W, S, 3)
+    length = np.linalg.norm(d, axis=-1)
+    vert = np.abs(d[..., 2]) > 0.8 * length
+    if vert.sum() < 3:
+        return np.zeros(3)
+    s = np.log(length / topo.rest_lengths[ok] + _EPS)[vert]
+    hem = np.quantile(x[..., 2], hem_quantile, axis=1)[:, None]               # (W, 1)
+    h = (0.5 * (x[:, ce[ok, 0], 2] + x[:, ce[ok, 1], 2]) - hem)[vert]
+    hc, sc = h - h.mean(), s - s.mean()
+    var = (hc * hc).mean()
+    slope = (hc * sc).mean() / (var + _EPS)
+    corr = (hc * sc).mean() / np.sqrt(var * (sc * sc).mean() + _EPS ** 2)
+    return np.array([slope, s.mean() - slope * h.mean(), corr])
+
+
 def dihedral_angles(x, topo: Topology) -> np.ndarray:
     """Unsigned angles (radians) between the normals of the two faces of each interior edge.
 
@@ -260,7 +291,7 @@ def _curvature(x, topo, fps):
 
 
 FAMILY_DIMS = {"kinematic": 8, "spectral": len(BANDS_HZ), "lag": 5, "stretch": 6,
-               "curvature": 5, "sag": 6, "rigidity": 3}
+               "curvature": 5, "sag": 6, "rigidity": 3, "gravity": 3}
 
 
 def family_slices() -> dict:
@@ -313,7 +344,8 @@ def window_features(frames, ref, topo: Topology, fps: float, capsules=None) -> n
                            _lag(x, r, fps), _stretch(x, topo), _curvature(x, topo, fps),
                            _sag(x, topo),
                            _rigidity(x, None if capsules is None else
-                                     np.asarray(capsules, np.float64), r, fps)])
+                                     np.asarray(capsules, np.float64), r, fps),
+                           _gravity(x, topo)])
 
 
 def window_starts(num_frames: int, window: int, stride: int) -> np.ndarray:

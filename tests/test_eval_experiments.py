@@ -27,7 +27,7 @@ from evaluation_fixtures import (  # tests/ is on sys.path
 from experiments import report, stride, table1, table2, temporal, timing
 from wrinkle_jax import MATERIALS, enhancer, evaluation
 from wrinkle_jax.evaluation import cells as cell_lib
-from wrinkle_jax.evaluation import patchscores, suite
+from wrinkle_jax.evaluation import headlines, patchscores, suite
 from wrinkle_jax.evaluation import seams as seam_lib
 from wrinkle_jax.evaluation import sets as set_lib
 from wrinkle_jax.sim import scenes
@@ -425,14 +425,6 @@ def test_stride_main_writes_results_table_and_plot(tmp_path, monkeypatch, tiny_v
 # --------------------------------------------------------------------------------------------
 
 
-def test_report_demote_and_drop():
-    text = "# A\n## B\ntext # not a heading"
-    assert report.demote(text, 1) == "## A\n### B\ntext # not a heading"
-    right, wrong = {"signed_mean": 40.0}, {"signed_mean": 38.0}
-    assert report._drop(right, wrong, "signed_mean") == pytest.approx(5.0)
-    assert report._drop({"signed_mean": 0.0}, wrong, "signed_mean") is None
-
-
 def test_report_assembles_stored_results_and_names_what_is_missing(tmp_path, monkeypatch,
                                                                    tiny_vgg, model):
     seqs = tmp_path / "seqs"
@@ -561,50 +553,5 @@ def test_fidelity_summary_and_report_section():
     text = "\n".join(rep.lines)
     # Columns: vs the val-swept unsharp, vs the card's, vs the per-material gains (absent here).
     assert "| new | +70.0 (+70.0) | +30.0 [+30.0, +30.0] |  |  | +20.0 (+20.0) |" in text
-    rows = report.fidelity_headline({"unseen garment": got})
+    rows = headlines.fidelity_headline({"unseen garment": got})
     assert len(rows) == 1 and "**+70.0**" in rows[0] and "median +40.0" in rows[0]
-
-
-def test_report_ship_test_headline_states_the_paired_differences_of_the_stored_candidate():
-    def pd(med, lo, hi):
-        return {"n": 640, "median_diff": med, "median_diff_ci": [lo, hi]}
-
-    ship = {"unseen garment": {"methods": {
-        "identity": {"detail": {"n": 640}},
-        "unsharp_material": {"detail": {"vs_unsharp_card": pd(18.5, 15.5, 21.2)}},
-        "run7b": {"detail": {"n": 640, "vs_unsharp_material": pd(0.7, -2.9, 2.8),
-                             "vs_unsharp_card": pd(10.6, 7.1, 15.8)}}}}}
-    rows = report.ship_test_headline(ship)
-    assert len(rows) == 1  # one row per model, none for the baselines
-    assert "(run7b)" in rows[0] and "640 new held-out patches" in rows[0]
-    assert "+0.7 [-2.9, +2.8]" in rows[0] and "+10.6 [+7.1, +15.8]" in rows[0]
-    assert "+18.5 [+15.5, +21.2]" in rows[0]
-    assert report.ship_test_headline(None) == [] and report.ship_test_headline({}) == []
-    ship["unseen garment"]["methods"]["shipped"] = {"detail": {
-        "n": 640, "signed_median": 30.0, "vs_unsharp_material": pd(-9.0, -12.0, -6.0),
-        "vs_unsharp_card": pd(-1.0, -3.0, 1.0)}}
-    rows = report.ship_test_headline(ship)
-    assert len(rows) == 2 and "(run7b)" in rows[0]  # the shipped model is reported apart
-    assert "median +30.0" in rows[1] and "-9.0 [-12.0, -6.0]" in rows[1]
-
-
-def test_report_table2_detail_headline_gives_means_medians_and_the_oracles_as_ceilings():
-    def cell(group, model, oracle):
-        def m(e, f):
-            return {"embedded": {"dr_signed": e}, "full": {"dr_signed": f}}
-        return {"group": group, "methods": {"identity": m(0.0, 0.0), "model": m(*model),
-                                            "oracle fine": m(*oracle)}}
-
-    t2d = {"methods": ["identity", "model", "oracle fine"],
-           "by_group": {"unseen garment": {"model": {}}},
-           "cells": {"a": cell("unseen garment", (10.0, -2.0), (40.0, 1.0)),
-                     "b": cell("unseen garment", (-100.0, -4.0), (20.0, 3.0)),
-                     "c": cell("unseen garment", (30.0, 0.0), (30.0, 5.0)),
-                     "d": cell("seen garment", (99.0, 99.0), (99.0, 99.0))}}
-    rows = report.table2_detail_headline(t2d)
-    assert len(rows) == 1 and "3 unseen-garment cells" in rows[0]
-    assert "model -20.0 (+10.0) / -2.0 (-2.0)" in rows[0]  # mean (median) over cells
-    head, ceilings = rows[0].split("Ceilings")
-    assert "oracle fine" not in head and "identity" not in head
-    assert "oracle fine +30.0 (+30.0) / +3.0 (+3.0)" in ceilings
-    assert report.table2_detail_headline(None) == []

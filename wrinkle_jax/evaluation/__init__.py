@@ -17,6 +17,8 @@ Modules (by concept):
     temporal    flicker of an enhanced sequence (streamed through the pipeline)
     cells       the evaluation cells (garment x material x motion) and their simulations
     suite       the evaluation scripts' folders, results files and argument parsers
+    markdown    the evaluation report's line collector (missing results, machines)
+    headlines   the evaluation report's headline rows, from the stored results
 
 The names of `scores`, `stats`, `baselines`, `bands`, `sets` and `flicker` are re-exported
 here (`evaluation.score_patches`, `evaluation.unsharp_mask`, `evaluation.chamfer_distance`,

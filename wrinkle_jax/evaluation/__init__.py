@@ -14,6 +14,7 @@ Modules (by concept):
     gram        several methods scored on the same patches with shared Gram matrices
     methods     the model, other model files and the baselines as methods on patch sets
     patchscores Table 1's scoring of a cell's patches, its cell files, the tables' setup
+    setscores   Table 2's cell records (set distances), their files, means and table
     temporal    flicker of an enhanced sequence (streamed through the pipeline)
     cells       the evaluation cells (garment x material x motion) and their simulations
     suite       the evaluation scripts' folders, results files and argument parsers

@@ -63,11 +63,10 @@ cell) and `<out>/embeddings.png` (per cell, the model's embedding: a grey, b col
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 import sys
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -77,12 +76,22 @@ from wrinkle_jax.evaluation import cells as cell_lib
 from wrinkle_jax.evaluation import gram, patchscores, patchsets, suite
 from wrinkle_jax.evaluation import methods as method_lib
 from wrinkle_jax.evaluation import sets as set_lib
-from wrinkle_jax.fileio import atomic_write_bytes
+from wrinkle_jax.evaluation.setscores import (
+    GROUPS,
+    SPACES,
+    c_frame_indices,
+    cell_path,
+    cell_record,
+    group_of,
+    load_cell,
+    mean_scores,
+    merge_records,
+    save_cell,
+    table_markdown,
+)
 from wrinkle_jax.nn import vgg
 
 MODEL = patchscores.MODEL
-SPACES = ("embedded", "full")
-GROUPS = ("seen garment", "unseen garment")
 # Stored cells hold derived numbers: change this text whenever the features, the distances or
 # the embedding change, so that a rerun recomputes instead of reusing them.
 METRIC = ("v1: upper-triangle Grams on EVAL_LAYERS / median layer norm over a+c; symmetric "
@@ -125,27 +134,6 @@ def to_feature_space(space: str, a, mask_a, c, mask_c):
 # --------------------------------------------------------------------------------------------
 # One cell
 # --------------------------------------------------------------------------------------------
-
-
-def c_frame_indices(frame_indices: Iterable[int], frames: int, frame_stride: int) -> list[int]:
-    """Frames of set (c), one per scored frame t: t + frame_stride // 2, or t - frame_stride // 2
-    where that is not below `frames`. With scored frames 0, k, 2k, ... (k = frame_stride >= 2)
-    none of them is a scored frame.
-
-    Raises:
-      ValueError: frame_stride < 2, or a frame with neither neighbour in [0, frames).
-    """
-    half = int(frame_stride) // 2
-    if half < 1:
-        raise ValueError("the frame stride must be >= 2: set (c) uses the frames between the "
-                         "scored ones")
-    out = []
-    for t in frame_indices:
-        tc = t + half if t + half < frames else t - half
-        if tc < 0:
-            raise ValueError(f"no frame {half} away from frame {t} within {frames} frames")
-        out.append(int(tc))
-    return out
 
 
 def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg_params,
@@ -250,169 +238,9 @@ def evaluate_cell(fine, coarse, material: str, methods: dict[str, Callable], vgg
             "n_candidates": int(len(cand)), "timings": timings}
 
 
-def cell_record(res: dict) -> dict:
-    """What is kept of an evaluated cell: sampling, scales, timings and per method
-    `compare_sets` (embedding as float32), without the distance matrices."""
-    n_a = len(res["frame"])
-    methods = {}
-    t0 = time.perf_counter()
-    for name, blk in res["d2_method"].items():
-        got = set_lib.compare_sets(*set_lib.union_sq_dists(res["d2_ref"], blk, n_a))
-        got["embedding"] = got["embedding"].astype(np.float32)
-        methods[name] = got
-    timings = dict(res["timings"], compare_s=time.perf_counter() - t0)
-    return {"frame": res["frame"], "origin": res["origin"], "frame_c": res["frame_c"],
-            "origin_c": res["origin_c"], "scales": res["scales"],
-            "n_candidates": res["n_candidates"], "timings": timings, "methods": methods}
-
-
 # --------------------------------------------------------------------------------------------
-# Cell files (resume)
+# Figure (the numbers: `evaluation.setscores`)
 # --------------------------------------------------------------------------------------------
-
-
-def _cell_path(out: Path, cell: cell_lib.Cell) -> Path:
-    return out / "cells" / f"{cell.scene.name}__{cell.material}.npz"
-
-
-# What defines a cell's sets a and c and their features; each method's numbers carry a source.
-CELL_KEYS = ("sampling", "sequences", "metric")
-
-
-def save_cell(path: Path, record: dict, fingerprint: dict, sources: dict[str, str]) -> None:
-    """Store one cell record (arrays + JSON numbers, fingerprint and every method's source),
-    atomically."""
-    names = list(record["methods"])
-    numbers = {k: {s: record["methods"][k][s] for s in SPACES} for k in names}
-    arrays = {k: record[k] for k in ("frame", "origin", "frame_c", "origin_c")}
-    arrays["methods"] = np.array(names)
-    arrays["embeddings"] = np.stack([record["methods"][k]["embedding"] for k in names])
-    arrays["meta"] = np.str_(json.dumps(  # NaN stays NaN (json reads it back)
-        {"fingerprint": fingerprint, "sources": {k: sources[k] for k in names},
-         "numbers": numbers, "scales": record["scales"],
-         "n_candidates": record["n_candidates"], "timings": record["timings"]}))
-    buf = io.BytesIO()
-    np.savez(buf, **arrays)
-    atomic_write_bytes(path, buf.getvalue())
-
-
-def load_cell(path: Path, fingerprint: dict) -> dict | None:
-    """A stored cell record if it exists and its sets a and c are this fingerprint's, else None
-    (with "sources" and "legacy" as `evaluation.patchscores.load_cell`)."""
-    if not path.exists():
-        return None
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            meta = json.loads(str(z["meta"]))
-            if (patchscores.cell_part(meta["fingerprint"], CELL_KEYS)
-                    != patchscores.cell_part(fingerprint, CELL_KEYS)):
-                return None
-            names = z["methods"].tolist()
-            legacy = "sources" not in meta
-            methods = {name: {**meta["numbers"][name], "embedding": emb}
-                       for name, emb in zip(names, z["embeddings"], strict=True)}
-            return {"frame": z["frame"], "origin": z["origin"], "frame_c": z["frame_c"],
-                    "origin_c": z["origin_c"], "scales": meta["scales"],
-                    "n_candidates": meta["n_candidates"], "timings": meta["timings"],
-                    "methods": methods, "legacy": legacy,
-                    "sources": (patchscores.legacy_sources(meta["fingerprint"], names) if legacy
-                                else meta["sources"])}
-    except (OSError, KeyError, ValueError):
-        return None
-
-
-def merge_records(old: dict, new: dict, order: list[str]) -> dict:
-    """A stored cell record plus newly computed methods on the same sets a and c.
-
-    Raises:
-      ValueError: the sets or their layer scales differ (the sequences changed).
-    """
-    same = all(np.array_equal(old[k], new[k]) for k in ("frame", "origin", "frame_c",
-                                                         "origin_c"))
-    scales_ok = set(old["scales"]) == set(new["scales"]) and all(
-        np.isclose(old["scales"][k], new["scales"][k], rtol=1e-4) for k in old["scales"])
-    if not (same and scales_ok):
-        raise ValueError("stored cell and new methods are not on the same sets a and c")
-    methods = cell_lib.merge_methods(old["methods"], new["methods"], order)
-    timings = cell_lib.merge_timings(old["timings"], new["timings"],
-                                     ("features_s", "distances_s", "compare_s", "vgg_passes"))
-    return {**old, "methods": methods, "timings": timings}
-
-
-# --------------------------------------------------------------------------------------------
-# Summaries, table, figure
-# --------------------------------------------------------------------------------------------
-
-
-def group_of(cell: cell_lib.Cell) -> str:
-    return GROUPS[0] if cell.garment == cell_lib.SEEN_GARMENT else GROUPS[1]
-
-
-def mean_scores(records: list[dict]) -> dict:
-    """Per method and space, the means over cells of C1, C2, DR and DR_signed (NaN-skipping),
-    with the number of cells: {name: {space: {"c1", "c2", "dr", "dr_signed", "n_cells"}}}."""
-    out = {}
-    for name in records[0]["methods"]:
-        out[name] = {}
-        for space in SPACES:
-            vals = {k: np.array([r["methods"][name][space][k] for r in records], np.float64)
-                    for k in ("c1", "c2", "dr", "dr_signed")}
-            ok = np.isfinite(vals["dr_signed"])
-            out[name][space] = {k: float(v[ok].mean()) if ok.any() else float("nan")
-                                for k, v in vals.items()}
-            out[name][space]["n_cells"] = int(ok.sum())
-    return out
-
-
-def _fmt(d: dict, paper: bool = False) -> str:
-    if not np.isfinite(d.get("dr_signed", float("nan"))):
-        return "-"
-    if paper:
-        return f"{d['c1']:.3f} / {d['c2']:.3f} / {d['dr']:.1f} ({d['dr_signed']:+.1f})"
-    return f"{d['c1']:.3f} / {d['c2']:.3f} / {d['dr_signed']:+.1f}"
-
-
-def table_markdown(results: dict) -> str:
-    """table.md: the paper's layout for the model (rows material x motion, columns garments) in
-    both spaces; then every method per cell and the group means, in both spaces."""
-    cells = results["cells"]
-    cfg = results["config"]
-    lines = [f"# Table 2: Chamfer distances to fine-simulation patches (model "
-             f"`{results['model']}`)", "", results["sampling_text"], "",
-             "C1 = CD(a, c), C2 = CD(b, c); DR = 100 |C1 - C2| / C1 (the paper's), signed "
-             "DR = 100 (C1 - C2) / C1 (> 0: b is closer to the fine patches than the input).",
-             ""]
-    for space in SPACES:
-        where = ("2D spectral embedding (the paper's)" if space == "embedded"
-                 else "full Gram feature space")
-        lines += [f"## Model, {where}: C1 / C2 / DR (signed DR)", "",
-                  "| material | motion | " + " | ".join(
-                      f"{g} ({'seen' if g == cell_lib.SEEN_GARMENT else 'unseen'})"
-                      for g in cfg["garments"]) + " |",
-                  "|---|---|" + "---|" * len(cfg["garments"])]
-        for ma in cfg["materials"]:
-            for mo in cfg["motions"]:
-                row = [ma, f"{mo} ({'seen' if mo == cell_lib.SEEN_MOTION else 'unseen'})"]
-                for g in cfg["garments"]:
-                    key = cell_lib.Cell(g, mo, ma).key
-                    row.append(_fmt(cells[key]["methods"][MODEL][space], paper=True)
-                               if key in cells else "-")
-                lines.append("| " + " | ".join(row) + " |")
-        lines.append("")
-    for space in SPACES:
-        where = "2D spectral embedding" if space == "embedded" else "full Gram feature space"
-        lines += [f"## All methods, {where}: C1 / C2 / signed DR", "",
-                  "| cell | kind | " + " | ".join(results["methods"]) + " |",
-                  "|---|---|" + "---|" * len(results["methods"])]
-        for key, c in cells.items():
-            lines.append(f"| {key} | {c['kind']} | " + " | ".join(
-                _fmt(c["methods"][m][space]) for m in results["methods"]) + " |")
-        for group, means in [*results["by_group"].items(), ("all", results["all"])]:
-            n = means[MODEL][space]["n_cells"] if MODEL in means else ""
-            lines.append(f"| mean, {group} | {n} cells | " + " | ".join(
-                _fmt(means[m][space]) for m in results["methods"]) + " |")
-        lines.append("")
-    return "\n".join(lines)
 
 
 def plot_embeddings(path: Path, cells: list[cell_lib.Cell], records: dict[str, dict],
@@ -478,7 +306,7 @@ def run(cells: list[cell_lib.Cell], sequences: dict, methods: dict, vgg_params,
         log(f"{cell.key}: signed DR (embedded, full) {sig}")
         return rec
 
-    return cell_lib.run_cells(cells, methods, sources, path_of=lambda c: _cell_path(out, c),
+    return cell_lib.run_cells(cells, methods, sources, path_of=lambda c: cell_path(out, c),
                               fingerprint_of=fingerprint_of, load=load_cell, save=save_cell,
                               evaluate=evaluate, merge=merge_records, field="methods",
                               units=lambda names: per_loc * (2 + len(names)),

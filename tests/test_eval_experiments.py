@@ -27,9 +27,8 @@ from evaluation_fixtures import (  # tests/ is on sys.path
 from experiments import report, stride, table1, table2, temporal, timing
 from wrinkle_jax import MATERIALS, enhancer, evaluation
 from wrinkle_jax.evaluation import cells as cell_lib
-from wrinkle_jax.evaluation import patchscores, suite
+from wrinkle_jax.evaluation import headlines, patchscores, setscores, suite
 from wrinkle_jax.evaluation import seams as seam_lib
-from wrinkle_jax.evaluation import sets as set_lib
 from wrinkle_jax.sim import scenes
 
 # --------------------------------------------------------------------------------------------
@@ -208,66 +207,6 @@ def test_timing_ratios_body_and_plot(tmp_path):
 # --------------------------------------------------------------------------------------------
 
 
-def test_set_c_frames_are_between_table1_frames_never_on_them():
-    a = patchscores.Sampling().frame_indices
-    c = table2.c_frame_indices(a, 200, 10)
-    assert c == list(range(5, 200, 10)) and not set(a) & set(c)
-    assert table2.c_frame_indices([0, 3, 6], 7, 3) == [1, 4, 5]  # past the end: the one before
-    with pytest.raises(ValueError, match=">= 2"):
-        table2.c_frame_indices([0, 1], 2, 1)
-    with pytest.raises(ValueError, match="within 1 frames"):
-        table2.c_frame_indices([0], 1, 2)
-
-
-def _three_sets(n=20, seed=0):
-    """6-D Gaussian clouds (std 0.3): c at the origin, b 0.5 from it, a 3.0 from it."""
-    rng = np.random.default_rng(seed)
-    sets = []
-    for offset in (3.0, 0.5, 0.0):  # a, b, c
-        p = rng.normal(0.0, 0.3, (n, 6))
-        p[:, 0] += offset
-        sets.append(p)
-    return sets
-
-
-def test_cell_comparison_finds_b_nearer_to_c_than_a_and_a_swap_reverses_it():
-    a, b, c = _three_sets()
-    ac = np.concatenate([a, c])
-    res = {"frame": np.zeros(len(a), np.int32), "origin": np.zeros((len(a), 2), np.int32),
-           "frame_c": np.ones(len(c), np.int32), "origin_c": np.zeros((len(c), 2), np.int32),
-           "scales": {}, "n_candidates": 1, "timings": {},
-           "d2_ref": evaluation.sq_dists(ac),
-           "d2_method": {"near": np.concatenate([evaluation.sq_dists(b, ac),
-                                                 evaluation.sq_dists(b)], 1),
-                         "same": np.concatenate([evaluation.sq_dists(a, ac),
-                                                 evaluation.sq_dists(a)], 1)}}
-    d2, labels = set_lib.union_sq_dists(res["d2_ref"], res["d2_method"]["near"], len(a))
-    np.testing.assert_allclose(d2, evaluation.sq_dists(np.concatenate([a, b, c])), atol=1e-12)
-    rec = table2.cell_record(res)
-    near, same = rec["methods"]["near"], rec["methods"]["same"]
-    for space in table2.SPACES:
-        s = near[space]
-        assert s["c2"] < s["c1"] and s["dr_signed"] > 0 and s["dr"] == s["dr_signed"]
-        assert same[space]["dr_signed"] == pytest.approx(0.0, abs=1e-6)
-    assert near["full"]["c1"] == pytest.approx(evaluation.chamfer_distance(a, c), rel=1e-9)
-    assert near["full"]["c2"] == pytest.approx(evaluation.chamfer_distance(b, c), rel=1e-9)
-    emb = near["embedding"]
-    assert emb.shape == (60, 2) and emb.dtype == np.float32
-    assert np.sqrt(((emb - emb.mean(0)) ** 2).sum(1).mean()) == pytest.approx(1.0, rel=1e-5)
-    # Swapping the roles of a and b must flip the verdict.
-    swapped = set_lib.compare_sets(d2, np.choose(labels, [set_lib.SET_B, set_lib.SET_A,
-                                                         set_lib.SET_C]))
-    for space in table2.SPACES:
-        assert swapped[space]["c2"] > swapped[space]["c1"]
-        assert swapped[space]["dr_signed"] < 0 < swapped[space]["dr"]
-    # The order of the rows does not matter.
-    perm = np.random.default_rng(3).permutation(len(labels))
-    shuffled = set_lib.compare_sets(d2[np.ix_(perm, perm)], labels[perm])
-    for space in table2.SPACES:
-        for k in ("c1", "c2"):
-            assert shuffled[space][k] == pytest.approx(near[space][k], rel=1e-5)
-
-
 def test_table2_detail_features_remove_the_large_scale_and_pair_outputs_with_their_input():
     rng = np.random.default_rng(0)
     mask = np.ones((2, 24, 24, 1), np.float32)
@@ -313,7 +252,7 @@ def test_table2_main_uses_table1_patches_writes_results_and_resumes(tmp_path, mo
     assert cell["frames_a"] == [0, 2] and cell["frames_c"] == [1, 3]
     assert cell["group"] == "unseen garment" and cell["n_a"] == cell["n_c"] > 0
     ident, ours = cell["methods"]["identity"], cell["methods"][table2.MODEL]
-    for space in table2.SPACES:
+    for space in setscores.SPACES:
         assert ident[space]["dr_signed"] == pytest.approx(0.0, abs=1e-6)
         assert all(np.isfinite(ours[space][k]) for k in ("c1", "c2", "dr", "dr_signed"))
     assert ident["full"]["c1"] == ours["full"]["c1"]  # one feature space for every method
@@ -356,20 +295,6 @@ def test_table2_main_uses_table1_patches_writes_results_and_resumes(tmp_path, mo
         assert res2["all"][name] == res["all"][name]
     calls.clear()
     assert table2.main(argv) == 0 and calls == []
-
-
-def test_merge_records_checks_the_sets_and_orders_the_methods():
-    rec = {"frame": np.array([0]), "origin": np.array([[0, 0]]), "frame_c": np.array([1]),
-           "origin_c": np.array([[4, 4]]), "scales": {"relu1_2": 2.0},
-           "methods": {"a": {"x": 1}}, "timings": {"methods_s": {"a": 1.0}, "vgg_passes": 2}}
-    new = {**rec, "methods": {"b": {"x": 2}},
-           "timings": {"methods_s": {"b": 0.5}, "vgg_passes": 3}}
-    got = table2.merge_records(rec, new, ["b", "a"])
-    assert list(got["methods"]) == ["b", "a"] and got["timings"]["vgg_passes"] == 5
-    with pytest.raises(ValueError):
-        table2.merge_records(rec, {**new, "scales": {"relu1_2": 2.1}}, ["a", "b"])
-    with pytest.raises(ValueError):
-        table2.merge_records(rec, {**new, "frame_c": np.array([3])}, ["a", "b"])
 
 
 # --------------------------------------------------------------------------------------------
@@ -423,14 +348,6 @@ def test_stride_main_writes_results_table_and_plot(tmp_path, monkeypatch, tiny_v
 # --------------------------------------------------------------------------------------------
 # Report
 # --------------------------------------------------------------------------------------------
-
-
-def test_report_demote_and_drop():
-    text = "# A\n## B\ntext # not a heading"
-    assert report.demote(text, 1) == "## A\n### B\ntext # not a heading"
-    right, wrong = {"signed_mean": 40.0}, {"signed_mean": 38.0}
-    assert report._drop(right, wrong, "signed_mean") == pytest.approx(5.0)
-    assert report._drop({"signed_mean": 0.0}, wrong, "signed_mean") is None
 
 
 def test_report_assembles_stored_results_and_names_what_is_missing(tmp_path, monkeypatch,
@@ -561,50 +478,5 @@ def test_fidelity_summary_and_report_section():
     text = "\n".join(rep.lines)
     # Columns: vs the val-swept unsharp, vs the card's, vs the per-material gains (absent here).
     assert "| new | +70.0 (+70.0) | +30.0 [+30.0, +30.0] |  |  | +20.0 (+20.0) |" in text
-    rows = report.fidelity_headline({"unseen garment": got})
+    rows = headlines.fidelity_headline({"unseen garment": got})
     assert len(rows) == 1 and "**+70.0**" in rows[0] and "median +40.0" in rows[0]
-
-
-def test_report_ship_test_headline_states_the_paired_differences_of_the_stored_candidate():
-    def pd(med, lo, hi):
-        return {"n": 640, "median_diff": med, "median_diff_ci": [lo, hi]}
-
-    ship = {"unseen garment": {"methods": {
-        "identity": {"detail": {"n": 640}},
-        "unsharp_material": {"detail": {"vs_unsharp_card": pd(18.5, 15.5, 21.2)}},
-        "run7b": {"detail": {"n": 640, "vs_unsharp_material": pd(0.7, -2.9, 2.8),
-                             "vs_unsharp_card": pd(10.6, 7.1, 15.8)}}}}}
-    rows = report.ship_test_headline(ship)
-    assert len(rows) == 1  # one row per model, none for the baselines
-    assert "(run7b)" in rows[0] and "640 new held-out patches" in rows[0]
-    assert "+0.7 [-2.9, +2.8]" in rows[0] and "+10.6 [+7.1, +15.8]" in rows[0]
-    assert "+18.5 [+15.5, +21.2]" in rows[0]
-    assert report.ship_test_headline(None) == [] and report.ship_test_headline({}) == []
-    ship["unseen garment"]["methods"]["shipped"] = {"detail": {
-        "n": 640, "signed_median": 30.0, "vs_unsharp_material": pd(-9.0, -12.0, -6.0),
-        "vs_unsharp_card": pd(-1.0, -3.0, 1.0)}}
-    rows = report.ship_test_headline(ship)
-    assert len(rows) == 2 and "(run7b)" in rows[0]  # the shipped model is reported apart
-    assert "median +30.0" in rows[1] and "-9.0 [-12.0, -6.0]" in rows[1]
-
-
-def test_report_table2_detail_headline_gives_means_medians_and_the_oracles_as_ceilings():
-    def cell(group, model, oracle):
-        def m(e, f):
-            return {"embedded": {"dr_signed": e}, "full": {"dr_signed": f}}
-        return {"group": group, "methods": {"identity": m(0.0, 0.0), "model": m(*model),
-                                            "oracle fine": m(*oracle)}}
-
-    t2d = {"methods": ["identity", "model", "oracle fine"],
-           "by_group": {"unseen garment": {"model": {}}},
-           "cells": {"a": cell("unseen garment", (10.0, -2.0), (40.0, 1.0)),
-                     "b": cell("unseen garment", (-100.0, -4.0), (20.0, 3.0)),
-                     "c": cell("unseen garment", (30.0, 0.0), (30.0, 5.0)),
-                     "d": cell("seen garment", (99.0, 99.0), (99.0, 99.0))}}
-    rows = report.table2_detail_headline(t2d)
-    assert len(rows) == 1 and "3 unseen-garment cells" in rows[0]
-    assert "model -20.0 (+10.0) / -2.0 (-2.0)" in rows[0]  # mean (median) over cells
-    head, ceilings = rows[0].split("Ceilings")
-    assert "oracle fine" not in head and "identity" not in head
-    assert "oracle fine +30.0 (+30.0) / +3.0 (+3.0)" in ceilings
-    assert report.table2_detail_headline(None) == []

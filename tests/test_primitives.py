@@ -20,8 +20,8 @@ def test_wavy_normal_maps_are_unit_normals_seeded_and_flat_without_waves():
 
 
 def test_wrinkled_sheet_case_grid_size():
-    # Its geometry and target normals are checked through bench_reference's adapter
-    # (tests/test_bench_reference.py::test_lift_case_targets_are_the_ideal_surfaces_normals).
+    # Its geometry and target normals are checked through `reference.make_lift_case`
+    # (tests/test_reference.py::test_lift_case_targets_are_the_ideal_surfaces_normals).
     case = primitives.wrinkled_sheet_case(45)  # bench_lift's 2k size: 11 x 11 cells, 0.45 m
     assert case["coarse"].num_vertices == 12 * 12
     np.testing.assert_allclose(np.ptp(case["coarse"].vertices[:, :2], axis=0), 0.45, atol=1e-6)

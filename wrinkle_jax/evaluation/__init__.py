@@ -14,9 +14,12 @@ Modules (by concept):
     gram        several methods scored on the same patches with shared Gram matrices
     methods     the model, other model files and the baselines as methods on patch sets
     patchscores Table 1's scoring of a cell's patches, its cell files, the tables' setup
+    setscores   Table 2's cell records (set distances), their files, means and table
     temporal    flicker of an enhanced sequence (streamed through the pipeline)
     cells       the evaluation cells (garment x material x motion) and their simulations
     suite       the evaluation scripts' folders, results files and argument parsers
+    markdown    the evaluation report's line collector (missing results, machines)
+    headlines   the evaluation report's headline rows, from the stored results
 
 The names of `scores`, `stats`, `baselines`, `bands`, `sets` and `flicker` are re-exported
 here (`evaluation.score_patches`, `evaluation.unsharp_mask`, `evaluation.chamfer_distance`,

@@ -13,7 +13,8 @@ held-out coarse sequences): when the simulator's fabrics change, re-simulate and
    held-out sequence's first frame carried rigidly by the body (`motion.follow_body_rigidly`);
    real LBS = the `experiments.make_lbs_sequences` files in --lbs-data, when present.
 2. Selection by leave-one-training-scene-out cross-validation only: each feature family alone,
-   all together and all but one, times three L2 weights; the pick maximizes CV per-sequence
+   all together and all but one, times three L2 weights and three prediction clips
+   (`MotionConfig.clip`: off, 3, 2 standard deviations); the pick maximizes CV per-sequence
    accuracy (ties: lower CV NLL). Held-out numbers are printed for every candidate but never
    read by the choice.
 3. Calibration on the pick's out-of-fold predictions: temperature (sequence level), abstain
@@ -42,6 +43,7 @@ from wrinkle_jax.sim import scenes
 
 ROOT = Path(__file__).resolve().parents[1]
 L2S = (1e-3, 1e-2, 1e-1)
+CLIPS = (0.0, 3.0, 2.0)  # MotionConfig.clip candidates (0: off)
 
 
 def candidate_families() -> list[tuple[str, ...]]:
@@ -299,15 +301,15 @@ def main(argv=None) -> int:
 
     # Selection: CV numbers only; the held-out column is printed for the record.
     cands = []
-    for fams, l2 in itertools.product(candidate_families(), L2S):
-        cfg = dataclasses.replace(base, families=fams, l2=l2)
+    for fams, l2, clip in itertools.product(candidate_families(), L2S, CLIPS):
+        cfg = dataclasses.replace(base, families=fams, l2=l2, clip=clip)
         cv = cross_validate(train, cfg)
         t = cal.fit_temperature(cv["mean_lp"], cv["labels"])
         cv_nll = cal.nll(cal.sequence_probs(cv["mean_lp"], t), cv["labels"])
         model = cal.fit(*_stack(train), cfg)
         ho = np.array([cal.window_log_probs(model, e["features"]).mean(0) for e in heldout])
         ho_acc = float(np.mean(ho.argmax(1) == [e["label"] for e in heldout]))
-        row = {"families": list(fams), "l2": l2, "cv_seq_acc": cv["seq_acc"],
+        row = {"families": list(fams), "l2": l2, "clip": clip, "cv_seq_acc": cv["seq_acc"],
                "cv_win_acc": cv["win_acc"], "cv_nll": cv_nll, "heldout_seq_acc": ho_acc}
         cands.append((row, cfg, cv))
         print(json.dumps(row), flush=True)

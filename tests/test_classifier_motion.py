@@ -1,5 +1,7 @@
 """Motion features and the calibrated, abstaining classifier (issue 25)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -201,6 +203,23 @@ def test_abstains_on_constant_input_and_round_trips(tmp_path):
     assert r2.confidence == pytest.approx(good.confidence, rel=1e-4)
     with pytest.raises(cal.ClassifierError):
         cal.load(tmp_path / "missing.npz")
+
+
+def test_clip_bounds_the_logits_of_an_input_unlike_the_training_data():
+    x, y = _blobs(3, n=30)
+    cfg = cal.MotionConfig(steps=50, clip=2.0)
+    model = cal.fit(x, y, cfg)
+    at_edge = model.mean + 2.0 * model.std                      # +2 sd on every used feature
+    far = model.mean + 50.0 * model.std
+    lp_edge = cal.window_log_probs(model, at_edge[None])
+    np.testing.assert_allclose(cal.window_log_probs(model, far[None]), lp_edge, atol=1e-9)
+    unclipped = model._replace(config=dataclasses.replace(cfg, clip=0.0))
+    assert np.abs(cal.window_log_probs(unclipped, far[None]) - lp_edge).max() > 1.0
+    # inside the range nothing changes; the novelty guard still sees the far input
+    inside = model.mean + np.array([[-1.9], [0.0], [1.0]]) * model.std     # within 2 sd
+    np.testing.assert_allclose(cal.window_log_probs(model, inside),
+                               cal.window_log_probs(unclipped, inside), atol=1e-12)
+    assert cal.novelty(model, far[None]) > 100 * cal.novelty(model, inside)
 
 
 def test_group_answer_when_the_material_is_unsure():

@@ -45,7 +45,7 @@ def main(argv=None) -> None:
         st = intersect.self_intersection_stats(np.asarray(seq.frames), seq.garment.faces,
                                                every=args.every)
         meta = seq.metadata
-        rows[name] = {"faces": int(len(seq.garment.faces)), "frames": len(seq),
+        rows[name] = {"faces": int(len(seq.garment.faces)), "num_frames": len(seq),
                       "substeps": meta.get("substeps"),
                       "self_collision": meta.get("self_collision") is not None,
                       "generator": meta.get("generator"), **st}

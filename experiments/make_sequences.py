@@ -17,8 +17,8 @@ tracks) for:
     (PD 30 mm), seed 1.
 
 Self-collision (`--self-collision`, default on since issue 24): each resolution simulates with
-`scenes.SELF_COLLISION[resolution]` (recorded in every file's metadata, with the dropped-
-candidate counts).
+`scenes.self_collision_config(resolution, substeps)` (`scenes.SELF_COLLISION`'s settings at
+the job's substeps; recorded in every file's metadata, with the dropped-candidate counts).
 
 Coarse substeps (`--coarse-substeps N`, default `scenes.DATASET_COARSE_SUBSTEPS` = 80; the
 scenes' own is 20): the coarse (PD 30 mm) jobs' solver substeps per frame. At 20 the coarse

@@ -59,6 +59,7 @@ from wrinkle_jax import enhancer as enhancer_lib
 from wrinkle_jax import normalmap
 from wrinkle_jax.mesh import Garment
 from wrinkle_jax.meshio import GarmentSequence
+from wrinkle_jax.numerics import to_device
 
 # The per-garment setup, re-exported: `pipeline` is where users (and benchmarks) find it.
 from wrinkle_jax.pipeline_setup import (  # noqa: F401
@@ -178,7 +179,7 @@ def _run_network(pipe: Pipeline, inputs, material_id: int, counts: dict):
     apply = _network_apply(pipe.enhancer)
     b, p, f = pipe.config.batch_size, pipe.num_patches, pipe.frames_per_call
     n = inputs.shape[0]
-    material = jnp.asarray(material_id, jnp.int32)
+    material = to_device(np.int32(material_id))
     origins = _noise_origins(pipe)
     outs = []
     for g in range(0, n, f):
@@ -219,7 +220,7 @@ def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int
     cfg = pipe.config
     indices = list(range(len(frames)) if indices is None else indices)
     mask = _padded_mask(pipe)
-    origins = jnp.asarray(pipe.origins)
+    origins = to_device(pipe.origins)
     size = pipe.enhancer.config.patch_size
     lift_static = _lift_static(pipe)
     # The lift's warm start: the previous frame's offsets in its local frames (zeros: cold).
@@ -235,7 +236,7 @@ def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int
         coarse = np.asarray(frames[np.asarray(padded_idx)], np.float32)
         # Static arguments by keyword, exactly as in `_compile` (the jit cache key differs
         # between positional and keyword static arguments).
-        maps, rgb = _bake_chunk(pipe.plan, jnp.asarray(coarse), mask, smooth=cfg.smooth,
+        maps, rgb = _bake_chunk(pipe.plan, to_device(coarse), mask, smooth=cfg.smooth,
                                 padded_shape=pipe.padded_shape)
         rgb.block_until_ready()
         t0 = _add(timings, "bake", t0)
@@ -261,13 +262,13 @@ def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int
                         _body_for(pipe.body, t), pipe.resolve_coarse)
                 if cfg.warm_start:
                     detailed, carried, info = _lift_frame_warm(
-                        jnp.asarray(coarse[j]), jnp.asarray(enhanced[j]), carried, *args,
+                        to_device(coarse[j]), to_device(enhanced[j]), carried, *args,
                         **lift_static)
                     counts["lift_iterations"] += int(info.iterations)
                 else:
                     # The very computation `frame_fn` runs (bit for bit: a lift that stops
                     # short of convergence amplifies rounding differences).
-                    detailed = _lift_frame(jnp.asarray(coarse[j]), jnp.asarray(enhanced[j]),
+                    detailed = _lift_frame(to_device(coarse[j]), to_device(enhanced[j]),
                                            *args, **lift_static)
                 detailed = np.array(detailed)
                 _add(timings, "lift", t0)
@@ -319,7 +320,7 @@ def frame_fn(pipe: Pipeline, body=None) -> Callable[..., FrameResult]:
                           window=cfg.window, noise=bool(pipe.enhancer.config.unet.noise_channels),
                           lift=lift)
     setup = dict(plan=pipe.plan, padded_mask=_padded_mask(pipe),
-                 origins=jnp.asarray(pipe.origins), mask=jnp.asarray(pipe.mask),
+                 origins=to_device(pipe.origins), mask=to_device(pipe.mask),
                  subdivision=pipe.subdivision, fine_garment=pipe.fine_garment,
                  topology=pipe.topology, body=body, resolve_coarse=pipe.resolve_coarse)
 

@@ -29,10 +29,12 @@ def to_device(tree, dtype=None):
     jax_enable_x64), but `jnp.asarray` of a NumPy array dispatches a one-op XLA program (jax
     0.10: `stage`, or `convert_element_type` with a dtype) that compiles, 20-40 ms on a 2-core
     machine, once per shape and dtype; `jax.device_put` only copies. Set-up code (plans,
-    index tables, model weights) converts with this. `dtype`: cast on the host first.
+    index tables, model weights) converts with this. `dtype`: cast on the host first (JAX
+    values, e.g. tracers, are cast with `jnp.asarray`).
     """
     if dtype is not None:
-        tree = jax.tree.map(lambda a: np.asarray(a, dtype), tree)
+        tree = jax.tree.map(lambda a: jnp.asarray(a, dtype) if isinstance(a, jax.Array)
+                            else np.asarray(a, dtype), tree)
     return jax.device_put(tree)
 
 

@@ -48,6 +48,7 @@ Example:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable, Iterator, Sequence
 
@@ -166,7 +167,30 @@ def _add(timings: dict, stage: str, t0: float) -> float:
     return now
 
 
-def _run_network(pipe: Pipeline, inputs, material_id: int, counts: dict):
+@functools.partial(jax.jit, static_argnames=("frames", "count"))
+def _network_groups(inputs, frames: int, count: int):
+    """The first `count` frames of `inputs` (T, P, S, S, C) cut into groups of `frames`
+    frames, each flattened to (frames * P, S, S, C), the last one zero-padded to whole frames:
+    the network calls' inputs, as one jitted program (slicing, padding and reshaping them
+    eagerly compiled one XLA program per op)."""
+    x = inputs[:count]
+    calls = -(-count // frames)
+    if calls * frames > count:  # whole frames of zeros: the compiled shape
+        x = jnp.pad(x, ((0, calls * frames - count),) + ((0, 0),) * (x.ndim - 1))
+    x = x.reshape(calls, frames * x.shape[1], *x.shape[2:])
+    return tuple(x[i] for i in range(calls))
+
+
+@functools.partial(jax.jit, static_argnames=("patches", "count", "total"))
+def _network_join(outs, patches: int, count: int, total: int):
+    """The network calls' outputs (each (F * P, S, S, C)) back to frames: the first `count`
+    frames, zero-padded to `total` frames, (total, P, S, S, C) (one jitted program)."""
+    x = jnp.concatenate(outs).reshape(-1, patches, *outs[0].shape[1:])[:count]
+    return jnp.pad(x, ((0, total - count),) + ((0, 0),) * (x.ndim - 1))
+
+
+def _run_network(pipe: Pipeline, inputs, material_id: int, counts: dict,
+                 frames: int | None = None):
     """U-Net over the patches of n frames, (n, P, S, S, 3) -> same shape, RGB form.
 
     One `network_stage` call per group of `frames_per_call` frames (their patches
@@ -174,27 +198,23 @@ def _run_network(pipe: Pipeline, inputs, material_id: int, counts: dict):
     frames, so the call compiles once). With one frame per call every batch holds patches of
     a single frame at fixed positions, so a patch's result never depends on its neighbours in
     the chunk. Models with texel noise get each patch's origin, so the noise is fixed to the
-    cloth.
+    cloth. `frames`: only the first `frames` of the n frames are real (default all); the
+    others are not run and come back as zeros (a chunk's padding).
     """
     apply = _network_apply(pipe.enhancer)
     b, p, f = pipe.config.batch_size, pipe.num_patches, pipe.frames_per_call
-    n = inputs.shape[0]
+    total = inputs.shape[0]
+    n = total if frames is None else int(frames)
     material = to_device(np.int32(material_id))
     origins = _noise_origins(pipe)
-    outs = []
-    for g in range(0, n, f):
-        group = inputs[g:g + f]
-        k = group.shape[0]
-        if k < f:  # whole frames of zeros: the compiled shape
-            group = jnp.pad(group, ((0, f - k),) + ((0, 0),) * 4)
-        out = _network_frame(apply, pipe.enhancer.params, group.reshape(f * p, *group.shape[2:]),
-                             material, batch_size=b, origins=origins)
-        outs.append(out.reshape(group.shape)[:k])
+    outs = [_network_frame(apply, pipe.enhancer.params, group, material, batch_size=b,
+                           origins=origins)
+            for group in _network_groups(inputs, frames=f, count=n)]
     calls = -(-n // f)
     counts["network"] += n * p
     counts["padding"] += calls * pipe.batches_per_call * b - n * p
     counts["batches"] += calls * pipe.batches_per_call
-    return outs[0] if len(outs) == 1 else jnp.concatenate(outs)
+    return _network_join(tuple(outs), patches=p, count=n, total=total)
 
 
 def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int] | None = None,
@@ -244,12 +264,11 @@ def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int
         tiles.block_until_ready()
         del rgb
         t0 = _add(timings, "tile", t0)
-        out = _run_network(pipe, tiles[:n], material_id, counts)
+        # The chunk's padding frames are not enhanced: zeros (the merge's compiled shape).
+        out = _run_network(pipe, tiles, material_id, counts, frames=n)
         out.block_until_ready()
         del tiles
         t0 = _add(timings, "network", t0)
-        if n < cfg.chunk_size:  # keep the merge's compiled shape
-            out = jnp.pad(out, ((0, cfg.chunk_size - n),) + ((0, 0),) * 4)
         enhanced = _merge_chunk(out, origins, mask, maps, window=cfg.window, shape=pipe.shape)
         enhanced = np.array(enhanced)  # host-owned (writable) copy; the device chunk is freed
         del out, maps

@@ -43,7 +43,7 @@ from wrinkle_jax.mesh_body import (  # noqa: F401  (re-exported: the public body
     mesh_template,
     pose_mesh_body,
 )
-from wrinkle_jax.numerics import normalize, safe_div, safe_norm
+from wrinkle_jax.numerics import normalize, safe_div, safe_norm, to_device
 
 __all__ = ["BodyError", "BodyQuery", "Capsules", "GridMeshBody", "MeshBody", "MeshTemplate",
            "PrimitiveBody",
@@ -110,7 +110,7 @@ def primitive_body(spheres=None, capsules=None) -> PrimitiveBody:
         r = np.broadcast_to(np.asarray(spheres[1], np.float32), (len(c),)).copy()
         if not (r > 0).all():
             raise BodyError("sphere radii must be positive")
-        sp = Spheres(jnp.asarray(c), jnp.asarray(r))
+        sp = Spheres(*to_device((c, r)))
     if capsules is not None:
         a = _f32(capsules[0], (3,), "capsule starts")
         b = _f32(capsules[1], (3,), "capsule ends")
@@ -119,7 +119,7 @@ def primitive_body(spheres=None, capsules=None) -> PrimitiveBody:
         r = np.broadcast_to(np.asarray(capsules[2], np.float32), (len(a),)).copy()
         if not (r > 0).all():
             raise BodyError("capsule radii must be positive")
-        cp = Capsules(jnp.asarray(a), jnp.asarray(b), jnp.asarray(r))
+        cp = Capsules(*to_device((a, b, r)))
     if sp is None and cp is None:
         raise BodyError("a primitive body needs at least one sphere or capsule")
     return PrimitiveBody(sp, cp)

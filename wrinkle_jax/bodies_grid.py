@@ -38,6 +38,7 @@ from wrinkle_jax.mesh_body import (
     feature_pseudo_normal,
     signed_answer,
 )
+from wrinkle_jax.numerics import to_device
 
 _closest_point_jit = jax.jit(closest_point_on_triangle)
 
@@ -242,13 +243,14 @@ def grid_mesh_body(vertices, faces, cell_size: float | None = None, max_candidat
     cand = cand.astype(np.int32)
     far = ~near
     inside = _flood_inside(far.reshape(dims))
+    # `to_device`: host casts and copies, no one-op compile per array.
     return GridMeshBody(
-        vertices=jnp.asarray(v, jnp.float32), faces=jnp.asarray(f, jnp.int32),
-        face_normals=jnp.asarray(fn, jnp.float32), vertex_normals=jnp.asarray(vn, jnp.float32),
-        edge_normals=jnp.asarray(en, jnp.float32), face_edges=jnp.asarray(fe),
-        origin=jnp.asarray(origin, jnp.float32), cell_size=jnp.asarray(cell_size, jnp.float32),
-        candidates=jnp.asarray(cand), cell_far=jnp.asarray(far),
-        cell_inside=jnp.asarray(inside.reshape(-1)), dims=dims,
+        **to_device(dict(vertices=v, face_normals=fn, vertex_normals=vn, edge_normals=en,
+                         origin=origin, cell_size=cell_size), np.float32),
+        faces=to_device(f, np.int32),
+        **to_device(dict(face_edges=fe, candidates=cand, cell_far=far,
+                         cell_inside=inside.reshape(-1))),
+        dims=dims,
     )
 
 

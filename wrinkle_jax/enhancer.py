@@ -35,6 +35,7 @@ import numpy as np
 
 from wrinkle_jax import MATERIALS, modelfile, normalmap
 from wrinkle_jax.nn import unet
+from wrinkle_jax.numerics import to_device
 
 __all__ = ["DEFAULT_PATH", "Enhancer", "EnhancerConfig", "EnhancerError", "from_torch_checkpoint",
            "init_enhancer", "load_enhancer", "make_apply", "save_enhancer"]
@@ -152,7 +153,7 @@ def load_enhancer(path: str | os.PathLike | None = None,
     except (TypeError, ValueError, KeyError) as e:
         raise EnhancerError(f"{path}: not a readable enhancer file ({e})") from None
     flat = modelfile.float32_params(files)
-    params = jax.tree.map(jnp.asarray, modelfile.unflatten(flat))
+    params = to_device(modelfile.unflatten(flat))  # one copy, no per-leaf compile
     model = config.model(conv_impl)
     want = jax.eval_shape(lambda: unet.init_params(model, jax.random.key(0, impl="rbg"),
                                                    config.patch_size))

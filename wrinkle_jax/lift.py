@@ -62,7 +62,7 @@ from wrinkle_jax.lift_energy import (  # noqa: F401
     make_solver,
     mean_edge,
 )
-from wrinkle_jax.numerics import normalize, safe_div
+from wrinkle_jax.numerics import normalize, safe_div, to_device
 from wrinkle_jax.solvers import SolverConfig  # re-exported: the `solver` argument of `lift`
 
 # k of `texel_subdivision_level`: lifted edges of at least this many texels (measured on the
@@ -144,7 +144,7 @@ def upsample(garment: mesh.Garment, target_edge: float = REFERENCE_EDGE,
 def coarse_mean_edge(garment: mesh.Garment) -> float:
     """Mean edge length (meters) of a garment's unique edges (NumPy)."""
     edges = mesh.unique_edges(garment.faces)
-    return float(mesh.mean_edge_length(np.asarray(garment.vertices, np.float64), edges))
+    return mesh.mean_edge_length_np(garment.vertices, edges)
 
 
 def sample_target_normals(normal_map, garment: mesh.Garment, layout: normalmap.UVLayout):
@@ -411,10 +411,10 @@ def resolve_coarse(subdivision: mesh.Subdivision, topology: LiftTopology, phi: f
     a_c = (a * _gram(_product(lap, p, n), n, cols)
            + (b + config.coarse_mass * (1.0 - b)) * _gram(p, n, cols))
     r, c, v = (np.asarray(x) for x in p)
-    prolong = mesh.SparseOperator(jnp.asarray(r, jnp.int32), jnp.asarray(c, jnp.int32),
-                                  jnp.asarray(v, jnp.float32), (n, cols))
+    prolong = mesh.SparseOperator(*to_device((r, c), np.int32), to_device(v, np.float32),
+                                  (n, cols))
     restrict = mesh.SparseOperator(prolong.cols, prolong.rows, prolong.values, (cols, n))
-    return ResolveCoarse(prolong, restrict, jnp.asarray(np.linalg.inv(a_c), jnp.float32),
+    return ResolveCoarse(prolong, restrict, to_device(np.linalg.inv(a_c), np.float32),
                          (float(phi), config.compliance, config.coarse_mass))
 
 

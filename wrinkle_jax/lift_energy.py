@@ -73,7 +73,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax import mesh, solvers
-from wrinkle_jax.numerics import normalize, safe_div, safe_norm
+from wrinkle_jax.numerics import normalize, safe_div, safe_norm, to_device
 from wrinkle_jax.solvers import SolverConfig
 
 REFERENCE_EDGE = 0.01  # meters: the paper's fine particle distance, where weights are calibrated
@@ -188,10 +188,11 @@ def lift_topology(faces, num_vertices: int) -> LiftTopology:
     lapt_off = np.where(valid.reshape(-1) & (slot_key[tslot] == tkey),
                         lap_off.reshape(-1)[tslot], 0.0).reshape(nbr.shape)
     ltl_diag = diag**2 + np.bincount(c[off], v[off] ** 2, minlength=n)  # sum_m L_mi^2
-    f32 = lambda a: jnp.asarray(np.asarray(a, np.float32))  # noqa: E731
-    return LiftTopology(faces=jnp.asarray(np.asarray(faces, np.int32)),
-                        neighbors=jnp.asarray(nbr), valid=f32(valid), lap_off=f32(lap_off),
-                        lap_diag=f32(diag), lapt_off=f32(lapt_off), ltl_diag=f32(ltl_diag))
+    f32 = lambda a: np.asarray(a, np.float32)  # noqa: E731
+    return LiftTopology(**to_device(dict(
+        faces=np.asarray(faces, np.int32), neighbors=np.asarray(nbr), valid=f32(valid),
+        lap_off=f32(lap_off), lap_diag=f32(diag), lapt_off=f32(lapt_off),
+        ltl_diag=f32(ltl_diag))))
 
 
 def _ring_apply(off, diag, x, x_nbr):

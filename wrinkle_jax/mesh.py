@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax.numerics import normalize, safe_div, safe_norm
+from wrinkle_jax.numerics import EPS_SQ, normalize, safe_div, safe_norm
 
 
 class GarmentError(ValueError):
@@ -213,6 +213,15 @@ def global_uv_scale(garment: Garment) -> float:
 def mean_edge_length(vertices, edges):
     """Mean length (meters) of the given edges (E, 2)."""
     return jnp.mean(safe_norm(vertices[edges[:, 1]] - vertices[edges[:, 0]]))
+
+
+def mean_edge_length_np(vertices, edges) -> float:
+    """`mean_edge_length` in NumPy float64, for set-up code (compiles nothing); lengths at or
+    below sqrt(EPS_SQ) count as 0, as in `safe_norm`."""
+    d = np.asarray(vertices, np.float64)
+    d = d[edges[:, 1]] - d[edges[:, 0]]
+    sq = np.einsum("ij,ij->i", d, d)
+    return float(np.mean(np.where(sq > EPS_SQ, np.sqrt(sq), 0.0)))
 
 
 # --------------------------------------------------------------------------------------------
@@ -575,7 +584,7 @@ def subdivide_to_edge_length(garment: Garment, target_edge: float, scheme: str =
     if not target_edge > 0:
         raise ValueError(f"target_edge must be positive, got {target_edge}")
     edges = unique_edges(garment.faces)
-    mean = float(mean_edge_length(np.asarray(garment.vertices, np.float64), edges))
+    mean = mean_edge_length_np(garment.vertices, edges)
     levels = 0 if mean <= target_edge else math.ceil(math.log2(mean / target_edge))
     return subdivision(garment, min(levels, max_levels), scheme)
 

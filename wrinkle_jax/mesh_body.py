@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax.numerics import normalize, positive_div, safe_div, safe_norm
+from wrinkle_jax.numerics import normalize, positive_div, safe_div, safe_norm, to_device
 
 # Distance (meters) below which a point is treated as lying on the surface: its outward
 # direction then comes from the surface normal instead of (point - closest).
@@ -340,9 +340,9 @@ def mesh_template(vertices, faces, cell_size: float | None = None, cluster_size:
     per_slot = np.quantile(per_slot[per_slot > 0], quantile)
     k = int(near_clusters)
     return MeshTemplate(
-        faces=jnp.asarray(f, jnp.int32), face_edges=jnp.asarray(fe),
-        clusters=jnp.asarray(clusters, jnp.int32), cell_size=jnp.asarray(h, jnp.float32),
-        band=jnp.asarray(band, jnp.float32), num_vertices=len(v), num_edges=len(en),
+        **to_device(dict(faces=f, clusters=clusters), np.int32), face_edges=to_device(fe),
+        **to_device(dict(cell_size=h, band=band), np.float32), num_vertices=len(v),
+        num_edges=len(en),
         table_size=table, entry_capacity=1024 * int(math.ceil(slack * len(q) / 1024)),
         cell_capacity=max(8 * int(math.ceil(slack * per_slot / 8)), 8 * (k // 8 + 1)),
         near_clusters=k, batch=int(batch))

@@ -32,7 +32,7 @@ import numpy as np
 
 from wrinkle_jax.fileio import atomic_write_bytes
 from wrinkle_jax.mesh import Garment, GarmentError, face_normals, global_uv_scale, vertex_normals
-from wrinkle_jax.numerics import BARY_EPS, UV_AREA_EPS, normalize, safe_div
+from wrinkle_jax.numerics import BARY_EPS, UV_AREA_EPS, normalize, safe_div, to_device
 
 DEFAULT_TEXEL_SIZE = 0.002  # meters of cloth per texel (paper: fixed physical pixel size)
 
@@ -302,17 +302,18 @@ def make_plan(garment: Garment, texel_size: float = DEFAULT_TEXEL_SIZE, gutter: 
     index_map = np.full(h * w, len(pix), np.int32)
     index_map[pix] = np.arange(len(pix), dtype=np.int32)
     faces = np.asarray(garment.faces, np.int32)
-    # Device arrays: passing the plan to a jitted bake then copies nothing per call.
-    return RasterPlan(
-        faces=jnp.asarray(faces),
-        texel_pixel=jnp.asarray(pix.astype(np.int32)),
-        texel_tri=jnp.asarray(tid.astype(np.int32)),
-        texel_vertex=jnp.asarray(faces[tid].reshape(-1, 3)),
-        texel_bary=jnp.asarray(bary.astype(np.float32).reshape(-1, 3)),
-        index_map=jnp.asarray(index_map.reshape(h, w)),
-        mask=jnp.asarray(mask.reshape(h, w, 1)),
-        layout=layout,
-    )
+    # Device arrays: passing the plan to a jitted bake then copies nothing per call
+    # (`to_device`: copies only, no op-by-op compile per array).
+    arrays = to_device(dict(
+        faces=faces,
+        texel_pixel=pix.astype(np.int32),
+        texel_tri=tid.astype(np.int32),
+        texel_vertex=faces[tid].reshape(-1, 3),
+        texel_bary=bary.astype(np.float32).reshape(-1, 3),
+        index_map=index_map.reshape(h, w),
+        mask=mask.reshape(h, w, 1),
+    ))
+    return RasterPlan(**arrays, layout=layout)
 
 
 def _gutter(mask: np.ndarray, pix, tid, tri, gutter: int):

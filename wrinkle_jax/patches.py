@@ -208,6 +208,17 @@ def extract(image, origins, size: int):
     Returns:
       (P, size, size, C) patches, same dtype as ``image``.
     """
+    # One jitted program (not a dozen eager ops, each compiled on first use in a notebook).
+    return _extract(image, _index_array(origins), size=int(size))
+
+
+def _index_array(origins):
+    """Origins that are not JAX values as a NumPy array (a jitted call's argument)."""
+    return origins if isinstance(origins, jax.Array) else np.asarray(origins)
+
+
+@functools.partial(jax.jit, static_argnames=("size",))
+def _extract(image, origins, size: int):
     image = jnp.asarray(image)
     if image.ndim != 3:
         raise ValueError(f"image must have shape (H, W, C), got {image.shape}")
@@ -304,13 +315,21 @@ def merge(
       ``(merged, coverage)``: (H, W, C) merged map in the dtype of ``patches`` and (H, W, 1)
       float32 sum of window weights per texel (the number of covering patches for "uniform").
     """
+    # One jitted program (not ~25 eager ops, each compiled on first use in a notebook).
+    return _merge(patches, _index_array(origins), mask,
+                  shape=tuple(int(s) for s in shape), window=window,
+                  renormalize=bool(renormalize))
+
+
+@functools.partial(jax.jit, static_argnames=("shape", "window", "renormalize"))
+def _merge(patches, origins, mask, shape, window: str, renormalize: bool):
     patches = jnp.asarray(patches)
     if patches.ndim != 4 or patches.shape[1] != patches.shape[2]:
         raise ValueError(f"patches must have shape (P, size, size, C), got {patches.shape}")
     n_patches, size, _, channels = patches.shape
-    height, width = int(shape[0]), int(shape[1])
-    if len(shape) > 2 and int(shape[2]) != channels:
-        raise ValueError(f"shape {tuple(shape)} does not match {channels} patch channels")
+    height, width = shape[0], shape[1]
+    if len(shape) > 2 and shape[2] != channels:
+        raise ValueError(f"shape {shape} does not match {channels} patch channels")
     origins = jnp.asarray(origins).reshape(-1, 2)
     if origins.shape[0] != n_patches:
         raise ValueError(f"{origins.shape[0]} origins for {n_patches} patches")

@@ -48,6 +48,7 @@ Example:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable, Iterator, Sequence
 
@@ -59,6 +60,7 @@ from wrinkle_jax import enhancer as enhancer_lib
 from wrinkle_jax import normalmap
 from wrinkle_jax.mesh import Garment
 from wrinkle_jax.meshio import GarmentSequence
+from wrinkle_jax.numerics import to_device
 
 # The per-garment setup, re-exported: `pipeline` is where users (and benchmarks) find it.
 from wrinkle_jax.pipeline_setup import (  # noqa: F401
@@ -165,7 +167,30 @@ def _add(timings: dict, stage: str, t0: float) -> float:
     return now
 
 
-def _run_network(pipe: Pipeline, inputs, material_id: int, counts: dict):
+@functools.partial(jax.jit, static_argnames=("frames", "count"))
+def _network_groups(inputs, frames: int, count: int):
+    """The first `count` frames of `inputs` (T, P, S, S, C) cut into groups of `frames`
+    frames, each flattened to (frames * P, S, S, C), the last one zero-padded to whole frames:
+    the network calls' inputs, as one jitted program (slicing, padding and reshaping them
+    eagerly compiled one XLA program per op)."""
+    x = inputs[:count]
+    calls = -(-count // frames)
+    if calls * frames > count:  # whole frames of zeros: the compiled shape
+        x = jnp.pad(x, ((0, calls * frames - count),) + ((0, 0),) * (x.ndim - 1))
+    x = x.reshape(calls, frames * x.shape[1], *x.shape[2:])
+    return tuple(x[i] for i in range(calls))
+
+
+@functools.partial(jax.jit, static_argnames=("patches", "count", "total"))
+def _network_join(outs, patches: int, count: int, total: int):
+    """The network calls' outputs (each (F * P, S, S, C)) back to frames: the first `count`
+    frames, zero-padded to `total` frames, (total, P, S, S, C) (one jitted program)."""
+    x = jnp.concatenate(outs).reshape(-1, patches, *outs[0].shape[1:])[:count]
+    return jnp.pad(x, ((0, total - count),) + ((0, 0),) * (x.ndim - 1))
+
+
+def _run_network(pipe: Pipeline, inputs, material_id: int, counts: dict,
+                 frames: int | None = None):
     """U-Net over the patches of n frames, (n, P, S, S, 3) -> same shape, RGB form.
 
     One `network_stage` call per group of `frames_per_call` frames (their patches
@@ -173,27 +198,23 @@ def _run_network(pipe: Pipeline, inputs, material_id: int, counts: dict):
     frames, so the call compiles once). With one frame per call every batch holds patches of
     a single frame at fixed positions, so a patch's result never depends on its neighbours in
     the chunk. Models with texel noise get each patch's origin, so the noise is fixed to the
-    cloth.
+    cloth. `frames`: only the first `frames` of the n frames are real (default all); the
+    others are not run and come back as zeros (a chunk's padding).
     """
     apply = _network_apply(pipe.enhancer)
     b, p, f = pipe.config.batch_size, pipe.num_patches, pipe.frames_per_call
-    n = inputs.shape[0]
-    material = jnp.asarray(material_id, jnp.int32)
+    total = inputs.shape[0]
+    n = total if frames is None else int(frames)
+    material = to_device(np.int32(material_id))
     origins = _noise_origins(pipe)
-    outs = []
-    for g in range(0, n, f):
-        group = inputs[g:g + f]
-        k = group.shape[0]
-        if k < f:  # whole frames of zeros: the compiled shape
-            group = jnp.pad(group, ((0, f - k),) + ((0, 0),) * 4)
-        out = _network_frame(apply, pipe.enhancer.params, group.reshape(f * p, *group.shape[2:]),
-                             material, batch_size=b, origins=origins)
-        outs.append(out.reshape(group.shape)[:k])
+    outs = [_network_frame(apply, pipe.enhancer.params, group, material, batch_size=b,
+                           origins=origins)
+            for group in _network_groups(inputs, frames=f, count=n)]
     calls = -(-n // f)
     counts["network"] += n * p
     counts["padding"] += calls * pipe.batches_per_call * b - n * p
     counts["batches"] += calls * pipe.batches_per_call
-    return outs[0] if len(outs) == 1 else jnp.concatenate(outs)
+    return _network_join(tuple(outs), patches=p, count=n, total=total)
 
 
 def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int] | None = None,
@@ -219,7 +240,7 @@ def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int
     cfg = pipe.config
     indices = list(range(len(frames)) if indices is None else indices)
     mask = _padded_mask(pipe)
-    origins = jnp.asarray(pipe.origins)
+    origins = to_device(pipe.origins)
     size = pipe.enhancer.config.patch_size
     lift_static = _lift_static(pipe)
     # The lift's warm start: the previous frame's offsets in its local frames (zeros: cold).
@@ -235,7 +256,7 @@ def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int
         coarse = np.asarray(frames[np.asarray(padded_idx)], np.float32)
         # Static arguments by keyword, exactly as in `_compile` (the jit cache key differs
         # between positional and keyword static arguments).
-        maps, rgb = _bake_chunk(pipe.plan, jnp.asarray(coarse), mask, smooth=cfg.smooth,
+        maps, rgb = _bake_chunk(pipe.plan, to_device(coarse), mask, smooth=cfg.smooth,
                                 padded_shape=pipe.padded_shape)
         rgb.block_until_ready()
         t0 = _add(timings, "bake", t0)
@@ -243,12 +264,11 @@ def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int
         tiles.block_until_ready()
         del rgb
         t0 = _add(timings, "tile", t0)
-        out = _run_network(pipe, tiles[:n], material_id, counts)
+        # The chunk's padding frames are not enhanced: zeros (the merge's compiled shape).
+        out = _run_network(pipe, tiles, material_id, counts, frames=n)
         out.block_until_ready()
         del tiles
         t0 = _add(timings, "network", t0)
-        if n < cfg.chunk_size:  # keep the merge's compiled shape
-            out = jnp.pad(out, ((0, cfg.chunk_size - n),) + ((0, 0),) * 4)
         enhanced = _merge_chunk(out, origins, mask, maps, window=cfg.window, shape=pipe.shape)
         enhanced = np.array(enhanced)  # host-owned (writable) copy; the device chunk is freed
         del out, maps
@@ -261,13 +281,13 @@ def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int
                         _body_for(pipe.body, t), pipe.resolve_coarse)
                 if cfg.warm_start:
                     detailed, carried, info = _lift_frame_warm(
-                        jnp.asarray(coarse[j]), jnp.asarray(enhanced[j]), carried, *args,
+                        to_device(coarse[j]), to_device(enhanced[j]), carried, *args,
                         **lift_static)
                     counts["lift_iterations"] += int(info.iterations)
                 else:
                     # The very computation `frame_fn` runs (bit for bit: a lift that stops
                     # short of convergence amplifies rounding differences).
-                    detailed = _lift_frame(jnp.asarray(coarse[j]), jnp.asarray(enhanced[j]),
+                    detailed = _lift_frame(to_device(coarse[j]), to_device(enhanced[j]),
                                            *args, **lift_static)
                 detailed = np.array(detailed)
                 _add(timings, "lift", t0)
@@ -319,7 +339,7 @@ def frame_fn(pipe: Pipeline, body=None) -> Callable[..., FrameResult]:
                           window=cfg.window, noise=bool(pipe.enhancer.config.unet.noise_channels),
                           lift=lift)
     setup = dict(plan=pipe.plan, padded_mask=_padded_mask(pipe),
-                 origins=jnp.asarray(pipe.origins), mask=jnp.asarray(pipe.mask),
+                 origins=to_device(pipe.origins), mask=to_device(pipe.mask),
                  subdivision=pipe.subdivision, fine_garment=pipe.fine_garment,
                  topology=pipe.topology, body=body, resolve_coarse=pipe.resolve_coarse)
 

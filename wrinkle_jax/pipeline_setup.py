@@ -23,6 +23,7 @@ from wrinkle_jax import enhancer as enhancer_lib
 from wrinkle_jax import lift as lift_lib
 from wrinkle_jax import normalmap, patches
 from wrinkle_jax.mesh import Garment
+from wrinkle_jax.numerics import to_device
 from wrinkle_jax.stages import (
     _bake_chunk,
     _extract_chunk,
@@ -260,7 +261,7 @@ def make_pipeline(garment: Garment, enhancer: enhancer_lib.Enhancer | None = Non
                                       levels=levels)
         top = lift_lib.lift_topology(fine.faces, fine.num_vertices)
         coarse_pc = lift_lib.resolve_coarse(sub, top, config.phi, config.resolve)
-        fine = jax.tree.map(jnp.asarray, fine)  # device arrays: arguments, not constants
+        fine = to_device(fine)  # device arrays: arguments, not constants
     timings["setup"] = time.perf_counter() - t0
     pipe = Pipeline(enh, dataclasses.replace(config, stride=stride), garment, plan, mask,
                     origins, tuple(padded.shape[:2]), fine, sub, top, body, timings, coarse_pc)
@@ -304,16 +305,16 @@ def _noise_origins(pipe: Pipeline):
     texel noise (fixed to the cloth), else None."""
     if not pipe.enhancer.config.unet.noise_channels:
         return None
-    return jnp.asarray(np.tile(pipe.origins, (pipe.frames_per_call, 1)))
+    return to_device(np.tile(pipe.origins, (pipe.frames_per_call, 1)))
 
 
 def _padded_mask(pipe: Pipeline):
-    return jnp.asarray(patches.pad_to_patch(pipe.mask, pipe.enhancer.config.patch_size)[0])
+    return to_device(patches.pad_to_patch(pipe.mask, pipe.enhancer.config.patch_size)[0])
 
 
 def _no_offsets(pipe: Pipeline):
     """Zero carried lift offsets (V', 3): a cold start."""
-    return jnp.zeros((pipe.fine_garment.num_vertices, 3), jnp.float32)
+    return to_device(np.zeros((pipe.fine_garment.num_vertices, 3), np.float32))
 
 
 def _lift_static(pipe: Pipeline) -> dict:

@@ -42,10 +42,11 @@ cloth simulation and other jobs (load average 10).
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import cv2
-import jax.numpy as jnp
+import jax
 import numpy as np
 
 from wrinkle_jax import normalmap
@@ -64,6 +65,11 @@ from wrinkle_jax.images import (  # noqa: F401
 __all__ = ["Camera", "Fragments", "Light", "RenderError", "fit_camera", "normal_map_image",
            "pixel_normals", "preview_panel", "rasterize", "render_mesh", "shade", "to_uint8",
            "write_mp4", "write_png"]
+
+# The map sampler of normal-map shading as one program (run eagerly, each of its ops compiled
+# on its own: ~25 programs on a notebook's first preview).
+_sample = jax.jit(functools.partial(normalmap.sample, renormalize=False),
+                  static_argnames=("layout",))
 
 # Candidate pixels per rasterization chunk: bounds the working memory (~40 bytes each).
 _CHUNK_CANDIDATES = 1 << 21
@@ -326,13 +332,12 @@ def pixel_normals(fragments: Fragments, vertices, faces, camera: Camera, *, smoo
         m = np.ones(nm.shape[:2] + (1,), np.float32) if mask is None else (
             np.asarray(mask, np.float32).reshape(nm.shape[0], nm.shape[1], 1))
         # Normalized convolution: background texels do not bleed into the garment's normals.
-        both = jnp.asarray(np.concatenate([nm * m, m], axis=-1))
-        # The pixel count changes every frame, and every new shape recompiles each of the
-        # sampler's ops (seconds per frame): pad it to a power of two so shapes repeat.
+        both = np.concatenate([nm * m, m], axis=-1)
+        # The pixel count changes every frame, and every new shape recompiles the sampler
+        # (one jitted program): pad it to a power of two so shapes repeat.
         padded = np.zeros((1 << max(int(len(uv)) - 1, 1).bit_length(), 2), np.float32)
         padded[:len(uv)] = uv
-        s = np.asarray(normalmap.sample(both, jnp.asarray(padded), layout,
-                                        renormalize=False))[:len(uv)]
+        s = np.asarray(_sample(both, padded, layout=layout))[:len(uv)]
         mapped = _unit_rows(s[:, :3])
         use = (s[:, 3] > 1e-3) & (np.abs(mapped).sum(1) > 0)
         # The map is aligned with the front side: flip it with the face.

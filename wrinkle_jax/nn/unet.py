@@ -77,6 +77,7 @@ import numpy as np
 
 from wrinkle_jax import detail, sharpen
 from wrinkle_jax.nn import fastconv
+from wrinkle_jax.numerics import to_device
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -539,7 +540,8 @@ def from_torch_state_dict(state_dict: dict) -> tuple[dict, dict]:
     params["out"] = {"kernel": _get(sd, "out_Conv2d.weight", 4).transpose(2, 3, 1, 0),
                      "bias": _get(sd, "out_Conv2d.bias", 1)}
     num_materials = params["cin1"]["scale"].shape[0]
-    params = jax.tree_util.tree_map(lambda a: jnp.asarray(np.ascontiguousarray(a)), params)
+    # One host-to-device copy per leaf, no one-op compile per leaf shape (`to_device`).
+    params = to_device(jax.tree_util.tree_map(np.ascontiguousarray, params))
     config = UNetConfig(width=width, input_norm="imagenet", residual=False,
                         output_norm="imagenet")
     return params, dict(num_materials=int(num_materials), config=config)

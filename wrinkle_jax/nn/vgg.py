@@ -54,6 +54,7 @@ import numpy as np
 from wrinkle_jax.fileio import atomic_write_bytes, user_cache_dir
 from wrinkle_jax.io import torch_pickle
 from wrinkle_jax.nn import fastconv
+from wrinkle_jax.numerics import to_device
 
 __all__ = [
     "DEFAULT_LAYERS",
@@ -292,7 +293,7 @@ def _input_affine(preprocess):
         bias = -_IMAGENET_MEAN / _IMAGENET_STD
     else:
         kernel, bias = np.eye(3), np.zeros(3)
-    return {"kernel": jnp.asarray(kernel, jnp.float32), "bias": jnp.asarray(bias, jnp.float32)}
+    return to_device({"kernel": kernel, "bias": bias}, np.float32)
 
 
 def _convert_state(state, where):
@@ -378,8 +379,7 @@ def _from_flat_npz(path):
 
 def _to_device(params):
     return {
-        name: (layer if name == "spec" else {k: jnp.asarray(v, jnp.float32) for k, v in
-                                             layer.items()})
+        name: (layer if name == "spec" else to_device(dict(layer), np.float32))
         for name, layer in params.items()
     }
 

@@ -205,32 +205,39 @@ def _lag(x, ref, fps, max_lag_s=0.5):
     return np.array([best / fps, corr[best], corr[0], np.log(swing + 1e-4), drop])
 
 
-def _stretch(x, topo):
+def _sides(x, topo):
+    """The window's triangle sides that have a rest length, shared by the stretch, sag and
+    gravity families: vectors d (W, S, 3), lengths (W, S), log strain (W, S) and midpoint
+    heights (W, S), meters; None when the garment has no rest lengths."""
     if topo.rest_lengths is None:
-        return np.zeros(6)
+        return None
     ce = topo.corner_edges
     ok = np.isfinite(topo.rest_lengths)
-    length = np.linalg.norm(x[:, ce[ok, 0]] - x[:, ce[ok, 1]], axis=-1)      # (W, S)
-    s = np.log(length / topo.rest_lengths[ok] + _EPS)                          # log strain
+    d = x[:, ce[ok, 0]] - x[:, ce[ok, 1]]
+    length = np.linalg.norm(d, axis=-1)
+    strain = np.log(length / topo.rest_lengths[ok] + _EPS)
+    height = 0.5 * (x[:, ce[ok, 0], 2] + x[:, ce[ok, 1], 2])
+    return d, length, strain, height
+
+
+def _stretch(sides):
+    if sides is None:
+        return np.zeros(6)
+    s = sides[2]                                                               # log strain
     per_edge = s.mean(axis=0)
     return np.array([per_edge.mean(), np.median(per_edge), np.percentile(per_edge, 90),
                      np.percentile(per_edge, 10), per_edge.std(), s.std(axis=0).mean()])
 
 
-def _sag(x, topo):
+def _sag(sides):
     """Strain of sides by their 3D direction: hanging (vertical) sides carry the weight below
     them, so their stretch against the horizontal sides' is mass per area x g / stiffness."""
-    if topo.rest_lengths is None:
+    if sides is None:
         return np.zeros(6)
-    ce = topo.corner_edges
-    ok = np.isfinite(topo.rest_lengths)
-    d = x[:, ce[ok, 0]] - x[:, ce[ok, 1]]                                      # (W, S, 3)
-    length = np.linalg.norm(d, axis=-1)
-    s = np.log(length / topo.rest_lengths[ok] + _EPS)
+    d, length, s, height = sides
     up = np.abs(d[..., 2]) / (length + _EPS)                                   # |cos| to z
     vert, horiz = up > 0.8, up < 0.3
     diag = ~(vert | horiz)
-    height = 0.5 * (x[:, ce[ok, 0], 2] + x[:, ce[ok, 1], 2])
     lo, hi = np.quantile(height, [1 / 3, 2 / 3], axis=1, keepdims=True)
 
     def mean(mask):
@@ -240,25 +247,21 @@ def _sag(x, topo):
                      mean(vert & (height >= hi)), mean(vert & (height <= lo))])
 
 
-def _gravity(x, topo, hem_quantile=0.02):
+def _gravity(x, sides, hem_quantile=0.02):
     """Least-squares line of hanging sides' log strain against their midpoint's height above
     the hem (the `hem_quantile` of the frame's heights), over the window: [slope (1/m),
-    intercept, correlation]. A strip of length L hanging under gravity has strain
-    rho g h / k at height h above its free end (the weight below), so the slope reads
-    rho g / k; the intercept holds what does not grow with the weight (the solver's floor,
-    the body's pull)."""
-    if topo.rest_lengths is None:
+    intercept, correlation]. A strip hanging under gravity has strain rho g h / k at height h
+    above its free end (the weight below), so the slope reads rho g / k; the intercept holds
+    what does not grow with the weight (the solver's floor, the body's pull)."""
+    if sides is None:
         return np.zeros(3)
-    ce = topo.corner_edges
-    ok = np.isfinite(topo.rest_lengths)
-    d = x[:, ce[ok, 0]] - x[:, ce[ok, 1]]                                      # (W, S, 3)
-    length = np.linalg.norm(d, axis=-1)
+    d, length, strain, height = sides
     vert = np.abs(d[..., 2]) > 0.8 * length
     if vert.sum() < 3:
         return np.zeros(3)
-    s = np.log(length / topo.rest_lengths[ok] + _EPS)[vert]
+    s = strain[vert]
     hem = np.quantile(x[..., 2], hem_quantile, axis=1)[:, None]               # (W, 1)
-    h = (0.5 * (x[:, ce[ok, 0], 2] + x[:, ce[ok, 1], 2]) - hem)[vert]
+    h = (height - hem)[vert]
     hc, sc = h - h.mean(), s - s.mean()
     var = (hc * hc).mean()
     slope = (hc * sc).mean() / (var + _EPS)
@@ -340,12 +343,13 @@ def window_features(frames, ref, topo: Topology, fps: float, capsules=None) -> n
         raise ValueError(f"window_features needs (W >= 8, V, 3) frames and (W, 3) ref, got "
                          f"{x.shape} and {r.shape}")
     x_rel = x - r[:, None, :]
+    sides = _sides(x, topo)
     return np.concatenate([_kinematic(x_rel, r, fps), _spectral(x_rel, fps),
-                           _lag(x, r, fps), _stretch(x, topo), _curvature(x, topo, fps),
-                           _sag(x, topo),
+                           _lag(x, r, fps), _stretch(sides), _curvature(x, topo, fps),
+                           _sag(sides),
                            _rigidity(x, None if capsules is None else
                                      np.asarray(capsules, np.float64), r, fps),
-                           _gravity(x, topo)])
+                           _gravity(x, sides)])
 
 
 def window_starts(num_frames: int, window: int, stride: int) -> np.ndarray:

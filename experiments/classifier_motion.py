@@ -37,7 +37,7 @@ import numpy as np
 
 from wrinkle_jax import MATERIALS
 from wrinkle_jax.classifier import calibrated as cal
-from wrinkle_jax.classifier import motion
+from wrinkle_jax.classifier import drape, motion
 from wrinkle_jax.fileio import atomic_write_text
 from wrinkle_jax.sim import scenes
 
@@ -47,9 +47,13 @@ CLIPS = (0.0, 3.0, 2.0)  # MotionConfig.clip candidates (0: off)
 
 
 def candidate_families() -> list[tuple[str, ...]]:
+    """Each family alone; then all motion families, and all but one, each without and with
+    the normal-map family (``drape``, session 22), so session 21's candidates stay a subset."""
     fams = motion.FAMILIES
-    out = [(f,) for f in fams] + [fams]
-    out += [tuple(g for g in fams if g != f) for f in fams]
+    base = tuple(f for f in fams if f != "drape")
+    out = [(f,) for f in fams]
+    for s in [base] + [tuple(g for g in base if g != f) for f in base]:
+        out += [s, s + ("drape",)]
     return out
 
 
@@ -60,9 +64,10 @@ def _seq_features(path: Path, cfg: cal.MotionConfig, skinned: bool = False) -> n
     frames = arrays["frames"]
     if skinned:
         frames = motion.follow_body_rigidly(frames[0], arrays["capsule_ends"])
+    plan = drape.make_plan(arrays["faces"], arrays["uvs"], arrays["uv_faces"], frames[0])
     return motion.sequence_features(frames, motion.reference_track(arrays), topo,
                                     float(arrays["fps"]), cfg.window, cfg.stride,
-                                    arrays.get("capsule_ends"))
+                                    arrays.get("capsule_ends"), drape_plan=plan)
 
 
 def lbs_entries(lbs_root: Path | None, cfg) -> list[dict]:

@@ -93,14 +93,15 @@ def sequences(data: Path) -> dict[str, list[Path]]:
     return {"train": train, "heldout": held}
 
 
-def build_cache(data: Path, cache: Path, rc: ReportConfig, vgg_params, log) -> None:
+def build_cache(data: Path, cache: Path, rc: ReportConfig, vgg_params, log,
+                fine_ds: bool = True) -> None:
     """Cache held-out sequences first, then coarse training variants, then fine_ds variants
-    (so the most important data exist first on a busy machine)."""
+    (so the most important data exist first on a busy machine; none with fine_ds=False)."""
     ccfg = classifier.ClassifierConfig(patch_size=rc.patch_size, texel_size=rc.texel_size,
                                        normal_frame=rc.normal_frame)
     srcs = sequences(data)
     jobs = []
-    for want in ("heldout", "coarse", "fine_ds"):
+    for want in ("heldout", "coarse", "fine_ds")[:3 if fine_ds else 2]:
         split = "heldout" if want == "heldout" else "train"
         for src in srcs[split]:
             for variant, down in classify_train.sequence_variants(src, fine_ds=split == "train"):
@@ -377,9 +378,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--normal-frame", choices=("object", "patch"), default="object",
                     help="patch normals as baked, or rotated to their mean normal (use a "
                     "separate --cache per choice)")
+    ap.add_argument("--features", nargs="+", default=None, metavar="SPEC",
+                    help="candidate features (default: all of "
+                    f"{', '.join(classify_train.CANDIDATE_FEATURES)}); the VGG pass stops at "
+                    "the deepest one")
+    ap.add_argument("--no-fine-ds", action="store_true",
+                    help="train on the coarse simulations only (no downsampled fine ones)")
     args = ap.parse_args(argv)
     rc = dataclasses.replace(TINY if args.tiny else ReportConfig(),
                              normal_frame=args.normal_frame)
+    if args.features:
+        rc = dataclasses.replace(rc, features=tuple(args.features))
     out, cache = Path(args.out), Path(args.cache)
     out.mkdir(parents=True, exist_ok=True)
     log_path = out / "log.txt"
@@ -392,7 +401,7 @@ def main(argv: list[str] | None = None) -> int:
 
     vgg_params = vgg.load_vgg19()
     if args.stage in ("all", "cache"):
-        build_cache(Path(args.data), cache, rc, vgg_params, log)
+        build_cache(Path(args.data), cache, rc, vgg_params, log, fine_ds=not args.no_fine_ds)
     if args.stage == "cache":
         return 0
     if args.feature:

@@ -160,7 +160,7 @@ def _blobs(seed, n=60, scale=1.0):
 
 
 def test_logistic_fit_learns_and_temperature_calibrates():
-    x, y = _blobs(0)
+    x, y = _blobs(0, n=150)  # 150 windows per class: enough for all FEATURE_DIM columns
     model = cal.fit(x, y, cal.MotionConfig(l2=1e-3))
     xt, yt = _blobs(1)
     lp = cal.window_log_probs(model, xt)

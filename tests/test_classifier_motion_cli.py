@@ -10,9 +10,9 @@ from wrinkle_jax.classifier import calibrated as cal
 from wrinkle_jax.classifier import motion
 
 
-def _sequence(path, frames=40, fps=30.0, skinned=False, body=True):
-    """A 6 x 6 sheet hanging from a walking body, flapping (or riding rigidly when skinned)."""
-    n, pitch = 6, 0.05
+def _sequence(path, frames=40, fps=30.0, skinned=False, body=True, n=6):
+    """An n x n sheet hanging from a walking body, flapping (or riding rigidly when skinned)."""
+    pitch = 0.05
     i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
     uv = np.stack([i.ravel(), j.ravel()], -1) * pitch
     verts = np.stack([uv[:, 0], np.zeros(n * n), 1.0 - uv[:, 1]], -1)
@@ -87,3 +87,35 @@ def test_material_auto_uses_answer_or_names_the_flag(tmp_path, model_path, monke
     assert name == MATERIALS[2] and result.confidence >= 0.5
     with pytest.raises(validate.UsageError, match="abstained.*--material NAME"):
         cli_pipeline._classify_auto(_sequence(tmp_path / "lbs.npz", skinned=True), MATERIALS)
+
+
+def test_classify_bakes_the_drape_family_when_the_model_uses_it(tmp_path, capsys):
+    """A model of the normal-map family alone: classify must bake the input's normal maps
+    (drape.make_plan); the family's zeros (no plan) would be far from the training data."""
+    from wrinkle_jax import cli
+    from wrinkle_jax.classifier import drape
+
+    cfg = cal.MotionConfig(window=16, stride=8, families=("drape",))
+    seq = _sequence(tmp_path / "big.npz", n=14)
+    with np.load(seq) as z:
+        arrays = dict(z)
+    t = np.arange(len(arrays["frames"]))[:, None] / 30.0
+    arrays["frames"][..., 1] += 0.03 * np.sin(2 * np.pi * arrays["uvs"][None, :, 0] / 0.2
+                                              + 3.0 * t)          # a travelling 20 cm fold
+    np.savez(seq, **arrays)
+    with np.load(seq) as z:
+        topo = motion.make_topology(z["faces"], z["uvs"], z["uv_faces"])
+        plan = drape.make_plan(z["faces"], z["uvs"], z["uv_faces"], z["frames"][0])
+        f = motion.sequence_features(z["frames"], motion.body_reference(z["capsule_ends"]),
+                                     topo, 30.0, cfg.window, cfg.stride, drape_plan=plan)
+    sl = motion.family_slices()["drape"]
+    assert np.all(f[:, sl] != 0.0) and np.all(f[:, sl][:, :3] > -10)  # real band energies
+    rng = np.random.default_rng(0)
+    feats = np.concatenate([f + rng.normal(0, 0.05, f.shape) + (k != 2) * rng.normal(
+        0, 1.0, f.shape[1]) for k in range(5)])
+    model = cal.fit(feats, np.repeat(np.arange(5), len(f)), cfg)._replace(
+        threshold=0.5, novelty_limit=10.0)
+    path = cal.save(tmp_path / "drape_model.npz", model)
+    assert cli.main(["classify", str(seq), "--json", "--model", str(path)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["material"] == MATERIALS[2] and not out["abstained"]

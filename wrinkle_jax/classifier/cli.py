@@ -80,6 +80,12 @@ def classify_motion_input(path, model_path=None):
                                         z["uv_faces"] if "uv_faces" in z.files else None)
             fps = float(z["fps"]) if "fps" in z.files else 30.0
             caps = np.asarray(z["capsule_ends"]) if "capsule_ends" in z.files else None
+            plan = None
+            if "drape" in cfg.families and "uvs" in z.files:
+                from wrinkle_jax.classifier import drape
+
+                plan = drape.make_plan(z["faces"], z["uvs"], z.get("uv_faces", z["faces"]),
+                                       frames[0])
     except (OSError, KeyError, ValueError) as e:
         raise ClassifierError(f"{path}: cannot read the sequence ({e})") from None
     if len(frames) < cfg.window:
@@ -87,7 +93,8 @@ def classify_motion_input(path, model_path=None):
     if ref.shape[0] != frames.shape[0]:
         raise ClassifierError(f"{path}: the body track has {ref.shape[0]} frames, the garment "
                               f"{frames.shape[0]}")
-    feats = motion.sequence_features(frames, ref, topo, fps, cfg.window, cfg.stride, caps)
+    feats = motion.sequence_features(frames, ref, topo, fps, cfg.window, cfg.stride, caps,
+                                     drape_plan=plan)
     return calibrated.classify_features(model, feats)
 
 

@@ -24,7 +24,11 @@ measurements, grouped in families so each can be scored alone:
   * ``gravity``: the log strain of hanging sides regressed on their height above the hem
     (meters): cloth hanging under its own weight strains as mass per area x g / stretch
     stiffness x the length below, so the slope is a material constant that the garment's
-    size and cut do not set (the other stretch statistics mix both).
+    size and cut do not set (the other stretch statistics mix both);
+  * ``drape``: statistics of the baked coarse normal map at the 3-15 cm fold scale
+    (`wrinkle_jax.classifier.drape`: band energies and their rates of change, fold
+    wavelength, hang); computed only when `sequence_features` is given a raster plan
+    (`drape.make_plan`), zeros otherwise.
 
 Conventions: positions in meters, z up (gravity along -z, as in `wrinkle_jax.sim`), time in
 seconds. Every feature is a function of distances, speeds, heights and times only, so it is
@@ -39,8 +43,10 @@ import dataclasses
 
 import numpy as np
 
+from wrinkle_jax.classifier import drape
+
 FAMILIES = ("kinematic", "spectral", "lag", "stretch", "curvature", "sag", "rigidity",
-            "gravity")
+            "gravity", "drape")
 # Band edges (Hz) of the spectral family: below the body's stride rate, around it, the first
 # harmonics and the fast flutter a light fabric adds.
 BANDS_HZ = (0.0, 1.0, 2.0, 3.5, 6.0, 10.0, 16.0)
@@ -294,7 +300,8 @@ def _curvature(x, topo, fps):
 
 
 FAMILY_DIMS = {"kinematic": 8, "spectral": len(BANDS_HZ), "lag": 5, "stretch": 6,
-               "curvature": 5, "sag": 6, "rigidity": 3, "gravity": 3}
+               "curvature": 5, "sag": 6, "rigidity": 3, "gravity": 3,
+               "drape": drape.DIM}
 
 
 def family_slices() -> dict:
@@ -325,7 +332,8 @@ def _rigidity(x, caps, ref, fps):
                      np.log((nonrigid.mean() + 1e-4) / (rel.mean() + 1e-4))])
 
 
-def window_features(frames, ref, topo: Topology, fps: float, capsules=None) -> np.ndarray:
+def window_features(frames, ref, topo: Topology, fps: float, capsules=None,
+                    drape_features=None) -> np.ndarray:
     """The feature vector of one window of frames.
 
     Args:
@@ -334,6 +342,8 @@ def window_features(frames, ref, topo: Topology, fps: float, capsules=None) -> n
       topo: `make_topology` of the garment.
       fps: frames per second.
       capsules: (W, C, 2, 3) the body's capsules, meters (the ``rigidity`` family), or None.
+      drape_features: (drape.DIM,) the window's ``drape`` family (`drape.window_features`;
+        it needs the baked normal maps, see `sequence_features`), or None for zeros.
     Returns:
       (FEATURE_DIM,) float64, families in `FAMILIES` order (`family_slices`).
     """
@@ -349,7 +359,9 @@ def window_features(frames, ref, topo: Topology, fps: float, capsules=None) -> n
                            _sag(sides),
                            _rigidity(x, None if capsules is None else
                                      np.asarray(capsules, np.float64), r, fps),
-                           _gravity(x, sides)])
+                           _gravity(x, sides),
+                           np.zeros(drape.DIM) if drape_features is None else
+                           np.asarray(drape_features, np.float64).reshape(drape.DIM)])
 
 
 def window_starts(num_frames: int, window: int, stride: int) -> np.ndarray:
@@ -360,16 +372,21 @@ def window_starts(num_frames: int, window: int, stride: int) -> np.ndarray:
 
 
 def sequence_features(frames, ref, topo: Topology, fps: float, window: int = 32,
-                      stride: int = 16, capsules=None) -> np.ndarray:
+                      stride: int = 16, capsules=None, drape_plan=None) -> np.ndarray:
     """Features of every window of a sequence: (N, FEATURE_DIM), N = len(window_starts).
-    capsules: (T, C, 2, 3) or None (see `window_features`)."""
+    capsules: (T, C, 2, 3) or None (see `window_features`); drape_plan: the garment's
+    `drape.make_plan`, or None (the ``drape`` family is then zero)."""
     starts = window_starts(len(frames), window, stride)
     if len(starts) == 0:
         raise ValueError(f"the sequence has {len(frames)} frames, fewer than one window "
                          f"({window})")
+    dw = [None] * len(starts)
+    if drape_plan is not None:
+        dw = drape.window_features(drape.sequence_stats(drape_plan, frames, fps), starts,
+                                   window)
     return np.stack([window_features(frames[s:s + window], ref[s:s + window], topo, fps,
-                                     None if capsules is None else capsules[s:s + window])
-                     for s in starts])
+                                     None if capsules is None else capsules[s:s + window], d)
+                     for s, d in zip(starts, dw, strict=True)])
 
 
 def _capsule_frames(capsule_ends, ref):

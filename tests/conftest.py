@@ -107,10 +107,32 @@ def pytest_collection_modifyitems(config, items):
 # Opt-in profile: WRINKLE_JAX_TEST_PROFILE=<folder> writes <folder>/<worker>.json with, per test
 # file, [wall s, CPU s (process + reaped children), tests, first start, last end (epoch s)],
 # summed from setup to teardown of each test, and <folder>/<worker>.tests.json with each test's
-# [wall s, CPU s] (setup to teardown, by node id). Off by default (nothing is measured).
+# [wall s, CPU s, compiles, compile s] (setup to teardown, by node id), and
+# <folder>/<worker>.compiles.json with each file's compiled program names and counts. Off by
+# default (nothing is measured).
 _PROFILE_ENV = "WRINKLE_JAX_TEST_PROFILE"
 _profile: dict[str, list[float]] = {}
 _profile_tests: dict[str, list[float]] = {}
+# With the profile on, every XLA compilation (or persistent-cache load) is counted per test:
+# [compiles, compile s] and, per file, the compiled programs' names (op-by-op dispatch compiles
+# programs named after their primitive: "add", "convert_element_type", ...).
+_compiles = [0, 0.0]
+_compile_names: dict[str, dict[str, int]] = {}
+_current_file = [""]
+
+
+def _on_compile(event: str, duration: float, **kwargs) -> None:
+    if event != "/jax/core/compile/backend_compile_duration":
+        return
+    _compiles[0] += 1
+    _compiles[1] += duration
+    names = _compile_names.setdefault(_current_file[0], {})
+    name = str(kwargs.get("fun_name", "?"))
+    names[name] = names.get(name, 0) + 1
+
+
+if os.environ.get(_PROFILE_ENV):
+    jax.monitoring.register_event_duration_secs_listener(_on_compile)
 
 
 def _cpu_seconds() -> float:
@@ -123,6 +145,8 @@ def pytest_runtest_protocol(item, nextitem):
     if not os.environ.get(_PROFILE_ENV):
         yield
         return
+    _current_file[0] = item.path.name
+    n0, s0 = _compiles
     t0, w0, c0 = time.time(), time.perf_counter(), _cpu_seconds()
     yield
     wall, cpu = time.perf_counter() - w0, _cpu_seconds() - c0
@@ -131,7 +155,7 @@ def pytest_runtest_protocol(item, nextitem):
     row[1] += cpu
     row[2] += 1
     row[4] = time.time()
-    _profile_tests[item.nodeid] = [wall, cpu]
+    _profile_tests[item.nodeid] = [wall, cpu, _compiles[0] - n0, _compiles[1] - s0]
 
 
 def pytest_sessionfinish(session):
@@ -143,6 +167,8 @@ def pytest_sessionfinish(session):
             json.dump(_profile, f, indent=1)
         with open(os.path.join(folder, f"{name}.tests.json"), "w") as f:
             json.dump(_profile_tests, f, indent=1)
+        with open(os.path.join(folder, f"{name}.compiles.json"), "w") as f:
+            json.dump(_compile_names, f, indent=1)
 
 
 def x64():

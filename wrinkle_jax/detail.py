@@ -35,6 +35,8 @@ Example:
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
@@ -62,6 +64,7 @@ _BAND_INSET = 6
 _POLE_GUARD = 1e-3
 
 
+@functools.partial(jax.jit, static_argnames=("sigma",))
 def large_scale(n, mask, sigma: float = DEFAULT_SIGMA):
     """(N, H, W, 3) normals -> (N, H, W, 3) unit large-scale normals (0 outside the mask)."""
     low = sharpen.masked_blur(n, mask, sigma, order=1)
@@ -112,6 +115,7 @@ def from_detail(d, large, branch):
     return _flip(_rotate_to_z(_flip(large, branch), d, transpose=True), branch)
 
 
+@functools.partial(jax.jit, static_argnames=("sigma",))
 def decompose(n, mask, sigma: float = DEFAULT_SIGMA, branch=None):
     """Split normals into (detail d, large scale L, branch); `branch` None picks it from L."""
     large = large_scale(n, mask, sigma)
@@ -124,6 +128,7 @@ def _unit_rgb(n, mask):
     return ((n / norm + 1.0) * 0.5) * (mask > 0)
 
 
+@functools.partial(jax.jit, static_argnames=("sigma",))
 def to_detail_rgb(x, mask, sigma: float = DEFAULT_SIGMA, branch=None):
     """RGB-form patches (N, H, W, 3) in [0, 1] -> RGB form of their detail maps.
 
@@ -169,6 +174,7 @@ def from_detail_rgb(d_rgb, large, branch, mask):
     return _unit_rgb(from_detail(d, large, branch), mask)
 
 
+@functools.partial(jax.jit, static_argnames=("sigma",))
 def transplant_rgb(x, donor, mask, donor_mask, sigma: float = DEFAULT_SIGMA):
     """`x`'s large scale carrying `donor`'s detail (RGB forms): what a map would look like with
     another map's wrinkles, e.g. the fine target's own detail on the coarse input (the

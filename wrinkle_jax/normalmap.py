@@ -21,6 +21,7 @@ The split follows the project's convention:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 from typing import Any
@@ -345,6 +346,7 @@ def _gutter(mask: np.ndarray, pix, tid, tri, gutter: int):
 # --------------------------------------------------------------------------------------------
 
 
+@functools.partial(jax.jit, static_argnames=("smooth",))
 def bake(plan: RasterPlan, vertices, smooth: bool = True):
     """Bake one frame to a normal map.
 
@@ -353,8 +355,9 @@ def bake(plan: RasterPlan, vertices, smooth: bool = True):
       vertices: (V, 3) float32 positions, meters.
       smooth: interpolate area-weighted vertex normals (True) or use flat face normals.
     Returns:
-      (H, W, 3) float32 unit normals on covered and gutter texels, zero elsewhere. Jittable
-      (`jax.jit(bake, static_argnames="smooth")`), differentiable w.r.t. `vertices`.
+      (H, W, 3) float32 unit normals on covered and gutter texels, zero elsewhere. Jitted
+      (`smooth` static: one program per plan shape, also when called eagerly), differentiable
+      w.r.t. `vertices`.
     """
     if smooth:
         vn = vertex_normals(vertices, plan.faces)
@@ -366,6 +369,7 @@ def bake(plan: RasterPlan, vertices, smooth: bool = True):
     return n[plan.index_map]
 
 
+@functools.partial(jax.jit, static_argnames=("smooth", "batch_size"))
 def bake_frames(plan: RasterPlan, frames, smooth: bool = True, batch_size: int | None = None):
     """Bake a batch of frames (T, V, 3) -> (T, H, W, 3).
 
@@ -380,6 +384,7 @@ def bake_frames(plan: RasterPlan, frames, smooth: bool = True, batch_size: int |
     return jax.lax.map(lambda v: bake(plan, v, smooth), frames, batch_size=batch_size)
 
 
+@functools.partial(jax.jit, static_argnames=("layout", "renormalize"))
 def sample(normal_map, uv, layout: UVLayout, renormalize: bool = True):
     """Bilinearly sample a map at UV positions (jittable, differentiable w.r.t. the map).
 

@@ -455,10 +455,11 @@ def dihedral_normals(patch, k):
 # --------------------------------------------------------------------------------------------
 
 
+@functools.partial(jax.jit, static_argnames="size")
 def crop_mask_counts(mask, size: int):
     """Number of mask texels (``> 0``) in the patch at every possible origin.
 
-    One summed-area table gives all windows at once. Jittable with ``size`` static.
+    One summed-area table gives all windows at once. Jitted (``size`` static).
 
     Args:
       mask: (H, W, 1) or (H, W) array with H, W >= size.

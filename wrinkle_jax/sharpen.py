@@ -22,6 +22,9 @@ garment, and texels outside the mask are returned as 0 (the RGB form's backgroun
 
 from __future__ import annotations
 
+import functools
+
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -82,6 +85,7 @@ def _cols(planes, *taps):
 _SLOPE_RIDGE = 1e-3
 
 
+@functools.partial(jax.jit, static_argnames=("sigma", "order"))
 def masked_blur(n, mask, sigma: float, order: int = 1):
     """Masked Gaussian blur: normalized convolution of order 0 (local mean) or 1 (local plane).
 
@@ -139,6 +143,7 @@ def masked_blur(n, mask, sigma: float, order: int = 1):
     return jnp.transpose(out, (2, 0, 3, 1))
 
 
+@functools.partial(jax.jit, static_argnames=("sigma", "order"))
 def masked_blur_reference(n, mask, sigma: float, order: int = 1):
     """`masked_blur` as first written, the direct formula: every moment its own separable
     filter, two (H x H) banded matmuls on NHWC. Same result to float32 rounding, slower;
@@ -169,6 +174,7 @@ def masked_blur_reference(n, mask, sigma: float, order: int = 1):
     return (v - by * uy - bx * ux) * (mask > 0)
 
 
+@functools.partial(jax.jit, static_argnames=("sigma", "order"))
 def unsharp_rgb(x, sigma: float, amount, mask=None, order: int = 1, blurred=None):
     """Unsharp-mask RGB-form normal-map patches.
 

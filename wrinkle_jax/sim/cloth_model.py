@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax.mesh import Garment
+from wrinkle_jax.numerics import to_device
 from wrinkle_jax.sim import aero, selfcollision
 from wrinkle_jax.sim.colliders import Colliders
 from wrinkle_jax.sim.materials import Fabric
@@ -160,9 +161,11 @@ class ClothState:
 
 def fabric_params(f: Fabric, gravity=GRAVITY) -> SimParams:
     """Solver scalars of a fabric."""
-    c = functools.partial(jnp.asarray, dtype=jnp.float32)
+    c = functools.partial(to_device, dtype=jnp.float32)
+    # `gravity` may be a tuple, which to_device would read as a pytree of three scalars.
+    g = gravity if isinstance(gravity, jax.Array) else np.asarray(gravity)
     return SimParams(c(f.density), c(f.stretch), c(f.bending), c(f.damping), c(f.friction),
-                     c(f.contact_offset), c(f.drag), c(f.lift), c(gravity))
+                     c(f.contact_offset), c(f.drag), c(f.lift), c(g))
 
 
 # --------------------------------------------------------------------------------------------
@@ -395,24 +398,24 @@ def build_cloth(garment: Garment, pinned=None, wind: aero.WindField | None = Non
     rest = np.linalg.norm(euv[first, 1] - euv[first, 0], axis=1)
     e_area = np.bincount(inv, ea, minlength=len(uniq))
     stretch = tuple(
-        StretchColor(jnp.asarray(edges[c, 0]), jnp.asarray(edges[c, 1]),
-                     jnp.asarray(rest[c], jnp.float32), jnp.asarray(1.0 / e_area[c], jnp.float32))
+        StretchColor(to_device(edges[c, 0]), to_device(edges[c, 1]),
+                     to_device(rest[c], jnp.float32), to_device(1.0 / e_area[c], jnp.float32))
         for c in color_constraints(edges, n, seed))
     hidx, hw, diag = _hinges(garment, pinned)
-    bend = tuple(BendColor(jnp.asarray(hidx[c].astype(np.int32)),
-                           jnp.asarray(hw[c], jnp.float32))
+    bend = tuple(BendColor(to_device(hidx[c].astype(np.int32)),
+                           to_device(hw[c], jnp.float32))
                  for c in color_constraints(hidx, n, seed + 1))
     lp, ld = stretch_limits(garment, seed=seed + 2) if limit_spans else (None, None)
     limits = () if lp is None or not len(lp) else tuple(
-        LimitColor(jnp.asarray(lp[c, 0].astype(np.int32)), jnp.asarray(lp[c, 1].astype(np.int32)),
-                   jnp.asarray(ld[c], jnp.float32))
+        LimitColor(to_device(lp[c, 0].astype(np.int32)), to_device(lp[c, 1].astype(np.int32)),
+                   to_device(ld[c], jnp.float32))
         for c in color_constraints(lp, n, seed + 3))
     free = np.ones(n, np.float32)
     pin_idx = attach = None
     if pinned is not None and len(pinned):
         pinned = np.asarray(pinned, np.int32)
         free[pinned] = 0.0
-        pin_idx = jnp.asarray(pinned)
+        pin_idx = to_device(pinned)
         if attachments:
             # Graph distances over edges plus across-hinge diagonals (same panel) overestimate
             # geodesics by at most a few percent; attachments stop gross (global) stretching
@@ -423,15 +426,15 @@ def build_cloth(garment: Garment, pinned=None, wind: aero.WindField | None = Non
             dist, slot = _geodesic_to_pins(garment, pinned, g_edges, g_rest)
             ok = (free > 0) & np.isfinite(dist)
             verts = np.flatnonzero(ok)
-            attach = Attachments(jnp.asarray(verts.astype(np.int32)),
-                                 jnp.asarray(slot[verts].astype(np.int32)),
-                                 jnp.asarray((dist[verts] * (1 + attach_slack)).astype(np.float32)))
+            attach = Attachments(to_device(verts.astype(np.int32)),
+                                 to_device(slot[verts].astype(np.int32)),
+                                 to_device((dist[verts] * (1 + attach_slack)).astype(np.float32)))
     return ClothModel(
-        faces=jnp.asarray(faces), vertex_area=jnp.asarray(vertex_area, jnp.float32),
-        free=jnp.asarray(free), pin_idx=pin_idx, stretch=stretch, bend=bend, limits=limits,
+        faces=to_device(faces), vertex_area=to_device(vertex_area, jnp.float32),
+        free=to_device(free), pin_idx=pin_idx, stretch=stretch, bend=bend, limits=limits,
         attach=attach,
         wind=wind, aero=jnp.zeros(()) if use_aero else None,
-        vertex_faces=jnp.asarray(aero.incident_faces(faces, n)) if use_aero else None,
+        vertex_faces=to_device(aero.incident_faces(faces, n)) if use_aero else None,
         self_topo=selfcollision.self_topology(garment))
 
 

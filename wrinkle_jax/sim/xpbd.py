@@ -426,7 +426,12 @@ def run_frames(config: SimConfig, model: ClothModel, params: SimParams, state: C
 def slice_drives(drives: Drive, start: int, stop: int) -> Drive:
     """Frames [start, stop) of stacked drives, padded by repeating the last frame."""
     n = jax.tree_util.tree_leaves(drives)[0].shape[0]
-    idx = np.minimum(np.arange(start, stop), n - 1)
+    return _take_frames(drives, np.minimum(np.arange(start, stop), n - 1))
+
+
+@jax.jit
+def _take_frames(drives: Drive, idx):
+    # One program per drive layout; eagerly, each leaf's gather would compile on its own.
     return jax.tree_util.tree_map(lambda a: a[idx], drives)
 
 
@@ -459,6 +464,7 @@ def kinetic_energy(params: SimParams, model: ClothModel, v):
     return 0.5 * jnp.sum(m * jnp.sum(v * v, -1))
 
 
+@jax.jit
 def edge_strain(model: ClothModel, x):
     """Strain (|x_j - x_i| - L) / L of every edge constraint, concatenated over colours."""
     return jnp.concatenate([(safe_norm(x[c.j] - x[c.i]) - c.rest) / c.rest

@@ -11,7 +11,10 @@ backend compile (`jax.monitoring` event "/jax/core/compile/backend_compile_durat
   frame_fn: `pipeline.make_pipeline(garment, model)` (lift on, stages compiled) and the first
             call of `pipeline.frame_fn(pipe)` on the demo skirt's frame 0;
   stream:   `pipeline.make_pipeline` and `pipeline.iter_enhance` over the demo's first 2
-            frames.
+            frames;
+  eager:    library functions a notebook calls outside any jit, once each: vertex normals and
+            a bake of the demo skirt's frame 0, an order-1 masked blur and a detail-frame
+            transform of two 128 x 128 patches.
 
 Reported: compiles, op-by-op compiles (programs named after a single primitive, e.g.
 jit(add), jit(broadcast_in_dim)), eager compiles of jnp-level wrappers (named after a jitted
@@ -20,7 +23,7 @@ op-by-op compiles come from (the innermost `wrinkle_jax` or script frame of each
 sources). XLA's own defaults are used: the script refuses to run if XLA_FLAGS already holds
 the fusion-emitter flag the CLI adds, unless --allow-flags. Run one path per process:
 
-    python benchmarks/bench_setup_compiles.py --path readme|frame_fn|stream [--top N]
+    python benchmarks/bench_setup_compiles.py --path readme|frame_fn|stream|eager [--top N]
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ import traceback
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PATHS = ("readme", "frame_fn", "stream")
+PATHS = ("readme", "frame_fn", "stream", "eager")
 
 
 def readme_example() -> str:
@@ -90,6 +93,17 @@ def run_path(path: str) -> None:
                 os.chdir(cwd)
         return
     seq = meshio.load_sequence(_demo_sequence_path())
+    if path == "eager":
+        from wrinkle_jax import detail, mesh, normalmap, sharpen
+
+        frame = seq.frames[0]
+        np.asarray(mesh.vertex_normals(frame, seq.garment.faces))
+        np.asarray(normalmap.bake(normalmap.make_plan(seq.garment), frame))
+        x = np.random.default_rng(0).uniform(0.2, 0.8, (2, 128, 128, 3)).astype(np.float32)
+        mask = np.ones((2, 128, 128, 1), np.float32)
+        np.asarray(sharpen.masked_blur(x * 2 - 1, mask, 8.0))
+        np.asarray(detail.to_detail_rgb(x, mask))
+        return
     model = enhancer.load_enhancer()
     pipe = pipeline.make_pipeline(seq.garment, model)
     material = model.config.material_id(seq.metadata["material"])

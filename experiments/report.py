@@ -38,8 +38,6 @@ from wrinkle_jax.evaluation.headlines import (
 )
 from wrinkle_jax.fileio import git_commit
 
-KINDS = ("seen garment, seen motion", "seen garment, unseen motion", "unseen garment")
-
 # What makes each result (relative to the project root); the report prints these.
 COMMANDS = {
     "table1": "python -m experiments.table1",

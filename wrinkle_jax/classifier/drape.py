@@ -33,7 +33,6 @@ TEXEL_M = 0.01       # bake resolution: a 30 mm coarse mesh holds nothing finer 
 FRAME_STEP = 4       # frames between baked frames (window 32 -> 8 baked frames)
 DIM = 8              # 3 band energies, 3 band rates, fold wavelength, hang
 _FLOOR = 1e-8
-_BAKE = None         # jitted normalmap.bake_frames, made on first use
 
 
 def _blur(img, sigma_px: float):
@@ -154,20 +153,15 @@ def make_plan(faces, uvs, uv_faces, vertices, texel: float = TEXEL_M):
 
 def bake_every(plan, frames, frame_step: int = FRAME_STEP, batch: int = 32) -> np.ndarray:
     """Normal maps (K, H, W, 3) of frames 0, frame_step, ... of a (T, V, 3) sequence, baked with
-    `plan` by the jitted `normalmap.bake_frames` in batches of `batch` frames (the last one
+    `plan` by the (jitted) `normalmap.bake_frames` in batches of `batch` frames (the last one
     padded, so a garment compiles once)."""
-    import jax
-    import jax.numpy as jnp
-
     from wrinkle_jax import normalmap
+    from wrinkle_jax.numerics import to_device
 
-    global _BAKE
-    if _BAKE is None:
-        _BAKE = jax.jit(normalmap.bake_frames)
     sel = np.asarray(frames, np.float32)[::frame_step]
     pad = -len(sel) % batch
     sel = np.concatenate([sel, np.repeat(sel[-1:], pad, axis=0)])
-    return np.concatenate([np.asarray(_BAKE(plan, jnp.asarray(sel[i:i + batch])))
+    return np.concatenate([np.asarray(normalmap.bake_frames(plan, to_device(sel[i:i + batch])))
                            for i in range(0, len(sel), batch)])[:len(sel) - pad]
 
 

@@ -5,7 +5,6 @@ than heavy ones (mean |Laplacian| of the baked normal map, same UV layout for al
 from __future__ import annotations
 
 import cv2
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -44,13 +43,9 @@ def _drape(garment, material):
     return xs[-1]
 
 
-# One program per garment (op by op, each primitive of the bake compiles on its own).
-_bake = jax.jit(normalmap.bake)
-
-
 def _detail(garment, vertices, layout):
     plan = normalmap.make_plan(garment, layout=layout, gutter=0)
-    nmap = np.asarray(_bake(plan, jnp.asarray(vertices)))
+    nmap = np.asarray(normalmap.bake(plan, vertices))
     mask = np.asarray(plan.mask[..., 0]) > 0
     inner = cv2.erode(mask.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
     lap = np.stack([cv2.Laplacian(nmap[..., c].astype(np.float32), cv2.CV_32F)

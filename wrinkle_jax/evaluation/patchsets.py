@@ -16,12 +16,11 @@ import dataclasses
 import math
 from collections.abc import Iterable
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax import data, normalmap, patches
 from wrinkle_jax.mesh import Garment, global_uv_scale
+from wrinkle_jax.numerics import to_device
 
 __all__ = ["AlignedPair", "PatchSet", "aligned_pair", "aligned_patches", "bake_map",
            "candidate_origins", "choose_origins", "cut", "shared_layout", "take"]
@@ -81,12 +80,9 @@ def aligned_pair(fine: Garment, coarse: Garment, texel_size: float) -> AlignedPa
     return AlignedPair(pf, pc, mask)
 
 
-_bake = jax.jit(normalmap.bake)
-
-
 def bake_map(plan: normalmap.RasterPlan, vertices) -> np.ndarray:
     """One frame (V, 3) meters -> (H, W, 3) float32 normal map (jitted bake, NumPy out)."""
-    return np.asarray(_bake(plan, jnp.asarray(vertices, jnp.float32)))
+    return np.asarray(normalmap.bake(plan, to_device(vertices, np.float32)))
 
 
 def candidate_origins(mask: np.ndarray, size: int, stride: int, min_coverage: float

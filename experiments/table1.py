@@ -10,10 +10,11 @@ seed 0, so even the seen cell is an unseen performance). Scenes: skirt_dance, sk
 dress_dance, cape_walk from `wrinkle_jax.sim.scenes`; dress_walk and cape_dance are the dress
 and cape scenes with the motion replaced (`evaluation.cells.scene_for`). Each cell uses the first
 `--frames` frames of a fine (PD 10 mm) and a coarse (PD 30 mm) simulation: files of
-`data/sequences` (the 300-frame test sequences) are reused when their scene config, material
-and seed match; missing ones (skirt_dance seed 1, dress_walk, cape_dance) are simulated into
-`data/table1_sequences/` first (resumable, atomic writes; ~6 min of fine simulation on an idle
-machine).
+`data/sequences` (the 300-frame test sequences) are reused when their scene config, material,
+seed and solver settings match (`scenes.dataset_solver`: coarse at 80 substeps, self-collision
+on); missing ones (skirt_dance seed 1, dress_walk, cape_dance, and files of older recipes) are
+simulated with those settings into `data/table1_sequences/` first (resumable, atomic writes;
+with self-collision the fine simulation costs ~4x what it did without).
 
 Patches (paper: patch level): both meshes are baked on ONE pixel grid at the model's texel
 size (`evaluation.patchsets.shared_layout`: the fine mesh's meters-per-UV, the union of the UV

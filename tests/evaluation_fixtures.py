@@ -4,12 +4,15 @@ that the evaluation scripts read; meters."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import numpy as np
 
 from wrinkle_jax import enhancer, meshio, primitives
 from wrinkle_jax.evaluation import cells
 from wrinkle_jax.nn import unet, vgg
+from wrinkle_jax.sim import scenes
 
 SIZE = (0.3, 0.2)  # sheet, meters
 TEXEL = 0.004
@@ -50,9 +53,11 @@ def sheet_pair(frames=3):
 def write_cell_files(root, garment, motion, material, frames=3):
     """Tiny fine/coarse sheet files that `evaluation.cells.cell_sequences` accepts for a cell."""
     sc = cells.scene_for(garment, motion)
-    meta = {"scene_config": sc.to_json(), "material": material, "seed": cells.TEST_SEED}
     fine, coarse = sheet_pair(frames)
     for res, seq in (("fine", fine), ("coarse", coarse)):
+        substeps, self_collision = scenes.dataset_solver(sc, res)  # as the data set's files
+        meta = {"scene_config": sc.to_json(), "material": material, "seed": cells.TEST_SEED,
+                "substeps": substeps, "self_collision": dataclasses.asdict(self_collision)}
         seq = meshio.make_sequence(seq.frames, seq.garment, metadata=meta)
         path = cells.sequence_file(root, sc.name, material, res, cells.TEST_SEED)
         meshio.save_sequence(path, seq)

@@ -67,3 +67,52 @@ def test_scene_for_reuses_existing_scenes_and_derives_new_ones():
     assert kinds["skirt_dance/denim_light"] == "seen garment, seen motion"
     assert kinds["skirt_walk/denim_light"] == "seen garment, unseen motion"
     assert kinds["cape_dance/silk_charmeuse"] == "unseen garment"
+
+
+def test_find_or_simulate_reuses_only_files_of_the_data_sets_solver_settings(tmp_path,
+                                                                            monkeypatch):
+    import dataclasses
+
+    from evaluation_fixtures import write_cell_files
+
+    from wrinkle_jax import meshio
+
+    write_cell_files(tmp_path, "dress", "dance", "silk_charmeuse")
+    sc = cell_lib.scene_for("dress", "dance")
+    for res in ("fine", "coarse"):
+        p, info = cell_lib.find_or_simulate(sc, "silk_charmeuse", res, cell_lib.TEST_SEED, 3,
+                                            [tmp_path], tmp_path / "new")
+        assert info["source"] == "reused" and p.parent.parent == tmp_path
+    # The same coarse file at the scenes' own 20 substeps, or without self-collision: not the
+    # data set's recipe, so it must not be reused.
+    path = cell_lib.sequence_file(tmp_path, sc.name, "silk_charmeuse", "coarse",
+                                  cell_lib.TEST_SEED)
+    solver = scenes.dataset_solver(sc, "coarse")
+    seq = meshio.load_sequence(path)
+    assert cell_lib.stored_matches(path, sc, "silk_charmeuse", cell_lib.TEST_SEED, 3, solver)
+    for change in ({"substeps": 20}, {"self_collision": None},
+                   {"self_collision": dataclasses.asdict(scenes.SELF_COLLISION["coarse"])}):
+        meshio.save_sequence(path, meshio.make_sequence(
+            seq.frames, seq.garment, metadata={**seq.metadata, **change}))
+        assert not cell_lib.stored_matches(path, sc, "silk_charmeuse", cell_lib.TEST_SEED, 3,
+                                           solver), change
+        # Without settings to check (the old rule) the file still matches.
+        assert cell_lib.stored_matches(path, sc, "silk_charmeuse", cell_lib.TEST_SEED, 3)
+    # find_or_simulate then simulates anew, with the data set's settings.
+    calls = []
+
+    class Done(Exception):
+        pass
+
+    def fake_simulate(*args, **kwargs):
+        calls.append(kwargs)
+        raise Done
+
+    monkeypatch.setattr(cell_lib.scenes, "simulate", fake_simulate)
+    try:
+        cell_lib.find_or_simulate(sc, "silk_charmeuse", "coarse", cell_lib.TEST_SEED, 3,
+                                  [tmp_path], tmp_path / "new", log=lambda m: None)
+    except Done:
+        pass
+    assert len(calls) == 1
+    assert (calls[0]["substeps"], calls[0]["self_collision"]) == solver

@@ -91,3 +91,19 @@ def test_the_coarse_substeps_reach_the_simulation(tmp_path, monkeypatch):
                                 "--coarse-substeps", "80"])
     assert code == 1 and calls == [("coarse", 80)]  # --tiny: one coarse job per scene
     assert "FAILED" in (tmp_path / "make_sequences.log").read_text()
+
+
+def test_dataset_solver_is_what_make_sequences_writes_by_default():
+    """The evaluations reuse data-set files only if they match `scenes.dataset_solver`, so it
+    must name make_sequences' default settings: coarse at its default substeps, fine at the
+    scene's own, self-collision on."""
+    default = scenes.DATASET_COARSE_SUBSTEPS
+    for name in ("dress_dance", "skirt_dance"):
+        sc = scenes.get_scene(name)
+        for res in ("fine", "coarse"):
+            substeps = make_sequences.substeps_for(res, default)
+            want = (sc.substeps if substeps is None else substeps,
+                    make_sequences.self_collision_for(res, "on", substeps))
+            assert scenes.dataset_solver(name, res) == want
+    assert scenes.dataset_solver("dress_dance", "coarse")[0] == 80
+    assert scenes.dataset_solver("dress_dance", "coarse")[1].rebuild_every == 16

@@ -67,8 +67,10 @@ def stored_frames(path: Path) -> int:
 
 
 def stored_matches(path: Path, config: scenes.SceneConfig, material: str, seed: int,
-                   frames: int) -> bool:
-    """Whether a stored simulation is this scene config, material and seed with >= frames."""
+                   frames: int, solver: tuple | None = None) -> bool:
+    """Whether a stored simulation is this scene config, material and seed with >= frames,
+    and, when `solver` = (substeps, SelfCollisionConfig or None) is given, was simulated with
+    those settings (metadata "substeps" and "self_collision")."""
     try:
         if stored_frames(path) < frames:
             return False
@@ -76,29 +78,38 @@ def stored_matches(path: Path, config: scenes.SceneConfig, material: str, seed: 
             meta = json.loads(str(z["metadata"]))
     except (OSError, KeyError, ValueError, zipfile.BadZipFile):
         return False
-    return (meta.get("scene_config") == config.to_json() and meta.get("material") == material
+    same = (meta.get("scene_config") == config.to_json() and meta.get("material") == material
             and int(meta.get("seed", -1)) == seed)
+    if solver is None or not same:
+        return same
+    substeps, self_collision = solver
+    want_sc = None if self_collision is None else dataclasses.asdict(self_collision)
+    return meta.get("substeps") == substeps and meta.get("self_collision") == want_sc
 
 
 def find_or_simulate(config: scenes.SceneConfig, material: str, resolution: str, seed: int,
                      frames: int, reuse_roots: Iterable[Path], out_root: Path,
                      log: Callable[[str], None] = print) -> tuple[Path, dict]:
     """The path of a stored simulation of (config, material, resolution, seed) with at least
-    `frames` frames: the first match under `reuse_roots`, else `out_root`, else a new
-    simulation written to `out_root` (atomically, so an interrupted run leaves no partial
-    file and a rerun resumes).
+    `frames` frames, simulated with the data set's solver settings (`scenes.dataset_solver`:
+    substeps, self-collision): the first match under `reuse_roots`, else `out_root`, else a
+    new simulation with those settings written to `out_root` (atomically, so an interrupted
+    run leaves no partial file and a rerun resumes). A file of other settings is never
+    reused, so a table never mixes coarse inputs of two solver recipes.
 
     Returns:
       (path, info): info = {"source": "reused" | "simulated", "sim_s": wall seconds or 0}.
     """
+    solver = scenes.dataset_solver(config, resolution)
     for root in (*reuse_roots, out_root):
         p = sequence_file(root, config.name, material, resolution, seed)
-        if p.exists() and stored_matches(p, config, material, seed, frames):
+        if p.exists() and stored_matches(p, config, material, seed, frames, solver):
             return p, {"source": "reused", "sim_s": 0.0}
     p = sequence_file(out_root, config.name, material, resolution, seed)
     log(f"simulating {config.name} {material} {resolution} seed {seed}, {frames} frames -> {p}")
     t0 = time.perf_counter()
-    seq = scenes.simulate(config, material, resolution, frames=frames, seed=seed)
+    seq = scenes.simulate(config, material, resolution, frames=frames, seed=seed,
+                          substeps=solver[0], self_collision=solver[1])
     scenes.save_simulation(p, seq)
     wall = time.perf_counter() - t0
     log(f"  done in {wall:.0f} s ({seq.metadata['ms_per_frame']:.0f} ms/frame)")

@@ -98,6 +98,20 @@ SELF_COLLISION_SUBSTEPS = 20
 DATASET_COARSE_SUBSTEPS = 80
 
 
+def dataset_solver(scene: str | SceneConfig,
+                   resolution: str) -> tuple[int, SelfCollisionConfig]:
+    """Solver substeps per frame and self-collision settings of the data set's sequences of
+    `scene` at "fine" or "coarse" (what `experiments.make_sequences` writes by default; the
+    evaluations simulate a missing sequence with the same): coarse at
+    `DATASET_COARSE_SUBSTEPS`, fine at the scene's own substeps, self-collision on at both
+    (`self_collision_config`). Files record them as metadata "substeps" and "self_collision".
+    """
+    sc = get_scene(scene) if isinstance(scene, str) else scene
+    substeps = DATASET_COARSE_SUBSTEPS if resolution == "coarse" else None
+    return (sc.substeps if substeps is None else substeps,
+            self_collision_config(resolution, substeps))
+
+
 def self_collision_config(resolution: str, substeps: int | None = None) -> SelfCollisionConfig:
     """`SELF_COLLISION[resolution]` for a run of `substeps` solver substeps per frame.
 

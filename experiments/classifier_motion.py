@@ -12,11 +12,13 @@ held-out coarse sequences): when the simulator's fabrics change, re-simulate and
    (tabard_dance2); held-out = the seed-1 coarse sequences of --heldout-data; skinned = each
    held-out sequence's first frame carried rigidly by the body (`motion.follow_body_rigidly`);
    real LBS = the `experiments.make_lbs_sequences` files in --lbs-data, when present.
-2. Selection by leave-one-training-scene-out cross-validation only: each feature family alone,
-   all together and all but one, times three L2 weights and three prediction clips
-   (`MotionConfig.clip`: off, 3, 2 standard deviations); the pick maximizes CV per-sequence
-   accuracy (ties: lower CV NLL). Held-out numbers are printed for every candidate but never
-   read by the choice.
+2. Selection by leave-one-training-GARMENT-out cross-validation only (`classifier.folds`: all
+   scenes of a garment leave together, so the skirt's and the apron's second dance never stay
+   in training while the first is validated; `--folds scene` gives sessions 17-22's
+   leave-one-scene-out): each feature family alone, all together and all but one, times three
+   L2 weights and three prediction clips (`MotionConfig.clip`: off, 3, 2 standard
+   deviations); the pick maximizes CV per-sequence accuracy (ties: lower CV NLL). Held-out
+   numbers are printed for every candidate but never read by the choice.
 3. Calibration on the pick's out-of-fold predictions: temperature (sequence level), abstain
    threshold (lowest confidence whose CV answers are >= 90 % right), novelty limit (twice the
    largest out-of-fold novelty of a training sequence).
@@ -38,6 +40,7 @@ import numpy as np
 from wrinkle_jax import MATERIALS
 from wrinkle_jax.classifier import calibrated as cal
 from wrinkle_jax.classifier import drape, motion
+from wrinkle_jax.classifier import folds as cv_folds
 from wrinkle_jax.fileio import atomic_write_text
 from wrinkle_jax.sim import scenes
 
@@ -136,14 +139,29 @@ def _stack(entries):
     return x, y
 
 
-def cross_validate(train: list[dict], config: cal.MotionConfig) -> dict:
-    """Leave-one-scene-out: out-of-fold mean window log-probs, window accuracy, novelty."""
-    scenes_ = sorted({e["scene"] for e in train})
+def make_folds(train: list[dict], by: str = "garment") -> list[cv_folds.Fold]:
+    """The CV folds of the training sequences: one per garment (default; garments from the
+    scene definitions) or, with by="scene", one per scene (sessions 17-22)."""
+    names = sorted({e["scene"] for e in train})
+    if by == "garment":
+        return cv_folds.leave_one_garment_out(names)
+    if by == "scene":
+        return cv_folds.leave_one_scene_out(names)
+    raise ValueError(f"by must be 'garment' or 'scene', got {by!r}")
+
+
+def cross_validate(train: list[dict], config: cal.MotionConfig,
+                   folds: list[cv_folds.Fold] | None = None) -> dict:
+    """Out-of-fold mean window log-probs, window accuracy and novelty of every training
+    sequence; folds default to `make_folds` (leave one garment out)."""
+    folds = make_folds(train) if folds is None else folds
     mean_lp, labels, nov, win_ok, names = [], [], [], [], []
-    for held in scenes_:
-        fit_on = [e for e in train if e["scene"] != held]
+    for fold in folds:
+        fit_on = [e for e in train if e["scene"] in fold.train]
+        if {e["scene"] for e in fit_on} & set(fold.validate):
+            raise ValueError(f"fold {fold.group}: a scene is both fitted and validated")
         model = cal.fit(*_stack(fit_on), config)
-        for e in (e for e in train if e["scene"] == held):
+        for e in (e for e in train if e["scene"] in fold.validate):
             lp = cal.window_log_probs(model, e["features"])
             mean_lp.append(lp.mean(0))
             win_ok.append(lp.argmax(1) == e["label"])
@@ -154,6 +172,28 @@ def cross_validate(train: list[dict], config: cal.MotionConfig) -> dict:
     return {"mean_lp": mean_lp, "labels": labels, "novelty": np.array(nov), "names": names,
             "seq_acc": float(np.mean(mean_lp.argmax(1) == labels)),
             "win_acc": float(np.mean(np.concatenate(win_ok)))}
+
+
+def best_per_set(rows: list[dict]) -> list[dict]:
+    """For each feature set, its candidate (L2, clip) of highest CV accuracy, ties by lower CV
+    NLL (the study's own rule); the held-out column rides along, unread."""
+    best: dict[tuple, dict] = {}
+    for r in rows:
+        k = tuple(r["families"])
+        if k not in best or ((r["cv_seq_acc"], -r["cv_nll"])
+                             > (best[k]["cv_seq_acc"], -best[k]["cv_nll"])):
+            best[k] = r
+    return list(best.values())
+
+
+def per_fold_accuracy(cv: dict, folds: list[cv_folds.Fold]) -> dict:
+    """Left-out group -> out-of-fold per-sequence accuracy of its sequences."""
+    group = {s: f.group for f in folds for s in f.validate}
+    ok = cv["mean_lp"].argmax(1) == cv["labels"]
+    out: dict[str, list] = {}
+    for name, good in zip(cv["names"], ok, strict=True):
+        out.setdefault(group[name.split("/")[0]], []).append(bool(good))
+    return {g: float(np.mean(v)) for g, v in out.items()}
 
 
 def _nan_none(a) -> list:
@@ -292,6 +332,9 @@ def main(argv=None) -> int:
                     "report on; skipped when absent")
     ap.add_argument("--model-out", default=None, metavar="PATH",
                     help="also write the fitted model here (for inspection; not shipped)")
+    ap.add_argument("--folds", choices=("garment", "scene"), default="garment",
+                    help="cross-validation leaves out one garment (all its scenes; default) "
+                    "or one scene (sessions 17-22)")
     ap.add_argument("--ship", action="store_true",
                     help=f"write {cal.MOTION_PATH.name} to wrinkle_jax/assets (only when the "
                     "targets hold)")
@@ -303,12 +346,15 @@ def main(argv=None) -> int:
     heldout = [e for e in entries if e["split"] == "heldout"]
     skinned = [e for e in entries if e["split"] == "skinned"]
     print(f"{len(train)} training, {len(heldout)} held-out, {len(skinned)} skinned sequences")
+    folds = make_folds(train, args.folds)
+    for f in folds:
+        print(f"fold {f.group}: validate {', '.join(f.validate)}")
 
     # Selection: CV numbers only; the held-out column is printed for the record.
     cands = []
     for fams, l2, clip in itertools.product(candidate_families(), L2S, CLIPS):
         cfg = dataclasses.replace(base, families=fams, l2=l2, clip=clip)
-        cv = cross_validate(train, cfg)
+        cv = cross_validate(train, cfg, folds)
         t = cal.fit_temperature(cv["mean_lp"], cv["labels"])
         cv_nll = cal.nll(cal.sequence_probs(cv["mean_lp"], t), cv["labels"])
         model = cal.fit(*_stack(train), cfg)
@@ -318,6 +364,10 @@ def main(argv=None) -> int:
                "cv_win_acc": cv["win_acc"], "cv_nll": cv_nll, "heldout_seq_acc": ho_acc}
         cands.append((row, cfg, cv))
         print(json.dumps(row), flush=True)
+    for r in best_per_set([c[0] for c in cands]):
+        print(f"best of set {'+'.join(r['families'])}: L2 {r['l2']} clip {r['clip']} CV "
+              f"{r['cv_seq_acc']:.2f} (window {r['cv_win_acc']:.2f}, NLL {r['cv_nll']:.2f}) "
+              f"held-out {r['heldout_seq_acc']:.2f}")
     row, cfg, cv = max(cands, key=lambda c: (c[0]["cv_seq_acc"], -c[0]["cv_nll"]))
     print("pick:", json.dumps(row))
 
@@ -340,7 +390,10 @@ def main(argv=None) -> int:
     _, _, _, cv_ece_t1 = cal.reliability(cal.sequence_probs(cv["mean_lp"], 1.0), cv["labels"])
     cv_ans = conf >= threshold
     g_ans = g_conf >= group_threshold
-    res = {"config": dataclasses.asdict(cfg), "temperature": temp, "threshold": threshold,
+    res = {"cv_folds": {"by": args.folds,
+                        "folds": [{"group": f.group, "validate": list(f.validate)}
+                                  for f in folds]},
+           "config": dataclasses.asdict(cfg), "temperature": temp, "threshold": threshold,
            "novelty_limit": novelty_limit, "group_threshold": group_threshold,
            "cv": {"seq_acc": cv["seq_acc"], "win_acc": cv["win_acc"], "ece": cv_ece,
                   "ece_temperature_1": cv_ece_t1,
@@ -352,10 +405,12 @@ def main(argv=None) -> int:
                   "group_accuracy": float(np.mean(group_of(cv_probs.argmax(1))
                                                   == group_of(cv["labels"]))),
                   "max_novelty": float(cv["novelty"].max()),
+                  "per_fold": per_fold_accuracy(cv, folds),
                   "group_level_coverage": float(g_ans.mean()),
                   "group_level_accuracy_answered": float(g_ok[g_ans].mean()) if g_ans.any()
                   else None},
            "candidates": [c[0] for c in cands],
+           "best_per_set": best_per_set([c[0] for c in cands]),
            "heldout": evaluate(model, heldout), "skinned": evaluate(model, skinned)}
     curve = accuracy_vs_windows(model, heldout)
     res["heldout_vs_windows"] = curve

@@ -8,6 +8,9 @@ Motion (`motion`, `calibrated`; imported as submodules)::
       --logistic regression--> window log p --mean over windows / temperature--> p (M,)
       --answer if max p >= threshold and the features look like the training sims--> or abstain
 
+Temperature, threshold and the feature choice are fitted on cross-validation folds that leave
+out one garment (all of its scenes) at a time (`folds`, imported as a submodule).
+
 The rest of this docstring describes the patch classifier.
 
 Modules (by concept): `config` (ClassifierConfig, feature specs), `features` (VGG features

@@ -66,7 +66,7 @@ def test_end_to_end_shapes_finite_unit_normals_and_timings(result, seq, model):
     assert not res.normal_maps[:, ~inside & ~(np.asarray(plan.index_map) < plan.texel_pixel.size)
                                ].any()  # background (outside mask and gutter) is zero
     # The random network changes the map (the lift then follows random normals).
-    coarse = np.asarray(jax.jit(normalmap.bake_frames)(plan, seq.frames))
+    coarse = np.asarray(normalmap.bake_frames(plan, seq.frames))
     assert np.abs(res.normal_maps - coarse)[:, inside].max() > 1e-2
     for stage in pipeline.STAGES + ("total",):
         assert stage in res.timings and res.timings[stage] >= 0.0
@@ -89,7 +89,7 @@ def test_identity_network_keeps_the_coarse_map_and_mesh(seq, model, result):
     res = pipeline.enhance_sequence(seq, "silk_chiffon", enhancer=ident, batch_size=BATCH,
                                     frames=[0, 3])
     plan = normalmap.make_plan(seq.garment, texel_size=config.texel_size)
-    coarse = np.asarray(jax.jit(normalmap.bake_frames)(plan, seq.frames[[0, 3]]))
+    coarse = np.asarray(normalmap.bake_frames(plan, seq.frames[[0, 3]]))
     inside = res.mask[..., 0] > 0
     np.testing.assert_allclose(res.normal_maps[:, inside], coarse[:, inside], atol=1e-5)
     _, sub = lift.upsample(seq.garment)
@@ -253,7 +253,7 @@ def test_a_given_layout_bakes_onto_its_pixels_and_must_match_the_texel_size(seq,
     assert pipe.shape == (layout.height, layout.width)
     got = np.stack([f.normal_map for f in pipeline.iter_enhance(pipe, seq.frames, 0, [1, 2])])
     plan = normalmap.make_plan(seq.garment, layout=layout)
-    want = np.asarray(jax.jit(normalmap.bake_frames)(plan, seq.frames[[1, 2]]))
+    want = np.asarray(normalmap.bake_frames(plan, seq.frames[[1, 2]]))
     inside = np.asarray(plan.mask)[..., 0] > 0
     assert got.shape == (2, layout.height, layout.width, 3)
     np.testing.assert_allclose(got[:, inside], want[:, inside], atol=1e-5)

@@ -32,14 +32,6 @@ def _folds(n=3, size=32, seed=0):
     return (np.asarray(out, np.float32) * mask).astype(np.float32), mask
 
 
-# unsharp_rgb and masked_blur as one program per shape and setting, for the tests whose shapes
-# no other test of the file runs op by op (each primitive compiles on its own for every new
-# shape; the OpenCV comparisons stay op by op: their cases share those compiles, a jit would
-# compile each setting).
-_unsharp_jit = jax.jit(sharpen.unsharp_rgb, static_argnums=(1, 4))
-_masked_blur_jit = jax.jit(sharpen.masked_blur, static_argnums=(2, 3))
-
-
 def test_gaussian_kernel_normalized_and_symmetric():
     for sigma in (0.7, 2.0, 8.0):
         g = sharpen.gaussian_kernel(sigma)
@@ -76,13 +68,13 @@ def test_local_plane_blur_keeps_linear_fields_up_to_the_border():
     amplifies on flat tilted panels."""
     field, disc, strip = _ramp()
     inside = disc[..., 0] > 0
-    err1 = np.abs(np.asarray(_masked_blur_jit(field, disc, 6.0, 1)) - field)[inside]
-    err0 = np.abs(np.asarray(_masked_blur_jit(field, disc, 6.0, 0)) - field)[inside]
+    err1 = np.abs(np.asarray(sharpen.masked_blur(field, disc, 6.0, 1)) - field)[inside]
+    err0 = np.abs(np.asarray(sharpen.masked_blur(field, disc, 6.0, 0)) - field)[inside]
     assert err1.max() < 2e-3 * np.abs(field).max()
     assert err0.max() > 20 * err1.max()
     # A one-texel-wide diagonal strip: the slope across it is undetermined (the ridge makes the
     # fit fall back), the one along it is exact: the field is still kept, and all is finite.
-    got = np.asarray(_masked_blur_jit(field, strip, 6.0, 1))
+    got = np.asarray(sharpen.masked_blur(field, strip, 6.0, 1))
     assert np.all(np.isfinite(got))
     on = strip[..., 0] > 0
     np.testing.assert_allclose(got[on], field[on], atol=2e-3)
@@ -93,9 +85,10 @@ def test_local_plane_blur_keeps_linear_fields_up_to_the_border():
 
 def test_per_patch_amount_and_identity_at_zero():
     x, m = _folds(n=2)
-    both = np.asarray(_unsharp_jit(x, 2.0, jnp.array([0.0, 1.5]), m, 1))
+    both = np.asarray(sharpen.unsharp_rgb(x, 2.0, jnp.array([0.0, 1.5]), m, 1))
     np.testing.assert_allclose(both[0], x[0], atol=1e-6)  # amount 0: unchanged
-    np.testing.assert_allclose(both[1], np.asarray(_unsharp_jit(x[1:], 2.0, 1.5, m[1:], 1))[0],
+    np.testing.assert_allclose(both[1],
+                               np.asarray(sharpen.unsharp_rgb(x[1:], 2.0, 1.5, m[1:], 1))[0],
                                atol=1e-6)
 
 
@@ -104,7 +97,7 @@ def test_constant_field_is_fixed_and_background_stays_zero():
     m[:, 3:17, 5:20] = 1
     n = np.array([0.3, -0.2, 0.9])
     x = ((n / np.linalg.norm(n) + 1) / 2 * m).astype(np.float32)
-    out = np.asarray(_unsharp_jit(x, 4.0, 3.0, m, 1))
+    out = np.asarray(sharpen.unsharp_rgb(x, 4.0, 3.0, m, 1))
     # The normalized-convolution blur of a constant is that constant up to the mask's border:
     # the background never bleeds in, so sharpening changes nothing.
     np.testing.assert_allclose(out, x, atol=1e-5)

@@ -101,7 +101,7 @@ def build_cache(data: Path, cache: Path, rc: ReportConfig, vgg_params, log,
                                        normal_frame=rc.normal_frame)
     srcs = sequences(data)
     jobs = []
-    for want in ("heldout", "coarse", "fine_ds")[:3 if fine_ds else 2]:
+    for want in ("heldout", "coarse") + (("fine_ds",) if fine_ds else ()):
         split = "heldout" if want == "heldout" else "train"
         for src in srcs[split]:
             for variant, down in classify_train.sequence_variants(src, fine_ds=split == "train"):

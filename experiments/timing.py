@@ -3,7 +3,7 @@ simulation per frame, same scene, with the per-stage split.
 
     python -m experiments.timing [--frames 30] [--scene dress_dance]
         [--material silk_charmeuse] [--model wrinkle_jax/assets/enhancer.npz]
-        [--out experiments/results/timing]
+        [--recipes legacy,dataset] [--rounds 2] [--out experiments/results/timing]
 
 Everything is measured on this machine in this process, nothing is estimated:
 
@@ -25,6 +25,20 @@ Everything is measured on this machine in this process, nothing is estimated:
 
 Ratio = fine ms/frame / (coarse ms/frame + pipeline ms/frame), with and without the lift.
 
+Two solver recipes (`--recipes`), each for both resolutions:
+
+  * "legacy": the scene's own substeps, no self-collision -- the setting of the fine
+    simulation's 172 ms/frame that issue 22's target was written against;
+  * "dataset": `scenes.dataset_solver` -- what the data set's sequences (the enhancer's
+    training input and target) are simulated with: coarse at 80 substeps, self-collision at
+    both resolutions.
+
+The pipeline is timed on the first recipe's coarse frames (its cost does not depend on how the
+coarse input was simulated). `--rounds N` repeats every measurement N times in one process,
+the recipe order reversed in every other round so that a drift of the machine's speed falls on
+both alike; every round's ratio is recorded and the headline uses the median over rounds. The
+top-level "coarse_sim", "fine_sim" and "ratio" are the first recipe's (the report's table).
+
 Writes `<out>/results.json` (frames timed, ms/frame per stage and per simulation, compile and
 setup seconds, ratios, vertex counts, machine) and `<out>/timing.png` (stacked bars).
 The machine's other load changes the numbers: its 1-minute load average is recorded.
@@ -45,21 +59,41 @@ from wrinkle_jax.evaluation import suite
 from wrinkle_jax.sim import scenes
 
 STAGES = ("bake", "tile", "network", "merge", "lift")
+RECIPES = ("legacy", "dataset")
+
+
+def solver_settings(config: scenes.SceneConfig, resolution: str, recipe: str) -> dict:
+    """`scenes.simulate` keyword arguments of a solver recipe: "legacy" (the scene's own
+    substeps, no self-collision) or "dataset" (`scenes.dataset_solver`)."""
+    if recipe == "legacy":
+        return {}
+    if recipe == "dataset":
+        substeps, self_collision = scenes.dataset_solver(config, resolution)
+        return {"substeps": substeps, "self_collision": self_collision}
+    raise ValueError(f"unknown solver recipe {recipe!r}; choose one of {RECIPES}")
 
 
 def time_simulation(config: scenes.SceneConfig, material: str, resolution: str, frames: int,
-                    seed: int = cell_lib.TEST_SEED) -> tuple[scenes.SimulatedSequence, dict]:
+                    seed: int = cell_lib.TEST_SEED, recipe: str = "legacy",
+                    warm_up: bool = True) -> tuple[scenes.SimulatedSequence, dict]:
     """Simulate `frames` frames with a compiled solver and time it.
 
+    Args:
+      recipe: solver settings (`solver_settings`). warm_up: first run 1 frame to compile the
+        solver (False when an earlier call in this process compiled the same one; then
+        first_call_s and compile_s are None).
     Returns:
-      (sequence, info): info has setup_s, first_call_s, compile_s, frames (returned),
-      simulated_frames (pre-roll + frames), wall_s, ms_per_frame (steady), chunk_ms_per_frame
-      (list), vertices.
+      (sequence, info): info has recipe, substeps, self_collision, setup_s, first_call_s,
+      compile_s, frames (returned), simulated_frames (pre-roll + frames), wall_s, ms_per_frame
+      (steady), chunk_ms_per_frame (list), vertices.
     """
-    t0 = time.perf_counter()
-    warm = scenes.simulate(config, material, resolution, frames=1, seed=seed)
-    first_call_s = time.perf_counter() - t0
-    warm_frames = int(warm.metadata["preroll_frames"])  # pre-roll + 1 - 1 simulated frames
+    kw = solver_settings(config, resolution, recipe)
+    first_call_s = warm_frames = None
+    if warm_up:
+        t0 = time.perf_counter()
+        warm = scenes.simulate(config, material, resolution, frames=1, seed=seed, **kw)
+        first_call_s = time.perf_counter() - t0
+        warm_frames = int(warm.metadata["preroll_frames"])  # pre-roll + 1 - 1 simulated frames
     t0 = time.perf_counter()
     setup = scenes.setup_scene(config, resolution, frames, seed)
     setup_s = time.perf_counter() - t0
@@ -72,18 +106,22 @@ def time_simulation(config: scenes.SceneConfig, material: str, resolution: str, 
 
     t0 = time.perf_counter()
     seq = scenes.simulate(config, material, resolution, frames=frames, seed=seed, setup=setup,
-                          progress=progress)
+                          progress=progress, **kw)
     wall = time.perf_counter() - t0
     simulated = int(sum(sizes))
     ms = 1e3 * wall / max(simulated, 1)
     chunk_ms = [1e3 * (b - a) / max(n, 1) for a, b, n in zip(stamps, stamps[1:], sizes,
                                                                strict=False)]
+    sc = kw.get("self_collision")
     return seq, {"resolution": resolution, "pd_m": scenes.resolution_pd(resolution),
+                 "recipe": recipe, "substeps": kw.get("substeps", config.substeps),
+                 "self_collision": sc is not None,
                  "vertices": int(seq.garment.num_vertices), "frames": frames,
                  "simulated_frames": simulated, "wall_s": wall, "ms_per_frame": ms,
                  "chunk_ms_per_frame": chunk_ms, "setup_s": setup_s,
                  "first_call_s": first_call_s,
-                 "compile_s": max(first_call_s - warm_frames * ms / 1e3, 0.0)}
+                 "compile_s": (None if first_call_s is None
+                               else max(first_call_s - warm_frames * ms / 1e3, 0.0))}
 
 
 def capsule_body_fn(tracks: dict):
@@ -147,32 +185,113 @@ def ratios(coarse_ms: float, fine_ms: float, stage_ms: dict) -> dict:
 
 
 def plot(path: Path, results: dict) -> None:
-    """Stacked bars (ms/frame): coarse sim + pipeline stages, and the fine simulation."""
+    """Stacked bars (ms/frame): coarse sim + pipeline stages, and the fine simulation, one pair
+    per solver recipe (`results["summary"]`; without it, the top-level recipe only)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    parts = [("coarse sim", results["coarse_sim"]["ms_per_frame"])]
-    parts += [(k, results["pipeline"]["ms_per_frame"][k]) for k in STAGES]
+    summary = results.get("summary")
+    if summary:
+        pairs = [(name, s["coarse_ms_per_frame"], s["fine_ms_per_frame"], s["ratio"])
+                 for name, s in summary["recipes"].items()]
+    else:
+        pairs = [("", results["coarse_sim"]["ms_per_frame"],
+                  results["fine_sim"]["ms_per_frame"], results["ratio"])]
+    stage_ms = results["pipeline"]["ms_per_frame"]
     colors = ["tab:gray", "tab:olive", "tab:cyan", "tab:red", "tab:purple", "tab:green"]
-    fig, ax = plt.subplots(figsize=(5.5, 3.4))
-    bottom = 0.0
-    for (name, ms), color in zip(parts, colors, strict=True):
-        ax.bar(0, ms, bottom=bottom, color=color, label=f"{name} {ms:.0f} ms")
-        bottom += ms
-    fine = results["fine_sim"]["ms_per_frame"]
-    ax.bar(1, fine, color="tab:blue", label=f"fine sim {fine:.0f} ms")
-    ax.set_xticks([0, 1], ["coarse sim + ours", "fine sim"])
+    fig, ax = plt.subplots(figsize=(2.2 + 1.9 * len(pairs), 3.6))
+    ticks, labels = [], []
+    for i, (name, coarse, fine, r) in enumerate(pairs):
+        x = 2.6 * i
+        parts = [("coarse sim", coarse)] + [(k, stage_ms[k]) for k in STAGES]
+        bottom = 0.0
+        for (part, ms), color in zip(parts, colors, strict=True):
+            # The stages are shared by the recipes: labelled once; the coarse sims per recipe.
+            label = (f"{part} {ms:.0f} ms" + (f" ({name})" if name else "")
+                     if part == "coarse sim" else f"{part} {ms:.0f} ms" if i == 0 else None)
+            ax.bar(x, ms, bottom=bottom, color=color, label=label)
+            bottom += ms
+        ax.bar(x + 1, fine, color="tab:blue", label=f"fine sim {fine:.0f} ms"
+               + (f" ({name})" if name else ""))
+        ax.text(x + 0.5, max(bottom, fine) * 1.02, f"{r['speedup']:.2f}x", ha="center",
+                fontsize=7)
+        ticks += [x, x + 1]
+        labels += [f"ours\n{name}".strip(), f"fine\n{name}".strip()]
+    ax.set_xticks(ticks, labels, fontsize=7)
     ax.set_ylabel("ms per frame")
-    r = results["ratio"]
-    verdict = (f"ours {r['speedup']:.1f}x faster" if r["speedup"] >= 1
-               else f"ours {1 / r['speedup']:.1f}x slower")
-    ax.set_title(f"{results['scene']} {results['material']}, {results['frames']} frames timed: "
-                 f"{verdict} than the fine sim", fontsize=8)
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    ax.set_title(f"{results['scene']} {results['material']}, {results['frames']} frames: "
+                 "fine / ours above each pair", fontsize=8)
+    ax.legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     fig.tight_layout()
     suite.save_figure(fig, path, dpi=100)
+
+
+def summarize(rounds: list[dict], recipes: tuple[str, ...]) -> dict:
+    """Medians over rounds of `measure_round` results.
+
+    Returns:
+      {"pipeline_ms_per_frame": {stage: median ms}, "recipes": {recipe: {"coarse_ms_per_frame",
+       "fine_ms_per_frame", "ratio" (`ratios` of the medians), "speedup_per_round",
+       "speedup_no_lift_per_round"}}}.
+    """
+    stage_ms = {k: float(np.median([r["pipeline"]["ms_per_frame"][k] for r in rounds]))
+                for k in STAGES}
+    out = {}
+    for name in recipes:
+        coarse = float(np.median([r["recipes"][name]["coarse_sim"]["ms_per_frame"]
+                                  for r in rounds]))
+        fine = float(np.median([r["recipes"][name]["fine_sim"]["ms_per_frame"] for r in rounds]))
+        out[name] = {"coarse_ms_per_frame": coarse, "fine_ms_per_frame": fine,
+                     "ratio": ratios(coarse, fine, stage_ms),
+                     "speedup_per_round": [r["recipes"][name]["ratio"]["speedup"]
+                                           for r in rounds],
+                     "speedup_no_lift_per_round": [r["recipes"][name]["ratio"]["speedup_no_lift"]
+                                                   for r in rounds]}
+    return {"pipeline_ms_per_frame": stage_ms, "recipes": out}
+
+
+def measure_round(config: scenes.SceneConfig, material: str, frames: int,
+                  recipes: tuple[str, ...], order: tuple[str, ...], enh: enhancer_lib.Enhancer,
+                  use_body: bool, batch_size: int | None, warm_up: bool) -> dict:
+    """One round: the coarse simulation of every recipe (in `order`), the pipeline on the
+    coarse frames of `recipes[0]`, then the fine simulations (in `order`)."""
+    rec = {"order": list(order), "load_avg_1min_before": suite.machine_info()["load_avg_1min"],
+           "recipes": {name: {} for name in recipes}}
+    first = None
+    for name in order:
+        print(f"  coarse simulation ({name}), {frames} frames ...", flush=True)
+        seq, info = time_simulation(config, material, "coarse", frames, recipe=name,
+                                    warm_up=warm_up)
+        print(f"    {info['ms_per_frame']:.1f} ms/frame", flush=True)
+        rec["recipes"][name]["coarse_sim"] = info
+        first = seq if name == recipes[0] else first
+    print(f"  pipeline on the {recipes[0]} coarse frames ...", flush=True)
+    body = capsule_body_fn(first.tracks) if use_body else None
+    rec["pipeline"] = time_pipeline(first, enh, material, body, True, batch_size)
+    print("    " + ", ".join(f"{k} {v:.0f}" for k, v in rec["pipeline"]["ms_per_frame"].items())
+          + " ms/frame", flush=True)
+    for name in order:
+        print(f"  fine simulation ({name}), {frames} frames ...", flush=True)
+        _, info = time_simulation(config, material, "fine", frames, recipe=name,
+                                  warm_up=warm_up)
+        print(f"    {info['ms_per_frame']:.1f} ms/frame", flush=True)
+        r = rec["recipes"][name]
+        r["fine_sim"] = info
+        r["ratio"] = ratios(r["coarse_sim"]["ms_per_frame"], info["ms_per_frame"],
+                            rec["pipeline"]["ms_per_frame"])
+    rec["load_avg_1min_after"] = suite.machine_info()["load_avg_1min"]
+    return rec
+
+
+def parse_recipes(text: str) -> tuple[str, ...]:
+    """"legacy,dataset" -> ("legacy", "dataset"); ValueError on unknown or repeated names."""
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    bad = [n for n in names if n not in RECIPES]
+    if not names or bad or len(set(names)) != len(names):
+        raise ValueError(f"--recipes: a comma-separated subset of {RECIPES}, got {text!r}")
+    return names
 
 
 def main(argv=None) -> int:
@@ -186,38 +305,46 @@ def main(argv=None) -> int:
                     help="patches per network call (default: the pipeline's, as the CLI)")
     ap.add_argument("--no-body", action="store_true",
                     help="lift without the body (no interpenetration resolution)")
+    ap.add_argument("--recipes", default=",".join(RECIPES),
+                    help="solver recipes, comma-separated; the first is the report's table")
+    ap.add_argument("--rounds", type=int, default=2,
+                    help="repeat every measurement, the recipe order reversed every other round")
     ap.add_argument("--out", default=str(suite.RESULTS / "timing"))
     args = ap.parse_args(argv)
-    if args.frames < 1:
-        ap.error("--frames must be >= 1")
+    if args.frames < 1 or args.rounds < 1:
+        ap.error("--frames and --rounds must be >= 1")
     try:
+        recipes = parse_recipes(args.recipes)
         enh = enhancer_lib.load_enhancer(args.model)
         config = scenes.get_scene(args.scene)
-    except (enhancer_lib.EnhancerError, scenes.SceneError) as e:
+    except (ValueError, enhancer_lib.EnhancerError, scenes.SceneError) as e:
         ap.error(str(e))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
     load_before = suite.machine_info()["load_avg_1min"]
-    print(f"coarse simulation, {args.frames} frames ...", flush=True)
-    coarse, coarse_info = time_simulation(config, args.material, "coarse", args.frames)
-    print(f"  {coarse_info['ms_per_frame']:.1f} ms/frame", flush=True)
-    print(f"pipeline, {args.frames} frames ...", flush=True)
-    body = None if args.no_body else capsule_body_fn(coarse.tracks)
-    pipe_info = time_pipeline(coarse, enh, args.material, body, True, args.batch_size)
-    print("  " + ", ".join(f"{k} {v:.0f}" for k, v in pipe_info["ms_per_frame"].items())
-          + " ms/frame", flush=True)
-    print(f"fine simulation, {args.frames} frames ...", flush=True)
-    _, fine_info = time_simulation(config, args.material, "fine", args.frames)
-    print(f"  {fine_info['ms_per_frame']:.1f} ms/frame", flush=True)
+    rounds = []
+    for i in range(args.rounds):
+        order = recipes if i % 2 == 0 else recipes[::-1]
+        print(f"round {i + 1}/{args.rounds}, order {', '.join(order)}", flush=True)
+        rounds.append(measure_round(config, args.material, args.frames, recipes, order, enh,
+                                    not args.no_body, args.batch_size, warm_up=i == 0))
+    summary = summarize(rounds, recipes)
+    head = summary["recipes"][recipes[0]]
+    first = rounds[0]["recipes"][recipes[0]]
+    pipe_info = {**rounds[0]["pipeline"], "ms_per_frame": summary["pipeline_ms_per_frame"],
+                 "ms_per_frame_total": sum(summary["pipeline_ms_per_frame"].values())}
     results = {
         "scene": args.scene, "material": args.material, "frames": args.frames,
         "seed": cell_lib.TEST_SEED, "model": suite.portable_path(args.model),
-        "model_width": enh.config.unet.width,
-        "coarse_sim": coarse_info, "pipeline": pipe_info, "fine_sim": fine_info,
-        "ratio": ratios(coarse_info["ms_per_frame"], fine_info["ms_per_frame"],
-                        pipe_info["ms_per_frame"]),
-        "note": "steady-state ms/frame; compile and setup reported separately, not included",
+        "model_width": enh.config.unet.width, "rounds": args.rounds,
+        "recipes": list(recipes),
+        "coarse_sim": {**first["coarse_sim"], "ms_per_frame": head["coarse_ms_per_frame"]},
+        "pipeline": pipe_info,
+        "fine_sim": {**first["fine_sim"], "ms_per_frame": head["fine_ms_per_frame"]},
+        "ratio": head["ratio"], "summary": summary, "per_round": rounds,
+        "note": ("steady-state ms/frame, medians over rounds; compile and setup reported "
+                 "separately (first round), not included"),
         "timings": {"total_s": time.perf_counter() - t_all},
         "machine": {**suite.machine_info(), "load_avg_1min_before": load_before},
         "command": "python -m experiments.timing " + " ".join(
@@ -225,11 +352,14 @@ def main(argv=None) -> int:
     }
     suite.write_json(out / "results.json", results)
     plot(out / "timing.png", results)
-    r = results["ratio"]
-    print(f"ours {r['ours_ms_per_frame']:.0f} ms/frame "
-          f"(no lift {r['ours_no_lift_ms_per_frame']:.0f}), "
-          f"fine {r['fine_ms_per_frame']:.0f} ms/frame: fine / ours = {r['speedup']:.2f}x "
-          f"({r['speedup_no_lift']:.2f}x without the lift)")
+    for name in recipes:
+        s = summary["recipes"][name]
+        r = s["ratio"]
+        print(f"{name}: ours {r['ours_ms_per_frame']:.0f} ms/frame "
+              f"(no lift {r['ours_no_lift_ms_per_frame']:.0f}), "
+              f"fine {r['fine_ms_per_frame']:.0f} ms/frame: fine / ours = {r['speedup']:.2f}x "
+              f"({r['speedup_no_lift']:.2f}x without the lift; per round "
+              + ", ".join(f"{x:.2f}" for x in s["speedup_per_round"]) + ")")
     print(f"wrote {out / 'results.json'} and {out / 'timing.png'}")
     return 0
 

@@ -153,10 +153,12 @@ def test_time_pipeline_reports_every_stage_per_frame_and_compile_separately(mode
 
 
 def test_time_simulation_counts_simulated_frames_and_separates_the_first_call(monkeypatch):
-    calls = []
+    calls, solvers = [], []
 
-    def fake_simulate(config, material, resolution, frames, seed, setup=None, progress=None):
+    def fake_simulate(config, material, resolution, frames, seed, setup=None, progress=None,
+                      **solver):
         calls.append(frames)
+        solvers.append(solver)
         pre = 5
         total = pre + frames - 1
         if frames == 1:
@@ -179,6 +181,47 @@ def test_time_simulation_counts_simulated_frames_and_separates_the_first_call(mo
     assert info["ms_per_frame"] == pytest.approx(1e3 * info["wall_s"] / 74)
     assert 0.15 < info["compile_s"] <= info["first_call_s"]
     assert info["vertices"] == 123
+    # The legacy recipe passes no solver settings: the scene's substeps, no self-collision.
+    assert solvers == [{}, {}] and info["recipe"] == "legacy"
+    assert info["substeps"] == scenes.SCENES["dress_dance"].substeps
+    assert info["self_collision"] is False
+    # The data set's recipe passes scenes.dataset_solver's settings to both calls; without
+    # the warm-up only the timed call runs and no compile time is claimed.
+    calls.clear()
+    solvers.clear()
+    _, info = timing.time_simulation(scenes.SCENES["dress_dance"], "silk_charmeuse",
+                                     "coarse", frames=70, recipe="dataset", warm_up=False)
+    substeps, sc = scenes.dataset_solver("dress_dance", "coarse")
+    assert calls == [70] and solvers == [{"substeps": substeps, "self_collision": sc}]
+    assert info["substeps"] == substeps == scenes.DATASET_COARSE_SUBSTEPS
+    assert info["self_collision"] is True
+    assert info["first_call_s"] is None and info["compile_s"] is None
+    with pytest.raises(ValueError, match="recipe"):
+        timing.solver_settings(scenes.SCENES["dress_dance"], "fine", "fast")
+
+
+def test_timing_recipes_parse_and_rounds_summarize_by_median():
+    assert timing.parse_recipes("dataset, legacy") == ("dataset", "legacy")
+    for bad in ("", "legacy,legacy", "legacy,fast"):
+        with pytest.raises(ValueError):
+            timing.parse_recipes(bad)
+    stages = {k: 0.0 for k in timing.STAGES}
+
+    def round_(coarse, fine, network):
+        ms = {**stages, "network": network}
+        return {"pipeline": {"ms_per_frame": ms},
+                "recipes": {"legacy": {"coarse_sim": {"ms_per_frame": coarse},
+                                       "fine_sim": {"ms_per_frame": fine},
+                                       "ratio": timing.ratios(coarse, fine, ms)}}}
+
+    # Three rounds, one of them slow throughout: the medians ignore it.
+    s = timing.summarize([round_(10, 200, 90), round_(40, 900, 400), round_(12, 180, 88)],
+                         ("legacy",))
+    assert s["pipeline_ms_per_frame"]["network"] == 90.0
+    r = s["recipes"]["legacy"]
+    assert r["coarse_ms_per_frame"] == 12.0 and r["fine_ms_per_frame"] == 200.0
+    assert r["ratio"]["speedup"] == pytest.approx(200.0 / 102.0)
+    assert r["speedup_per_round"] == pytest.approx([2.0, 900.0 / 440.0, 1.8])
 
 
 def test_timing_ratios_body_and_plot(tmp_path):
@@ -200,6 +243,12 @@ def test_timing_ratios_body_and_plot(tmp_path):
                "pipeline": {"ms_per_frame": {k: 10.0 for k in timing.STAGES}}, "ratio": r}
     timing.plot(tmp_path / "t.png", results)
     assert (tmp_path / "t.png").read_bytes()[:4] == b"\x89PNG"
+    results["summary"] = {"recipes": {
+        name: {"coarse_ms_per_frame": c, "fine_ms_per_frame": f,
+               "ratio": timing.ratios(c, f, results["pipeline"]["ms_per_frame"])}
+        for name, c, f in (("legacy", 10.0, 200.0), ("dataset", 90.0, 800.0))}}
+    timing.plot(tmp_path / "t2.png", results)
+    assert (tmp_path / "t2.png").read_bytes()[:4] == b"\x89PNG"
 
 
 # --------------------------------------------------------------------------------------------
@@ -374,8 +423,11 @@ def test_report_assembles_stored_results_and_names_what_is_missing(tmp_path, mon
     assert f"model signed mean {unseen['model']['signed_mean']:+.1f}" in text
     assert "| silk_charmeuse | walk (unseen) |" in text  # Table 1's own layout, embedded
     assert "### Wrong material at inference" in text and "| denim_light |" in text
-    speedup = json.loads((results / "timing" / "results.json").read_text())["ratio"]["speedup"]
+    timing_run = json.loads((results / "timing" / "results.json").read_text())
+    speedup = timing_run["ratio"]["speedup"]
     assert f"{speedup:.2f}x the fine simulation's speed" in text  # the timing run's ratio
+    for name, r in report.timing_ratios(timing_run):  # every solver recipe, table and headline
+        assert text.count(f"{r['speedup']:.2f}x the fine simulation's speed") >= 2, name
     for missing in ("Table 2", "the stride ablation", "the flicker study",
                     "the PatchGAN baseline"):
         assert f"**Not run yet**: {missing}." in text

@@ -1,0 +1,316 @@
+"""Material by analysis-by-synthesis (issue 25, session 23): re-simulate each input garment with
+the five fabrics on the input's own body and pin tracks, compare motion features.
+
+    nice -n 5 python -m experiments.classifier_synthesis --stage synth --variant main
+    nice -n 5 python -m experiments.classifier_synthesis --stage synth --variant heavy_soft \
+        --scenes skirt_dance apron_dance ...          # model-mismatch syntheses (subset)
+    nice -n 5 python -m experiments.classifier_synthesis --stage report
+
+1. `synth` (resumable; one file per input under --cache/<variant>/<split>/<scene>/<material>.npz
+   holding the input's and the five syntheses' window features, the seconds and the position
+   RMS of each synthesis against the input): inputs = the training scenes' coarse seed-0
+   sequences (and the validation garment) and the held-out seed-1 sequences; the first
+   --frames frames after a --settle-frame settle from the input's frame 0.
+   Variants (what the synthesis library assumes; the inputs are the data set's files, 80
+   substeps + self-collision):
+     main        20 substeps, no self-collision (the quick synthesis; a solver MISMATCH with
+                 the inputs built in)
+     matched     the input's own solver settings from its metadata (80 + self-collision)
+     heavy_soft  main, fabrics' mass per area x1.25 and stretch/bending stiffness x0.8
+     light_stiff main, mass x0.8, stiffness x1.25
+2. `report`: every choice (feature families, temperature, abstain thresholds, novelty limit)
+   from leave-one-garment-out CV on the training inputs of `main`; the held-out numbers are
+   computed once at the end with the chosen settings and printed; the mismatch table applies
+   the same chosen classifier to the other variants' inputs (training garments). Writes
+   --out/synthesis_report.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from wrinkle_jax import MATERIALS
+from wrinkle_jax.classifier import calibrated as cal
+from wrinkle_jax.classifier import drape, motion
+from wrinkle_jax.classifier import folds as cv_folds
+from wrinkle_jax.classifier import synthesis as syn
+from wrinkle_jax.fileio import atomic_write_text
+from wrinkle_jax.sim import scenes
+
+ROOT = Path(__file__).resolve().parents[1]
+VARIANTS = {"main": dict(), "matched": dict(), "heavy_soft": dict(density=1.25, stiffness=0.8),
+            "light_stiff": dict(density=0.8, stiffness=1.25)}
+# Held-out garments that no training scene has (skirt_walk is the training flared skirt).
+UNSEEN = ("dress_dance", "dress_walk", "cape_dance", "cape_walk")
+
+
+def _load(path: Path) -> dict:
+    with np.load(path) as z:
+        return {k: z[k] for k in z.files}
+
+
+def jobs(train_root: Path, heldout_root: Path, scene_filter=None) -> list[tuple]:
+    out = []
+    for sc in scenes.TRAINING_SCENES + scenes.VAL_SCENES:
+        for m in MATERIALS:
+            out.append(("train", sc, m, train_root / sc / f"{m}_coarse_s0.npz"))
+    for d in sorted(p for p in heldout_root.iterdir() if p.is_dir()):
+        for m in MATERIALS:
+            out.append(("heldout", d.name, m, d / f"{m}_coarse_s1.npz"))
+    out = [j for j in out if j[3].exists()]
+    if scene_filter:
+        out = [j for j in out if j[1] in scene_filter]
+    return out
+
+
+def synth_config(variant: str, meta: dict, frames: int, settle: int) -> syn.SynthesisConfig:
+    if variant == "matched":
+        return syn.config_from_metadata(meta, frames=frames, settle_frames=settle)
+    return syn.SynthesisConfig(frames=frames, settle_frames=settle, substeps=20)
+
+
+def synth_one(src: Path, dst: Path, variant: str, frames: int, settle: int) -> None:
+    arrays = _load(src)
+    meta = json.loads(str(arrays["metadata"]))
+    cfg = synth_config(variant, meta, frames, settle)
+    scale = VARIANTS[variant]
+    fabrics = {m: syn.scaled_fabric(m, scale.get("density", 1.0), scale.get("stiffness", 1.0))
+               for m in MATERIALS}
+    plan = drape.make_plan(arrays["faces"], arrays["uvs"], arrays["uv_faces"],
+                           arrays["frames"][0])
+    t0 = time.perf_counter()
+    model = syn.build_model(arrays)
+    feats, rms, secs = [], [], []
+    for m in MATERIALS:
+        t1 = time.perf_counter()
+        x = syn.synthesize(arrays, fabrics[m], cfg, model)
+        secs.append(time.perf_counter() - t1)
+        rms.append(float(np.sqrt(((x - arrays["frames"][:frames]) ** 2).sum(-1).mean())))
+        feats.append(syn.window_features(arrays, x, drape_plan=plan))
+    sim_s = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    inp = syn.window_features(arrays, arrays["frames"][:frames], drape_plan=plan)
+    skinned = inp  # no body (the sheet): no skinned stand-in
+    if "capsule_ends" in arrays:
+        rigid = motion.follow_body_rigidly(arrays["frames"][0], arrays["capsule_ends"][:frames])
+        skinned = syn.window_features(arrays, rigid, drape_plan=plan)
+    feat_s = time.perf_counter() - t1
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dst.with_suffix(".tmp.npz")
+    np.savez(tmp, input=inp, skinned=skinned, synth=np.stack(feats), rms=np.array(rms),
+             synth_seconds=np.array(secs), total_seconds=np.array(sim_s + feat_s),
+             config=np.array(json.dumps(dataclasses.asdict(cfg), default=str)))
+    tmp.replace(dst)
+
+
+def stage_synth(args) -> None:
+    todo = jobs(Path(args.train_data), Path(args.heldout_data), args.scenes)
+    if args.split:
+        todo = [j for j in todo if j[0] == args.split]
+    for split, sc, m, src in todo:
+        dst = Path(args.cache) / args.variant / split / sc / f"{m}.npz"
+        if dst.exists():
+            continue
+        t0 = time.perf_counter()
+        synth_one(src, dst, args.variant, args.frames, args.settle)
+        print(f"{args.variant} {split} {sc} {m}: {time.perf_counter() - t0:.1f} s", flush=True)
+
+
+# --------------------------------------------------------------------------------------------
+# Report
+# --------------------------------------------------------------------------------------------
+
+
+def load_entries(cache: Path, variant: str) -> list[dict]:
+    out = []
+    for p in sorted((cache / variant).glob("*/*/*.npz")):
+        z = _load(p)
+        out.append({"split": p.parent.parent.name, "scene": p.parent.name,
+                    "material": p.stem, "label": MATERIALS.index(p.stem), **z})
+    return out
+
+
+def _diffs(e, key="input"):
+    return syn.differences(e[key], e["synth"])
+
+
+def candidate_sets() -> list[tuple[str, ...]]:
+    fams = motion.FAMILIES
+    base = tuple(f for f in fams if f != "drape")
+    out = [fams, base] + [(f,) for f in fams]
+    out += [tuple(g for g in fams if g != f) for f in base]
+    return out
+
+
+def fit_scale(entries, mask) -> np.ndarray:
+    return syn.difference_scale([_diffs(e)[..., mask] for e in entries])
+
+
+def seq_distances(entries, mask, scale, key="input") -> np.ndarray:
+    return np.array([syn.distances(_diffs(e, key)[..., mask], scale) for e in entries])
+
+
+def cross_validate(train, mask) -> dict:
+    folds = cv_folds.leave_one_garment_out(sorted({e["scene"] for e in train}))
+    d, labels, names = [], [], []
+    for f in folds:
+        fit_on = [e for e in train if e["scene"] in f.train]
+        scale = fit_scale(fit_on, mask)
+        for e in (e for e in train if e["scene"] in f.validate):
+            d.append(syn.distances(_diffs(e)[..., mask], scale))
+            labels.append(e["label"])
+            names.append(f"{e['scene']}/{e['material']}")
+    d, labels = np.array(d), np.array(labels)
+    return {"d": d, "labels": labels, "names": names,
+            "seq_acc": float(np.mean(d.argmin(1) == labels))}
+
+
+def group_idx(labels) -> np.ndarray:
+    names = sorted(set(cal.GROUPS.values()))
+    return np.array([names.index(cal.GROUPS[MATERIALS[int(i)]]) for i in labels])
+
+
+def group_probs(p) -> np.ndarray:
+    names = sorted(set(cal.GROUPS.values()))
+    out = np.zeros((len(p), len(names)))
+    for k, m in enumerate(MATERIALS):
+        out[:, names.index(cal.GROUPS[m])] += p[:, k]
+    return out
+
+
+def summarize(d, labels, cal_: dict, names=None) -> dict:
+    p = syn.scores_to_probs(d, cal_["T"])
+    conf, pred = p.max(1), p.argmax(1)
+    novel = d.min(1) > cal_["novelty_limit"]
+    answer = (conf >= cal_["threshold"]) & ~novel
+    gp = group_probs(p)
+    gans = (gp.max(1) >= cal_["group_threshold"]) & ~novel
+    out = {"n": int(len(d)), "seq_acc": float(np.mean(pred == labels)),
+           "coverage": float(answer.mean()), "answered": int(answer.sum()),
+           "acc_where_answers": float(np.mean(pred[answer] == labels[answer]))
+           if answer.any() else None,
+           "group_acc": float(np.mean(gp.argmax(1) == group_idx(labels))),
+           "group_coverage": float(gans.mean()),
+           "group_acc_where_answers": float(np.mean(gp.argmax(1)[gans] ==
+                                                    group_idx(labels)[gans]))
+           if gans.any() else None,
+           "ece": cal.reliability(p, labels)[3], "nll": cal.nll(p, labels),
+           "confusion": np.bincount(labels * 5 + pred, minlength=25).reshape(5, 5).tolist()}
+    if names is not None:
+        out["per_sequence"] = [
+            {"sequence": n, "true": MATERIALS[int(y)], "pred": MATERIALS[int(k)],
+             "answered": bool(a), "novel": bool(v), "min_distance": float(dd.min()),
+             "probs": {m: round(float(q), 4) for m, q in zip(MATERIALS, pp, strict=True)}}
+            for n, y, k, a, v, dd, pp in zip(names, labels, pred, answer, novel, d, p,
+                                             strict=True)]
+    return out
+
+
+def stage_report(args) -> None:
+    cache = Path(args.cache)
+    entries = load_entries(cache, "main")
+    train = [e for e in entries if e["split"] == "train"]
+    print(f"main: {len(train)} training inputs", flush=True)
+    rows = []
+    for fams in candidate_sets():
+        mask = syn.feature_mask(fams)
+        cv = cross_validate(train, mask)
+        t = cal.fit_temperature(-cv["d"], cv["labels"])
+        p = syn.scores_to_probs(cv["d"], t)
+        rows.append({"families": list(fams), "cv_seq_acc": cv["seq_acc"],
+                     "cv_nll": cal.nll(p, cv["labels"]), "T": t})
+        print(f"  {'+'.join(fams):70s} CV {cv['seq_acc']:.2f} NLL {rows[-1]['cv_nll']:.3f}",
+              flush=True)
+    best = max(rows, key=lambda r: (r["cv_seq_acc"], -r["cv_nll"]))
+    mask = syn.feature_mask(best["families"])
+    cv = cross_validate(train, mask)
+    T = cal.fit_temperature(-cv["d"], cv["labels"])
+    p = syn.scores_to_probs(cv["d"], T)
+    thr = cal.choose_threshold(p.max(1), p.argmax(1) == cv["labels"])
+    gp = group_probs(p)
+    gthr = cal.choose_threshold(gp.max(1), gp.argmax(1) == group_idx(cv["labels"]))
+    calib = {"T": T, "threshold": thr, "group_threshold": gthr,
+             "novelty_limit": 2.0 * float(cv["d"].min(1).max())}
+    print("pick", best["families"], json.dumps(calib), flush=True)
+    res = {"pick": best, "calibration": calib, "candidates": rows,
+           "cv": summarize(cv["d"], cv["labels"], calib, cv["names"])}
+    # Final scale on all training inputs; the held-out set, computed once, printed.
+    scale = fit_scale(train, mask)
+    held = [e for e in entries if e["split"] == "heldout"]
+    for name, sel in (("heldout", held), ("heldout_unseen_garments",
+                                          [e for e in held if e["scene"] in UNSEEN])):
+        if sel:
+            d = seq_distances(sel, mask, scale)
+            res[name] = summarize(d, np.array([e["label"] for e in sel]), calib,
+                                  [f"{e['scene']}/{e['material']}" for e in sel])
+    if held:
+        d = seq_distances(held, mask, scale, key="skinned")
+        s = summarize(d, np.array([e["label"] for e in held]), calib)
+        res["skinned"] = {"n": s["n"], "answered": s["answered"],
+                          "min_distance_range": [float(d.min(1).min()), float(d.min(1).max())],
+                          "max_confidence": float(syn.scores_to_probs(d, T).max())}
+    # Model mismatch: the chosen classifier on other synthesis variants (training inputs; the
+    # scale and calibration stay those of main, as a deployed classifier's would).
+    res["mismatch"] = {}
+    for v in VARIANTS:
+        ents = [e for e in load_entries(cache, v) if e["split"] == "train"]
+        if not ents:
+            continue
+        names = [f"{e['scene']}/{e['material']}" for e in ents]
+        oof = {n: i for i, n in enumerate(cv["names"])}
+        d_main = cv["d"][[oof[n] for n in names]]  # main, out-of-fold, same inputs
+        d_v = seq_distances(ents, mask, scale)
+        labels = np.array([e["label"] for e in ents])
+        res["mismatch"][v] = {"scenes": sorted({e["scene"] for e in ents}),
+                              "main_oof": summarize(d_main, labels, calib),
+                              "variant": summarize(d_v, labels, calib),
+                              "rms_true_fabric_m": float(np.median(
+                                  [e["rms"][e["label"]] for e in ents])),
+                              "rms_other_fabrics_m": float(np.median(
+                                  [np.delete(e["rms"], e["label"]).mean() for e in ents])),
+                              "synth_seconds_per_input": float(np.median(
+                                  [e["synth_seconds"].sum() for e in ents])),
+                              "total_seconds_per_input": float(np.median(
+                                  [e["total_seconds"] for e in ents]))}
+    out = Path(args.out) / "synthesis_report.json"
+    atomic_write_text(out, json.dumps(res, indent=1, default=float))
+    for k in ("cv", "heldout", "heldout_unseen_garments"):
+        if k in res:
+            r = {q: v for q, v in res[k].items() if q not in ("per_sequence",)}
+            print(k, json.dumps(r), flush=True)
+    print("skinned", json.dumps(res.get("skinned")))
+    for v, r in res["mismatch"].items():
+        print("mismatch", v, json.dumps({"scenes": r["scenes"],
+              "main_oof_acc": r["main_oof"]["seq_acc"], "variant_acc": r["variant"]["seq_acc"],
+              "variant_cov": r["variant"]["coverage"],
+              "variant_where": r["variant"]["acc_where_answers"],
+              "rms_true": r["rms_true_fabric_m"], "rms_other": r["rms_other_fabrics_m"],
+              "synth_s": r["synth_seconds_per_input"]}))
+    print(f"wrote {out}")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--stage", choices=("synth", "report"), required=True)
+    ap.add_argument("--variant", choices=tuple(VARIANTS), default="main")
+    ap.add_argument("--scenes", nargs="*", default=None)
+    ap.add_argument("--split", choices=("train", "heldout"), default=None)
+    ap.add_argument("--train-data", default=str(ROOT / "data" / "sequences"))
+    ap.add_argument("--heldout-data", default=str(ROOT / "data" / "classifier_sequences"))
+    ap.add_argument("--cache", default=str(ROOT / "data" / "classifier_synthesis"))
+    ap.add_argument("--out", default=str(ROOT / "experiments" / "results" / "classifier"))
+    ap.add_argument("--frames", type=int, default=64)
+    ap.add_argument("--settle", type=int, default=12)
+    args = ap.parse_args(argv)
+    stage_synth(args) if args.stage == "synth" else stage_report(args)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

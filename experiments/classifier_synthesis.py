@@ -140,33 +140,50 @@ def _diffs(e, key="input"):
     return syn.differences(e[key], e["synth"])
 
 
-def candidate_sets() -> list[tuple[str, ...]]:
+def candidates() -> list[dict]:
+    """The study's candidates: feature families (all; all motion; each alone; all but one
+    motion family) x aggregation (`synthesis.mean_squares`) with uniform weights, and all
+    families with weights fitted by a conditional logit (three L2 weights)."""
     fams = motion.FAMILIES
     base = tuple(f for f in fams if f != "drape")
-    out = [fams, base] + [(f,) for f in fams]
-    out += [tuple(g for g in fams if g != f) for f in base]
+    sets = [fams, base] + [(f,) for f in fams] + [tuple(g for g in fams if g != f)
+                                                   for f in base]
+    out = [{"families": list(f), "agg": a, "l2": None} for f in sets
+           for a in ("window", "mean")]
+    out += [{"families": list(fams), "agg": a, "l2": l2} for a in ("window", "mean")
+            for l2 in (1e-2, 1e-1, 1.0)]
     return out
 
 
-def fit_scale(entries, mask) -> np.ndarray:
-    return syn.difference_scale([_diffs(e)[..., mask] for e in entries])
+class Distance:
+    """A fitted distance: scale (D,) and weights over the chosen families' columns."""
+
+    def __init__(self, spec: dict, fit_on: list[dict]):
+        self.spec, self.mask = spec, syn.feature_mask(spec["families"])
+        self.scale = syn.difference_scale([_diffs(e)[..., self.mask] for e in fit_on])
+        self.w = None
+        if spec["l2"] is not None:
+            q = np.stack([self.q(e) for e in fit_on])
+            self.w = syn.fit_weights(q, np.array([e["label"] for e in fit_on]), spec["l2"])
+
+    def q(self, e, key="input"):
+        return syn.mean_squares(_diffs(e, key)[..., self.mask], self.scale, self.spec["agg"])
+
+    def __call__(self, entries, key="input") -> np.ndarray:
+        q = np.stack([self.q(e, key) for e in entries])
+        return q.mean(-1) if self.w is None else q @ self.w
 
 
-def seq_distances(entries, mask, scale, key="input") -> np.ndarray:
-    return np.array([syn.distances(_diffs(e, key)[..., mask], scale) for e in entries])
-
-
-def cross_validate(train, mask) -> dict:
+def cross_validate(train, spec) -> dict:
     folds = cv_folds.leave_one_garment_out(sorted({e["scene"] for e in train}))
     d, labels, names = [], [], []
     for f in folds:
-        fit_on = [e for e in train if e["scene"] in f.train]
-        scale = fit_scale(fit_on, mask)
-        for e in (e for e in train if e["scene"] in f.validate):
-            d.append(syn.distances(_diffs(e)[..., mask], scale))
-            labels.append(e["label"])
-            names.append(f"{e['scene']}/{e['material']}")
-    d, labels = np.array(d), np.array(labels)
+        dist = Distance(spec, [e for e in train if e["scene"] in f.train])
+        val = [e for e in train if e["scene"] in f.validate]
+        d.append(dist(val))
+        labels += [e["label"] for e in val]
+        names += [f"{e['scene']}/{e['material']}" for e in val]
+    d, labels = np.concatenate(d), np.array(labels)
     return {"d": d, "labels": labels, "names": names,
             "seq_acc": float(np.mean(d.argmin(1) == labels))}
 
@@ -218,18 +235,17 @@ def stage_report(args) -> None:
     train = [e for e in entries if e["split"] == "train"]
     print(f"main: {len(train)} training inputs", flush=True)
     rows = []
-    for fams in candidate_sets():
-        mask = syn.feature_mask(fams)
-        cv = cross_validate(train, mask)
+    for spec in candidates():
+        cv = cross_validate(train, spec)
         t = cal.fit_temperature(-cv["d"], cv["labels"])
         p = syn.scores_to_probs(cv["d"], t)
-        rows.append({"families": list(fams), "cv_seq_acc": cv["seq_acc"],
-                     "cv_nll": cal.nll(p, cv["labels"]), "T": t})
-        print(f"  {'+'.join(fams):70s} CV {cv['seq_acc']:.2f} NLL {rows[-1]['cv_nll']:.3f}",
-              flush=True)
+        rows.append({**spec, "cv_seq_acc": cv["seq_acc"], "cv_nll": cal.nll(p, cv["labels"]),
+                     "T": t})
+        print(f"  {'+'.join(spec['families']):62s} {spec['agg']:6s} l2 {spec['l2']} "
+              f"CV {cv['seq_acc']:.2f} NLL {rows[-1]['cv_nll']:.3f}", flush=True)
     best = max(rows, key=lambda r: (r["cv_seq_acc"], -r["cv_nll"]))
-    mask = syn.feature_mask(best["families"])
-    cv = cross_validate(train, mask)
+    spec = {k: best[k] for k in ("families", "agg", "l2")}
+    cv = cross_validate(train, spec)
     T = cal.fit_temperature(-cv["d"], cv["labels"])
     p = syn.scores_to_probs(cv["d"], T)
     thr = cal.choose_threshold(p.max(1), p.argmax(1) == cv["labels"])
@@ -241,16 +257,17 @@ def stage_report(args) -> None:
     res = {"pick": best, "calibration": calib, "candidates": rows,
            "cv": summarize(cv["d"], cv["labels"], calib, cv["names"])}
     # Final scale on all training inputs; the held-out set, computed once, printed.
-    scale = fit_scale(train, mask)
-    held = [e for e in entries if e["split"] == "heldout"]
+    dist = Distance(spec, train)
+    # Without --heldout the held-out inputs are not read at all (development runs).
+    held = [e for e in entries if e["split"] == "heldout"] if args.heldout else []
     for name, sel in (("heldout", held), ("heldout_unseen_garments",
                                           [e for e in held if e["scene"] in UNSEEN])):
         if sel:
-            d = seq_distances(sel, mask, scale)
+            d = dist(sel)
             res[name] = summarize(d, np.array([e["label"] for e in sel]), calib,
                                   [f"{e['scene']}/{e['material']}" for e in sel])
     if held:
-        d = seq_distances(held, mask, scale, key="skinned")
+        d = dist(held, key="skinned")
         s = summarize(d, np.array([e["label"] for e in held]), calib)
         res["skinned"] = {"n": s["n"], "answered": s["answered"],
                           "min_distance_range": [float(d.min(1).min()), float(d.min(1).max())],
@@ -265,7 +282,7 @@ def stage_report(args) -> None:
         names = [f"{e['scene']}/{e['material']}" for e in ents]
         oof = {n: i for i, n in enumerate(cv["names"])}
         d_main = cv["d"][[oof[n] for n in names]]  # main, out-of-fold, same inputs
-        d_v = seq_distances(ents, mask, scale)
+        d_v = dist(ents)
         labels = np.array([e["label"] for e in ents])
         res["mismatch"][v] = {"scenes": sorted({e["scene"] for e in ents}),
                               "main_oof": summarize(d_main, labels, calib),
@@ -305,6 +322,9 @@ def main(argv=None) -> int:
     ap.add_argument("--heldout-data", default=str(ROOT / "data" / "classifier_sequences"))
     ap.add_argument("--cache", default=str(ROOT / "data" / "classifier_synthesis"))
     ap.add_argument("--out", default=str(ROOT / "experiments" / "results" / "classifier"))
+    ap.add_argument("--heldout", action="store_true",
+                    help="also score the held-out inputs (once, at the end; without it the "
+                         "report reads the training inputs only)")
     ap.add_argument("--frames", type=int, default=64)
     ap.add_argument("--settle", type=int, default=12)
     args = ap.parse_args(argv)

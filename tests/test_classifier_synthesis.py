@@ -112,3 +112,16 @@ def test_scaled_fabric_and_metadata_config():
             "self_collision": dataclasses.asdict(scenes.self_collision_config("coarse", 80))}
     c = syn.config_from_metadata(meta, frames=10)
     assert c.substeps == 80 and c.frames == 10 and c.self_collision.rebuild_every == 16
+
+
+def test_fitted_weights_pick_the_informative_feature():
+    rng = np.random.default_rng(1)
+    s_count, m, d = 60, 5, 4
+    labels = rng.integers(0, m, s_count)
+    q = rng.uniform(0.5, 1.5, (s_count, m, d))  # features 1-3: noise
+    q[:, :, 0] = 1.0
+    q[np.arange(s_count), labels, 0] = 0.0      # feature 0: zero only for the true fabric
+    w = syn.fit_weights(q, labels, l2=1e-3)
+    assert w.shape == (d,) and np.all(w >= 0) and w[0] > 3 * w[1:].max()
+    assert np.mean((q @ w).argmin(1) == labels) == 1.0
+    np.testing.assert_allclose(syn.mean_squares(np.ones((2, 3, 4)), 2.0, "mean"), 0.25)

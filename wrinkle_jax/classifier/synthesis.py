@@ -26,11 +26,14 @@ Conventions: meters, seconds, z up. Pure NumPy/JAX; the solver is `wrinkle_jax.s
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 from collections.abc import Mapping
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 
 from wrinkle_jax import MATERIALS
 from wrinkle_jax.classifier import motion
@@ -245,19 +248,67 @@ def differences(input_features, synth_features) -> np.ndarray:
     return x[None] - s
 
 
-def distances(diffs, scale, weights=None) -> np.ndarray:
+def mean_squares(diffs, scale, agg: str = "window") -> np.ndarray:
+    """(M, D) squared scaled differences per fabric and feature: agg "window" averages the
+    squares over windows (mean_w (diff / scale)^2), "mean" squares the mean over windows
+    ((mean_w diff / scale)^2: window noise averages out first)."""
+    z = np.asarray(diffs, np.float64) / np.asarray(scale, np.float64)
+    if agg == "window":
+        return (z ** 2).mean(axis=1)
+    if agg == "mean":
+        return z.mean(axis=1) ** 2
+    raise ValueError(f"agg must be 'window' or 'mean', got {agg!r}")
+
+
+def distances(diffs, scale, weights=None, agg: str = "window") -> np.ndarray:
     """Weighted mean squared scaled difference per fabric.
 
     Args:
       diffs: (M, W, D) `differences`.
       scale: (D,) positive per-feature scales (a typical between-fabric difference).
       weights: (D,) non-negative feature weights (0 drops a feature), default all 1.
+      agg: see `mean_squares`.
     Returns:
-      (M,) d_m = sum_j w_j mean_w (diff / scale)^2 / sum_j w_j.
+      (M,) d_m = sum_j w_j q_mj / sum_j w_j, q = `mean_squares(diffs, scale, agg)`.
     """
-    z = np.asarray(diffs, np.float64) / np.asarray(scale, np.float64)
-    w = np.ones(z.shape[-1]) if weights is None else np.asarray(weights, np.float64)
-    return (z ** 2).mean(axis=1) @ w / max(w.sum(), 1e-12)
+    q = mean_squares(diffs, scale, agg)
+    w = np.ones(q.shape[-1]) if weights is None else np.asarray(weights, np.float64)
+    return q @ w / max(w.sum(), 1e-12)
+
+
+@functools.partial(jax.jit, static_argnames="steps")
+def _fit_weights(q, y, l2, steps: int):
+    def loss(u):
+        w = jax.nn.softplus(u)
+        ll = jax.nn.log_softmax(-(q @ w), axis=-1)[jnp.arange(y.shape[0]), y]
+        return -ll.mean() + l2 * jnp.sum(w ** 2)
+
+    u0 = jnp.full(q.shape[-1], -2.0)
+    opt = optax.lbfgs()
+    value_and_grad = optax.value_and_grad_from_state(loss)
+
+    def body(carry, _):
+        u, s = carry
+        v, g = value_and_grad(u, state=s)
+        up, s = opt.update(g, s, u, value=v, grad=g, value_fn=loss)
+        return (optax.apply_updates(u, up), s), v
+
+    (u, _), _ = jax.lax.scan(body, (u0, opt.init(u0)), None, length=steps)
+    return jax.nn.softplus(u)
+
+
+def fit_weights(q, labels, l2: float = 0.1, steps: int = 200) -> np.ndarray:
+    """Non-negative feature weights w (D,) of the distance d_m = q_m . w, fitted by a
+    conditional logit (softmax(-d) over fabrics, cross-entropy + l2 |w|^2, L-BFGS).
+
+    Args:
+      q: (S, M, D) `mean_squares` of S training inputs. labels: (S,) true fabric indices.
+    Returns:
+      (D,) float64 weights (their overall size is an inverse temperature; calibrate after).
+    """
+    w = _fit_weights(jnp.asarray(q, jnp.float32), jnp.asarray(labels, jnp.int32),
+                     jnp.float32(l2), int(steps))
+    return np.asarray(w, np.float64)
 
 
 def difference_scale(diffs_list, floor: float = 1e-6) -> np.ndarray:

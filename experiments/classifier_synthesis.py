@@ -44,8 +44,15 @@ from wrinkle_jax.fileio import atomic_write_text
 from wrinkle_jax.sim import scenes
 
 ROOT = Path(__file__).resolve().parents[1]
-VARIANTS = {"main": dict(), "matched": dict(), "heavy_soft": dict(density=1.25, stiffness=0.8),
-            "light_stiff": dict(density=0.8, stiffness=1.25)}
+# variant -> solver substeps ("meta": the input file's own settings, self-collision included;
+# else no self-collision), fabric mass per area and stiffness factors.
+VARIANTS = {"main": (20, 1.0, 1.0), "s80": (80, 1.0, 1.0), "matched": ("meta", 1.0, 1.0),
+            "heavy_soft": (20, 1.25, 0.8), "light_stiff": (20, 0.8, 1.25),
+            "s80_heavy_soft": (80, 1.25, 0.8), "s80_light_stiff": (80, 0.8, 1.25)}
+# The synthesis pipelines the report chooses between by CV (each needs all training inputs);
+# a pipeline's fabric-mismatch variants are named <pipeline>_heavy_soft / _light_stiff
+# ("main": heavy_soft / light_stiff).
+PIPELINES = ("main", "s80")
 # Held-out garments that no training scene has (skirt_walk is the training flared skirt).
 UNSEEN = ("dress_dance", "dress_walk", "cape_dance", "cape_walk")
 
@@ -70,18 +77,18 @@ def jobs(train_root: Path, heldout_root: Path, scene_filter=None) -> list[tuple]
 
 
 def synth_config(variant: str, meta: dict, frames: int, settle: int) -> syn.SynthesisConfig:
-    if variant == "matched":
+    substeps = VARIANTS[variant][0]
+    if substeps == "meta":
         return syn.config_from_metadata(meta, frames=frames, settle_frames=settle)
-    return syn.SynthesisConfig(frames=frames, settle_frames=settle, substeps=20)
+    return syn.SynthesisConfig(frames=frames, settle_frames=settle, substeps=substeps)
 
 
 def synth_one(src: Path, dst: Path, variant: str, frames: int, settle: int) -> None:
     arrays = _load(src)
     meta = json.loads(str(arrays["metadata"]))
     cfg = synth_config(variant, meta, frames, settle)
-    scale = VARIANTS[variant]
-    fabrics = {m: syn.scaled_fabric(m, scale.get("density", 1.0), scale.get("stiffness", 1.0))
-               for m in MATERIALS}
+    _, density, stiffness = VARIANTS[variant]
+    fabrics = {m: syn.scaled_fabric(m, density, stiffness) for m in MATERIALS}
     plan = drape.make_plan(arrays["faces"], arrays["uvs"], arrays["uv_faces"],
                            arrays["frames"][0])
     t0 = time.perf_counter()
@@ -174,17 +181,24 @@ class Distance:
         return q.mean(-1) if self.w is None else q @ self.w
 
 
-def cross_validate(train, spec) -> dict:
+def out_of_fold(train, spec, targets, key="input") -> np.ndarray:
+    """(len(targets), M) distances of each target input by the `Distance` fitted on the
+    training inputs of the other garments (leave-one-garment-out folds)."""
     folds = cv_folds.leave_one_garment_out(sorted({e["scene"] for e in train}))
-    d, labels, names = [], [], []
+    d = np.full((len(targets), len(MATERIALS)), np.nan)
     for f in folds:
-        dist = Distance(spec, [e for e in train if e["scene"] in f.train])
-        val = [e for e in train if e["scene"] in f.validate]
-        d.append(dist(val))
-        labels += [e["label"] for e in val]
-        names += [f"{e['scene']}/{e['material']}" for e in val]
-    d, labels = np.concatenate(d), np.array(labels)
-    return {"d": d, "labels": labels, "names": names,
+        idx = [i for i, e in enumerate(targets) if e["scene"] in f.validate]
+        if idx:
+            dist = Distance(spec, [e for e in train if e["scene"] in f.train])
+            d[idx] = dist([targets[i] for i in idx], key)
+    return d
+
+
+def cross_validate(train, spec) -> dict:
+    d = out_of_fold(train, spec, train)
+    labels = np.array([e["label"] for e in train])
+    return {"d": d, "labels": labels,
+            "names": [f"{e['scene']}/{e['material']}" for e in train],
             "seq_acc": float(np.mean(d.argmin(1) == labels))}
 
 
@@ -231,20 +245,25 @@ def summarize(d, labels, cal_: dict, names=None) -> dict:
 
 def stage_report(args) -> None:
     cache = Path(args.cache)
-    entries = load_entries(cache, "main")
-    train = [e for e in entries if e["split"] == "train"]
-    print(f"main: {len(train)} training inputs", flush=True)
-    rows = []
-    for spec in candidates():
-        cv = cross_validate(train, spec)
-        t = cal.fit_temperature(-cv["d"], cv["labels"])
-        p = syn.scores_to_probs(cv["d"], t)
-        rows.append({**spec, "cv_seq_acc": cv["seq_acc"], "cv_nll": cal.nll(p, cv["labels"]),
-                     "T": t})
-        print(f"  {'+'.join(spec['families']):62s} {spec['agg']:6s} l2 {spec['l2']} "
-              f"CV {cv['seq_acc']:.2f} NLL {rows[-1]['cv_nll']:.3f}", flush=True)
+    rows, trains = [], {}
+    for pipe in PIPELINES:
+        train = [e for e in load_entries(cache, pipe) if e["split"] == "train"]
+        if len(train) < len(scenes.TRAINING_SCENES + scenes.VAL_SCENES) * len(MATERIALS):
+            print(f"pipeline {pipe}: {len(train)} training inputs, incomplete; skipped")
+            continue
+        trains[pipe] = train
+        for spec in candidates():
+            cv = cross_validate(train, spec)
+            t = cal.fit_temperature(-cv["d"], cv["labels"])
+            p = syn.scores_to_probs(cv["d"], t)
+            rows.append({"pipeline": pipe, **spec, "cv_seq_acc": cv["seq_acc"],
+                         "cv_nll": cal.nll(p, cv["labels"]), "T": t})
+            print(f"  {pipe:5s} {'+'.join(spec['families']):62s} {spec['agg']:6s} "
+                  f"l2 {spec['l2']} CV {cv['seq_acc']:.2f} NLL {rows[-1]['cv_nll']:.3f}",
+                  flush=True)
     best = max(rows, key=lambda r: (r["cv_seq_acc"], -r["cv_nll"]))
-    spec = {k: best[k] for k in ("families", "agg", "l2")}
+    pipe, spec = best["pipeline"], {k: best[k] for k in ("families", "agg", "l2")}
+    train = trains[pipe]
     cv = cross_validate(train, spec)
     T = cal.fit_temperature(-cv["d"], cv["labels"])
     p = syn.scores_to_probs(cv["d"], T)
@@ -253,13 +272,14 @@ def stage_report(args) -> None:
     gthr = cal.choose_threshold(gp.max(1), gp.argmax(1) == group_idx(cv["labels"]))
     calib = {"T": T, "threshold": thr, "group_threshold": gthr,
              "novelty_limit": 2.0 * float(cv["d"].min(1).max())}
-    print("pick", best["families"], json.dumps(calib), flush=True)
+    print("pick", json.dumps(best), json.dumps(calib), flush=True)
     res = {"pick": best, "calibration": calib, "candidates": rows,
            "cv": summarize(cv["d"], cv["labels"], calib, cv["names"])}
-    # Final scale on all training inputs; the held-out set, computed once, printed.
+    # Final distance on all training inputs; the held-out set, computed once, printed.
     dist = Distance(spec, train)
     # Without --heldout the held-out inputs are not read at all (development runs).
-    held = [e for e in entries if e["split"] == "heldout"] if args.heldout else []
+    held = [e for e in load_entries(cache, pipe) if e["split"] == "heldout"] \
+        if args.heldout else []
     for name, sel in (("heldout", held), ("heldout_unseen_garments",
                                           [e for e in held if e["scene"] in UNSEEN])):
         if sel:
@@ -270,31 +290,36 @@ def stage_report(args) -> None:
         d = dist(held, key="skinned")
         s = summarize(d, np.array([e["label"] for e in held]), calib)
         res["skinned"] = {"n": s["n"], "answered": s["answered"],
+                          "group_answered": int(round(s["group_coverage"] * s["n"])),
                           "min_distance_range": [float(d.min(1).min()), float(d.min(1).max())],
+                          "novelty_limit": calib["novelty_limit"],
                           "max_confidence": float(syn.scores_to_probs(d, T).max())}
-    # Model mismatch: the chosen classifier on other synthesis variants (training inputs; the
-    # scale and calibration stay those of main, as a deployed classifier's would).
+    # Model mismatch: the chosen classifier (its distance fitted out of fold on the chosen
+    # pipeline's training syntheses, its calibration) on the syntheses of other variants, for
+    # the same training inputs; and the calibration-free nearest synthesis by position RMS.
     res["mismatch"] = {}
+    pos = {f"{e['scene']}/{e['material']}": i for i, e in enumerate(train)}
     for v in VARIANTS:
         ents = [e for e in load_entries(cache, v) if e["split"] == "train"]
+        ents = [e for e in ents if f"{e['scene']}/{e['material']}" in pos]
         if not ents:
             continue
-        names = [f"{e['scene']}/{e['material']}" for e in ents]
-        oof = {n: i for i, n in enumerate(cv["names"])}
-        d_main = cv["d"][[oof[n] for n in names]]  # main, out-of-fold, same inputs
-        d_v = dist(ents)
         labels = np.array([e["label"] for e in ents])
-        res["mismatch"][v] = {"scenes": sorted({e["scene"] for e in ents}),
-                              "main_oof": summarize(d_main, labels, calib),
-                              "variant": summarize(d_v, labels, calib),
-                              "rms_true_fabric_m": float(np.median(
-                                  [e["rms"][e["label"]] for e in ents])),
-                              "rms_other_fabrics_m": float(np.median(
-                                  [np.delete(e["rms"], e["label"]).mean() for e in ents])),
-                              "synth_seconds_per_input": float(np.median(
-                                  [e["synth_seconds"].sum() for e in ents])),
-                              "total_seconds_per_input": float(np.median(
-                                  [e["total_seconds"] for e in ents]))}
+        d_pipe = cv["d"][[pos[f"{e['scene']}/{e['material']}"] for e in ents]]
+        d_v = out_of_fold(train, spec, ents)
+        rms = np.stack([e["rms"] for e in ents])
+        res["mismatch"][v] = {
+            "solver_substeps_density_stiffness": list(VARIANTS[v]),
+            "scenes": sorted({e["scene"] for e in ents}), "n": len(ents),
+            "pick_on_same_inputs": summarize(d_pipe, labels, calib),
+            "variant": summarize(d_v, labels, calib),
+            "nearest_by_position_acc": float(np.mean(rms.argmin(1) == labels)),
+            "rms_true_fabric_m": float(np.median(rms[np.arange(len(ents)), labels])),
+            "rms_other_fabrics_m": float(np.median(
+                [np.delete(r, y).mean() for r, y in zip(rms, labels, strict=True)])),
+            "synth_seconds_per_input": float(np.median([e["synth_seconds"].sum()
+                                                        for e in ents])),
+            "total_seconds_per_input": float(np.median([e["total_seconds"] for e in ents]))}
     out = Path(args.out) / "synthesis_report.json"
     atomic_write_text(out, json.dumps(res, indent=1, default=float))
     for k in ("cv", "heldout", "heldout_unseen_garments"):
@@ -303,12 +328,14 @@ def stage_report(args) -> None:
             print(k, json.dumps(r), flush=True)
     print("skinned", json.dumps(res.get("skinned")))
     for v, r in res["mismatch"].items():
-        print("mismatch", v, json.dumps({"scenes": r["scenes"],
-              "main_oof_acc": r["main_oof"]["seq_acc"], "variant_acc": r["variant"]["seq_acc"],
-              "variant_cov": r["variant"]["coverage"],
-              "variant_where": r["variant"]["acc_where_answers"],
-              "rms_true": r["rms_true_fabric_m"], "rms_other": r["rms_other_fabrics_m"],
-              "synth_s": r["synth_seconds_per_input"]}))
+        print("mismatch", v, json.dumps({
+            "n": r["n"], "pick_acc": r["pick_on_same_inputs"]["seq_acc"],
+            "variant_acc": r["variant"]["seq_acc"], "variant_cov": r["variant"]["coverage"],
+            "variant_where": r["variant"]["acc_where_answers"],
+            "variant_group": r["variant"]["group_acc"],
+            "nearest_pos": r["nearest_by_position_acc"], "rms_true": r["rms_true_fabric_m"],
+            "rms_other": r["rms_other_fabrics_m"], "synth_s": r["synth_seconds_per_input"],
+            "total_s": r["total_seconds_per_input"]}), flush=True)
     print(f"wrote {out}")
 
 

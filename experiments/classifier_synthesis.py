@@ -48,7 +48,12 @@ ROOT = Path(__file__).resolve().parents[1]
 # else no self-collision), fabric mass per area and stiffness factors.
 VARIANTS = {"main": (20, 1.0, 1.0), "s80": (80, 1.0, 1.0), "matched": ("meta", 1.0, 1.0),
             "heavy_soft": (20, 1.25, 0.8), "light_stiff": (20, 0.8, 1.25),
-            "s80_heavy_soft": (80, 1.25, 0.8), "s80_light_stiff": (80, 0.8, 1.25)}
+            "s80_heavy_soft": (80, 1.25, 0.8), "s80_light_stiff": (80, 0.8, 1.25),
+            "jitter": (20, 1.0, 1.0)}
+# Variants whose INPUTS differ from the data set's: "jitter" reads inputs simulated on a mesh of
+# another lattice jitter (`--stage inputs`, <cache>/inputs_jitter; 80 substeps +
+# self-collision like the data set, --frames frames), synthesized like main.
+JITTER_SEED = 1
 # The synthesis pipelines the report chooses between by CV (each needs all training inputs);
 # a pipeline's fabric-mismatch variants are named <pipeline>_heavy_soft / _light_stiff
 # ("main": heavy_soft / light_stiff).
@@ -116,8 +121,28 @@ def synth_one(src: Path, dst: Path, variant: str, frames: int, settle: int) -> N
     tmp.replace(dst)
 
 
+def stage_inputs(args) -> None:
+    """Simulate training inputs on a mesh of lattice jitter JITTER_SEED (the data set's seed
+    0 motion, its coarse solver) into <cache>/inputs_jitter/<scene>/<material>_coarse_s0.npz."""
+    for sc in args.scenes or ():
+        setup = scenes.setup_scene(sc, "coarse", args.frames, seed=0, mesh_seed=JITTER_SEED)
+        substeps, contacts = scenes.dataset_solver(sc, "coarse")
+        for m in MATERIALS:
+            dst = Path(args.cache) / "inputs_jitter" / sc / f"{m}_coarse_s0.npz"
+            if dst.exists():
+                continue
+            t0 = time.perf_counter()
+            seq = scenes.simulate(sc, m, "coarse", frames=args.frames, seed=0,
+                                  substeps=substeps, setup=setup, self_collision=contacts)
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            scenes.save_simulation(dst, seq)
+            print(f"input jitter {sc} {m}: {time.perf_counter() - t0:.1f} s", flush=True)
+
+
 def stage_synth(args) -> None:
-    todo = jobs(Path(args.train_data), Path(args.heldout_data), args.scenes)
+    train_root = Path(args.cache) / "inputs_jitter" if args.variant == "jitter" \
+        else Path(args.train_data)
+    todo = jobs(train_root, Path(args.heldout_data), args.scenes)
     if args.split:
         todo = [j for j in todo if j[0] == args.split]
     for split, sc, m, src in todo:
@@ -341,7 +366,7 @@ def stage_report(args) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--stage", choices=("synth", "report"), required=True)
+    ap.add_argument("--stage", choices=("inputs", "synth", "report"), required=True)
     ap.add_argument("--variant", choices=tuple(VARIANTS), default="main")
     ap.add_argument("--scenes", nargs="*", default=None)
     ap.add_argument("--split", choices=("train", "heldout"), default=None)
@@ -355,7 +380,7 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=64)
     ap.add_argument("--settle", type=int, default=12)
     args = ap.parse_args(argv)
-    stage_synth(args) if args.stage == "synth" else stage_report(args)
+    {"inputs": stage_inputs, "synth": stage_synth, "report": stage_report}[args.stage](args)
     return 0
 
 

@@ -319,6 +319,13 @@ def stage_report(args) -> None:
            "per_pipeline": {q: {"spec": sp, "calibration": cb,
                                 "cv": summarize(c["d"], c["labels"], cb)}
                             for q, (sp, c, cb) in picks.items()}}
+    # Skinned stand-ins of the training inputs that have a body, out of fold.
+    bodied = [e for e in train if e["scene"] != "sheet_balls_wind"]
+    d = out_of_fold(train, spec, bodied, key="skinned")
+    p = syn.scores_to_probs(d, calib["T"])
+    res["skinned_cv"] = {"n": len(bodied), "answered": int(
+        ((p.max(1) >= calib["threshold"]) & (d.min(1) <= calib["novelty_limit"])).sum()),
+        "min_distance_range": [float(d.min(1).min()), float(d.min(1).max())]}
     # Final distance on all training inputs; the held-out set, computed once, printed.
     dist = Distance(spec, train)
     # Without --heldout the held-out inputs are not read at all (development runs).
@@ -377,7 +384,7 @@ def stage_report(args) -> None:
         if k in res:
             r = {q: v for q, v in res[k].items() if q not in ("per_sequence",)}
             print(k, json.dumps(r), flush=True)
-    print("skinned", json.dumps(res.get("skinned")))
+    print("skinned", json.dumps(res.get("skinned")), json.dumps(res["skinned_cv"]))
     for v, r in res["mismatch"].items():
         print("mismatch", v, json.dumps({
             "n": r["n"], "base": r["base"],

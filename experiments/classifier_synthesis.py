@@ -11,18 +11,21 @@ the five fabrics on the input's own body and pin tracks, compare motion features
    RMS of each synthesis against the input): inputs = the training scenes' coarse seed-0
    sequences (and the validation garment) and the held-out seed-1 sequences; the first
    --frames frames after a --settle-frame settle from the input's frame 0.
-   Variants (what the synthesis library assumes; the inputs are the data set's files, 80
-   substeps + self-collision):
-     main        20 substeps, no self-collision (the quick synthesis; a solver MISMATCH with
-                 the inputs built in)
+   Variants (`VARIANTS`; what the synthesis library assumes; the inputs are the data set's
+   files, 80 substeps + self-collision, except `jitter`):
+     main        20 substeps, no self-collision (a solver MISMATCH with the inputs)
+     s80         80 substeps, no self-collision (the pick of session 23's CV)
      matched     the input's own solver settings from its metadata (80 + self-collision)
-     heavy_soft  main, fabrics' mass per area x1.25 and stretch/bending stiffness x0.8
-     light_stiff main, mass x0.8, stiffness x1.25
-2. `report`: every choice (feature families, temperature, abstain thresholds, novelty limit)
-   from leave-one-garment-out CV on the training inputs of `main`; the held-out numbers are
-   computed once at the end with the chosen settings and printed; the mismatch table applies
-   the same chosen classifier to the other variants' inputs (training garments). Writes
-   --out/synthesis_report.json.
+     heavy_soft, light_stiff (and s80_...): fabrics' mass per area x1.25 and stretch/bending
+                 stiffness x0.8, or x0.8 and x1.25
+     jitter      inputs re-simulated on a mesh of another lattice jitter (`--stage inputs`),
+                 synthesized like s80
+2. `report`: every choice (synthesis pipeline among `PIPELINES`, feature families,
+   aggregation, weights, temperature, abstain thresholds, novelty limit) from
+   leave-one-garment-out CV on the training inputs; with --heldout the held-out numbers are
+   computed once at the end with the chosen settings and printed; the mismatch table scores
+   each variant's syntheses of training inputs out of fold with its base pipeline's
+   classifier (`BASE`). Writes --out/synthesis_report.json.
 """
 
 from __future__ import annotations

@@ -383,6 +383,31 @@ def test_signal_removes_the_temporary_folder(root, tmp_path, sig, code, word):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("sig, exc", [(signal.SIGINT, KeyboardInterrupt),
+                                      (signal.SIGTERM, outdir.Terminated)])
+def test_a_signal_right_after_the_temporary_folder_appears_still_removes_it(
+        tmp_path, monkeypatch, sig, exc):
+    # The race the subprocess test above can hit on a loaded machine: the signal arrives once
+    # mkdtemp has made the folder but before staged_folder holds its name. Sent from inside
+    # mkdtemp, it must not leave the folder behind (fails if creation is not signal-safe).
+    real = outdir.tempfile.mkdtemp
+
+    def mkdtemp_then_signal(*args, **kwargs):
+        path = real(*args, **kwargs)
+        os.kill(os.getpid(), sig)
+        return path
+
+    monkeypatch.setattr(outdir.tempfile, "mkdtemp", mkdtemp_then_signal)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(exc), outdir.terminate_as_exception():
+            with outdir.staged_folder(tmp_path / "a" / "out"):
+                pass
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert list(tmp_path.iterdir()) == []  # neither the temporary folder nor a/
+
+
 # ------------------------------------------------------------------ inputs that now work
 
 

@@ -95,7 +95,11 @@ def staged_folder(out: Path) -> Iterator[Path]:
     try:
         try:
             out.parent.mkdir(parents=True, exist_ok=True)
-            tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+            # The folder exists once mkdtemp's mkdir returns; a Ctrl-C or SIGTERM arriving
+            # before `tmp` is bound would leave it behind, so both wait until it is.
+            with _signals_deferred():
+                tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp",
+                                            dir=out.parent))
         except OSError as e:
             raise OutputError(f"{out}: cannot create the output folder "
                               f"({e.strerror or e})") from None
@@ -117,9 +121,7 @@ def _replace_dir(tmp: Path, out: Path) -> None:
     os.chmod(tmp, mode)
     # No interrupt between moving the old folder aside and deleting it (a signal arriving
     # meanwhile is delivered right after).
-    signals = {signal.SIGINT, signal.SIGTERM}
-    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, signals)
-    try:
+    with _signals_deferred():
         old = None
         if out.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
@@ -133,8 +135,36 @@ def _replace_dir(tmp: Path, out: Path) -> None:
             raise
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM inside the block: one arriving meanwhile is recorded and its
+    handler (KeyboardInterrupt, `Terminated`, the default action) runs right after the block.
+
+    Done with Python handlers, not a signal mask: the process has other threads (XLA's), and
+    the kernel delivers a process signal to any thread that does not block it, after which
+    Python runs the handler in the main thread regardless of the main thread's mask. Outside
+    the main thread (no handlers can be set there) the block runs as is.
+    """
+    pending = []
+    try:
+        previous = {s: signal.signal(s, lambda signum, frame: pending.append(signum))
+                    for s in (signal.SIGINT, signal.SIGTERM)}
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        if pending:
+            handler = previous[pending[0]]
+            if callable(handler):
+                handler(pending[0], None)
+            elif handler == signal.SIG_DFL:
+                signal.raise_signal(pending[0])
 
 
 @contextlib.contextmanager

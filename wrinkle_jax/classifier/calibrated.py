@@ -111,6 +111,13 @@ def _fit_logistic(x, y, l2, num_classes: int, steps: int):
         return -ll.mean() + l2 * jnp.sum(p["w"] ** 2)
 
     params = {"w": jnp.zeros((x.shape[1], num_classes)), "b": jnp.zeros(num_classes)}
+    p = lbfgs_minimize(loss, params, steps)
+    return p["w"], p["b"]
+
+
+def lbfgs_minimize(loss, params, steps: int):
+    """`steps` full-batch `optax.lbfgs` steps (zoom line search) on `loss(params)` from
+    `params` (a pytree); traceable, so callers jit around it. Returns the final params."""
     opt = optax.lbfgs()
     value_and_grad = optax.value_and_grad_from_state(loss)
 
@@ -121,7 +128,7 @@ def _fit_logistic(x, y, l2, num_classes: int, steps: int):
         return (optax.apply_updates(p, u), s), v
 
     (p, _), _ = jax.lax.scan(body, (params, opt.init(params)), None, length=steps)
-    return p["w"], p["b"]
+    return p
 
 
 def fit(features, labels, config: MotionConfig = MotionConfig()) -> MotionClassifier:

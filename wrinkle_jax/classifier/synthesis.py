@@ -38,10 +38,9 @@ from collections.abc import Mapping
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 from wrinkle_jax import MATERIALS
-from wrinkle_jax.classifier import motion
+from wrinkle_jax.classifier import calibrated, motion
 from wrinkle_jax.mesh import Garment
 from wrinkle_jax.sim import xpbd
 from wrinkle_jax.sim.colliders import Colliders
@@ -288,17 +287,7 @@ def _fit_weights(q, y, l2, steps: int):
         ll = jax.nn.log_softmax(-(q @ w), axis=-1)[jnp.arange(y.shape[0]), y]
         return -ll.mean() + l2 * jnp.sum(w ** 2)
 
-    u0 = jnp.full(q.shape[-1], -2.0)
-    opt = optax.lbfgs()
-    value_and_grad = optax.value_and_grad_from_state(loss)
-
-    def body(carry, _):
-        u, s = carry
-        v, g = value_and_grad(u, state=s)
-        up, s = opt.update(g, s, u, value=v, grad=g, value_fn=loss)
-        return (optax.apply_updates(u, up), s), v
-
-    (u, _), _ = jax.lax.scan(body, (u0, opt.init(u0)), None, length=steps)
+    u = calibrated.lbfgs_minimize(loss, jnp.full(q.shape[-1], -2.0), steps)
     return jax.nn.softplus(u)
 
 

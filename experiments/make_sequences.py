@@ -30,12 +30,14 @@ Recorded in the manifest; a folder that already holds coarse files refuses anoth
 files do not depend on it, so a folder of fine files can take any).
 
 Files already present are skipped, each file is written atomically (temporary file + rename),
-and progress goes to `<out>/make_sequences.log` (one line per chunk of frames and per file,
-with ms/frame and an ETA) and `<out>/manifest.json` (rewritten after every file). One mesh,
-model and compiled solver per scene and resolution serve all five materials. A run that
-resumes another must use the same code: the log's start line and the manifest record the git
-commit and the self-collision setting, and a start refuses a folder whose manifest names other
-settings (use a new --out for a new simulator version).
+the file being simulated is checkpointed every `--checkpoint-every` seconds under
+`<out>/.partial/` (`scenes.simulate(checkpoint=...)`; the next run resumes it bit-identically,
+so a killed session loses minutes, not hours), and progress goes to `<out>/make_sequences.log`
+(one line per chunk of frames and per file, with ms/frame and an ETA) and `<out>/manifest.json`
+(rewritten after every file). One mesh, model and compiled solver per scene and resolution serve
+all five materials. A run that resumes another must use the same code: the log's start line and
+the manifest record the git commit and the self-collision setting, and a start refuses a folder
+whose manifest names other settings (use a new --out for a new simulator version).
 
 Sizing (measured on the 2-core shared CPU, 20 substeps, 2 stretch sweeps; see
 benchmarks/bench_sim.py): fine 120-235 ms/frame (11.5k-20k vertices), coarse 7-15 ms/frame.
@@ -118,6 +120,13 @@ def select(jobs: list[dict], only: str | None) -> list[dict]:
 
 def job_path(out: Path, job: dict) -> Path:
     return out / job["scene"] / f"{job['material']}_{job['resolution']}_s{job['seed']}.npz"
+
+
+def partial_path(out: Path, job: dict) -> Path:
+    """Where a job's checkpoint lives while it runs (`scenes.simulate(checkpoint=...)`): under
+    `<out>/.partial/`, out of the way of globs over the data set's files."""
+    rel = job_path(out, job).relative_to(out)
+    return out / ".partial" / rel.parent / (rel.name + ".partial")
 
 
 def estimate_s(job: dict) -> float:
@@ -207,6 +216,9 @@ def main(argv=None) -> int:
     ap.add_argument("--coarse-substeps", type=int, default=scenes.DATASET_COARSE_SUBSTEPS,
                     metavar="N", help="solver substeps per frame of the coarse jobs (default "
                     "%(default)s: scenes.DATASET_COARSE_SUBSTEPS)")
+    ap.add_argument("--checkpoint-every", type=float, default=300.0, metavar="S",
+                    help="seconds between checkpoints of the running file (resumed by the "
+                         "next run; default 300)")
     ap.add_argument("--previews", default=None, metavar="DIR",
                     help="only write fine-vs-coarse preview PNGs into DIR (from --out data)")
     args = ap.parse_args(argv)
@@ -285,11 +297,16 @@ def main(argv=None) -> int:
 
             t0 = time.perf_counter()
             substeps = substeps_for(job["resolution"], args.coarse_substeps)
+            partial = partial_path(out, job)
+            if partial.exists():
+                log(f"  {job['scene']} {job['material']} {job['resolution']}: "
+                    f"resuming from {partial.relative_to(out)}")
             seq = scenes.simulate(job["scene"], job["material"], job["resolution"],
                                   job["frames"], job["seed"], progress=progress, setup=setup,
                                   substeps=substeps,
                                   self_collision=self_collision_for(job["resolution"],
-                                                                    args.self_collision, substeps))
+                                                                    args.self_collision, substeps),
+                                  checkpoint=partial, checkpoint_every_s=args.checkpoint_every)
             scenes.save_simulation(path, seq)
             wall = time.perf_counter() - t0
         except Exception as e:  # log and go on with the next job; rerun to retry

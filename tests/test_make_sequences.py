@@ -107,3 +107,26 @@ def test_dataset_solver_is_what_make_sequences_writes_by_default():
             assert scenes.dataset_solver(name, res) == want
     assert scenes.dataset_solver("dress_dance", "coarse")[0] == 80
     assert scenes.dataset_solver("dress_dance", "coarse")[1].rebuild_every == 16
+
+
+def test_each_job_checkpoints_under_partial_and_a_rerun_says_it_resumes(tmp_path, monkeypatch):
+    calls = []
+
+    def fake_simulate(scene, material, resolution, frames, seed, checkpoint=None,
+                      checkpoint_every_s=None, **kw):
+        calls.append((checkpoint, checkpoint_every_s))
+        raise RuntimeError("killed")
+
+    monkeypatch.setattr(make_sequences.scenes, "setup_scene", lambda *a, **k: None)
+    monkeypatch.setattr(make_sequences.scenes, "simulate", fake_simulate)
+    args = ["--out", str(tmp_path), "--tiny", "--only", "apron_dance", "--checkpoint-every", "60"]
+    assert make_sequences.main(args) == 1
+    (path, every), = calls
+    job = next(j for j in make_sequences.plan(3, 3) if j["scene"] == "apron_dance")
+    job = dict(job, frames=3, resolution="coarse")
+    assert path == make_sequences.partial_path(tmp_path, job) and every == 60
+    assert path.parent == tmp_path / ".partial" / "apron_dance" and path.suffix == ".partial"
+    path.parent.mkdir(parents=True)
+    path.write_bytes(b"")  # a checkpoint left by a killed run
+    assert make_sequences.main(args) == 1
+    assert "resuming from .partial/apron_dance/" in (tmp_path / "make_sequences.log").read_text()

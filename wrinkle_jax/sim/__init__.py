@@ -11,6 +11,7 @@ Modules:
               constraints (optional: `SimConfig.self_collision`)
   contact_scenes small layered scenes (two sheets, a folded strip) for self-collision
   scenes      frozen scene configs and `simulate`
+  resume      checkpoints of a running simulation (a killed run resumes bit-identically)
   intersect   self-intersection measurement (spatial hash + exact triangle tests)
   preview     matplotlib previews (shaded frames, fine vs coarse normal maps)
   command     the `wrinkle-jax simulate` sub-command

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import time
 from collections.abc import Callable
 
@@ -42,7 +43,7 @@ import numpy as np
 
 from wrinkle_jax import MATERIALS, __version__, material_index
 from wrinkle_jax.meshio import GarmentSequence, make_sequence, save_sequence
-from wrinkle_jax.sim import aero, mannequin, patterns, xpbd
+from wrinkle_jax.sim import aero, mannequin, patterns, resume, xpbd
 from wrinkle_jax.sim.colliders import Colliders, attach_rigid, blend_pins, to_local
 from wrinkle_jax.sim.materials import fabric
 from wrinkle_jax.sim.selfcollision import SelfCollisionConfig
@@ -374,7 +375,9 @@ def simulate(scene: str | SceneConfig, material: str, resolution: str | float = 
              frames: int | None = None, seed: int = 0, substeps: int | None = None,
              iterations: int = 1, progress: Callable[[int, int], None] | None = None,
              chunk: int = 30, setup: SceneSetup | None = None,
-             self_collision: xpbd.SelfCollisionConfig | None = None) -> SimulatedSequence:
+             self_collision: xpbd.SelfCollisionConfig | None = None,
+             checkpoint: str | os.PathLike | None = None,
+             checkpoint_every_s: float = 300.0) -> SimulatedSequence:
     """Simulate a scene with one material at one resolution.
 
     Args:
@@ -389,6 +392,10 @@ def simulate(scene: str | SceneConfig, material: str, resolution: str | float = 
       setup: a prebuilt `setup_scene(...)` (to reuse a mesh and model across materials).
       self_collision: a `SelfCollisionConfig`, or None (off, the default). Its settings and
         the dropped-candidate counts (`self_overflow`) are recorded in the metadata.
+      checkpoint: optional path (`resume`): the state and frames are written there every
+        `checkpoint_every_s` seconds of simulation; a call with the same settings resumes
+        from it (bit-identical to an uninterrupted run; the metadata's `resumed_at_frame`
+        says where), and it is deleted when the simulation completes.
     Returns:
       SimulatedSequence (see the module docstring).
 
@@ -411,17 +418,34 @@ def simulate(scene: str | SceneConfig, material: str, resolution: str | float = 
     init_fn, _ = xpbd.cloth_simulator(config)
     state = init_fn(setup.model, setup.mesh.garment.vertices)
     total = setup.preroll_frames + frames - 1
-    done = [0]
+    key = json.dumps({"scene": sc.to_json(), "material": material, "resolution": resolution,
+                      "frames": frames, "seed": int(seed), "substeps": config.substeps,
+                      "iterations": iterations, "chunk": int(chunk),
+                      "stretch_sweeps": config.stretch_sweeps, "generator": __version__,
+                      "self_collision": None if self_collision is None
+                      else dataclasses.asdict(self_collision)}, sort_keys=True)
+    got = resume.load(checkpoint, key) if checkpoint is not None else None
+    start, prior, wall0 = 0, [], 0.0
+    if got is not None:
+        start, saved, frames_done, wall0 = got
+        state = jax.tree_util.tree_map(jnp.asarray, saved)
+        prior = [frames_done]
+    writer = resume.Writer(checkpoint, key, checkpoint_every_s, prior, wall0)
+    done = [start]
 
     def tick(n):
         done[0] += n
         if progress is not None:
             progress(done[0], total)
 
+    if start and progress is not None:
+        progress(start, total)
     t0 = time.perf_counter()
-    final, xs = xpbd.simulate_frames(config, setup.model, params, state, setup.drives, chunk,
-                                     tick)
-    wall = time.perf_counter() - t0
+    final, _ = xpbd.simulate_frames(config, setup.model, params, state, setup.drives, chunk,
+                                    tick, start=start, on_chunk=writer)
+    wall = wall0 + time.perf_counter() - t0
+    xs = np.concatenate(writer.frames) if writer.frames else np.zeros((0,) + state.x.shape,
+                                                                       np.float32)
     out = xs[setup.preroll_frames - 1:]
     g = setup.mesh.garment
     keep = np.arange(setup.preroll_frames, setup.preroll_frames + frames)
@@ -460,8 +484,11 @@ def simulate(scene: str | SceneConfig, material: str, resolution: str | float = 
         "uv_units": "meters",
         "vertices": g.num_vertices,
         "faces": g.num_faces,
+        "resumed_at_frame": int(start),
         "wall_s": round(wall, 3),
         "ms_per_frame": round(1e3 * wall / max(total, 1), 3),
     }
     seq = make_sequence(out, g, 30.0, meta, source=f"simulate({sc.name}, {material})")
+    if checkpoint is not None and os.path.exists(checkpoint):
+        os.unlink(checkpoint)
     return SimulatedSequence(seq.frames, seq.garment, seq.fps, seq.metadata, tracks)

@@ -437,22 +437,30 @@ def _take_frames(drives: Drive, idx):
 
 def simulate_frames(config: SimConfig, model: ClothModel, params: SimParams,
                     state: ClothState, drives: Drive, chunk: int = 30,
-                    progress: Callable[[int], None] | None = None):
+                    progress: Callable[[int], None] | None = None, start: int = 0,
+                    on_chunk: Callable[[int, ClothState, np.ndarray], None] | None = None):
     """Run all frames of `drives` (T + 1 boundaries -> T frames) in jitted chunks.
 
     Chunks have a fixed length (the last one padded), so the solver compiles once.
+    Args:
+      start: frames already simulated, `state` being the state after them (a resumed run;
+        a multiple of `chunk` keeps the chunks, and so the result, those of a whole run).
+      on_chunk: optional callback(frames done, state, positions (n, V, 3)) after each chunk,
+        before `progress` (checkpoints: `resume.Writer`).
     Returns:
-      (final ClothState, positions (T, V, 3) NumPy float32).
+      (final ClothState, positions (T - start, V, 3) NumPy float32).
     """
     total = jax.tree_util.tree_leaves(drives)[0].shape[0] - 1
     out = []
-    done = 0
+    done = int(start)
     while done < total:
         n = min(chunk, total - done)
         part = slice_drives(drives, done, done + chunk + 1)
         state, xs = run_frames(config, model, params, state, part, jnp.int32(n))
         out.append(np.asarray(xs[:n]))
         done += n
+        if on_chunk is not None:
+            on_chunk(done, state, out[-1])
         if progress is not None:
             progress(n)
     return state, np.concatenate(out) if out else np.zeros((0,) + state.x.shape, np.float32)

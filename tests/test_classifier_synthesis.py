@@ -4,6 +4,7 @@ scene (PD 0.1 m, 211 vertices, 24 frames, 4 substeps, the mannequin dancing)."""
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import jax
 import numpy as np
@@ -125,3 +126,75 @@ def test_fitted_weights_pick_the_informative_feature():
     assert w.shape == (d,) and np.all(w >= 0) and w[0] > 3 * w[1:].max()
     assert np.mean((q @ w).argmin(1) == labels) == 1.0
     np.testing.assert_allclose(syn.mean_squares(np.ones((2, 3, 4)), 2.0, "mean"), 0.25)
+
+
+def _tiny_classifier(**changes):
+    from wrinkle_jax.classifier import synthesis_model as sm
+
+    fams = ("kinematic", "curvature", "rigidity")
+    d = int(syn.feature_mask(fams).sum())
+    kw = dict(materials=("wool_melton", "silk_chiffon"), families=fams, agg="window",
+              scale=np.ones(d), weights=None, temperature=1e-3, threshold=0.6,
+              group_threshold=0.6, novelty_limit=1e9, solver="fixed", substeps=SUBSTEPS,
+              frames=FRAMES, settle_frames=4, window=8, stride=4, meta={"test": True})
+    return sm.SynthesisClassifier(**{**kw, **changes})
+
+
+def test_saved_synthesis_classifier_answers_like_the_study(tiny, tmp_path, capsys):
+    from wrinkle_jax.classifier import cli as ccli
+    from wrinkle_jax.classifier import synthesis_model as sm
+
+    _, _, arrays = tiny
+    clf = _tiny_classifier()
+    for m, a in arrays.items():
+        r = sm.classify(a, clf)
+        assert r.material == m and not r.abstained and r.num_windows == 5
+    # "input" falls back to the fixed substeps when the file records no solver
+    r_in = sm.classify(arrays["silk_chiffon"], _tiny_classifier(solver="input"))
+    assert r_in.scores == sm.classify(arrays["silk_chiffon"], clf).scores
+    # a round trip through the file, then the CLI picks the kind from the file
+    path = sm.save(tmp_path / "clf.npz", clf)
+    back = sm.load(path)
+    assert back.families == clf.families and back.meta == {"test": True}
+    np.testing.assert_array_equal(back.scale, clf.scale)
+    assert back.weights is None and back.solver == "fixed" and back.frames == FRAMES
+    seq = tmp_path / "in.npz"
+    np.savez(seq, **arrays["wool_melton"])
+    capsys.readouterr()
+    assert ccli.main(["classify", str(seq), "--model", str(path), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["classifier"] == "synthesis" and out["material"] == "wool_melton"
+
+
+def test_synthesis_decisions_and_file_errors(tmp_path, capsys):
+    from wrinkle_jax.classifier import cli as ccli
+    from wrinkle_jax.classifier import synthesis_model as sm
+    from wrinkle_jax.classifier.config import ClassifierError
+
+    clf = _tiny_classifier(materials=("silk_charmeuse", "wool_melton", "knit_terry",
+                                      "silk_chiffon", "denim_light"), temperature=1.0,
+                           threshold=0.9, novelty_limit=1.0, weights=np.arange(1.0, 1.0 + len(
+                               _tiny_classifier().scale)))
+    d = np.array([0.0, 5.0, 5.0, 5.0, 5.0])  # p_0 = 1 / (1 + 4 e^-5) = 0.97376
+    r = sm.decide(clf, d, 3)
+    assert r.material == "silk_charmeuse"
+    assert r.confidence == pytest.approx(1.0 / (1.0 + 4.0 * np.exp(-5.0)), rel=1e-12)
+    assert r.group == "light_silk"
+    assert sm.decide(dataclasses.replace(clf, threshold=0.99), d, 3).reason.startswith("low")
+    far = sm.decide(clf, d + 2.0, 3)  # nearest synthesis 2 > limit 1: nothing reproduces it
+    assert far.abstained and far.material is None and far.group is None and far.novelty == 2.0
+    # an input without pins abstains, saying why
+    a = {"frames": np.zeros((30, 3, 3)), "faces": np.zeros((1, 3), int),
+         "uvs": np.zeros((3, 2)), "uv_faces": np.zeros((1, 3), int)}
+    assert "pin" in sm.classify(a, clf).reason
+    path = sm.save(tmp_path / "w.npz", clf)
+    np.testing.assert_array_equal(sm.load(path).weights, clf.weights)
+    with pytest.raises(ClassifierError, match="do not match"):
+        dataclasses.replace(clf, scale=np.ones(3))
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, head=np.frombuffer(b'{"format": "other"}', np.uint8), scale=np.ones(2))
+    with pytest.raises(ClassifierError, match="bad.npz"):
+        sm.load(bad)
+    assert not sm.is_synthesis_file(bad) and sm.is_synthesis_file(path)
+    assert ccli.main(["classify", str(bad), "--kind", "synthesis"]) == 1
+    assert "no synthesis classifier ships" in capsys.readouterr().err

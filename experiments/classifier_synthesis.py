@@ -25,7 +25,9 @@ the five fabrics on the input's own body and pin tracks, compare motion features
    leave-one-garment-out CV on the training inputs; with --heldout the held-out numbers are
    computed once at the end with the chosen settings and printed; the mismatch table scores
    each variant's syntheses of training inputs out of fold with its base pipeline's
-   classifier (`BASE`). Writes --out/synthesis_report.json.
+   classifier (`BASE`); with --heldout also each variant's held-out syntheses with its base
+   pipeline's final classifier (`heldout_variants`, per garment). Writes
+   --out/synthesis_report.json.
 """
 
 from __future__ import annotations
@@ -275,6 +277,53 @@ def summarize(d, labels, cal_: dict, names=None) -> dict:
     return out
 
 
+def per_garment(summary: dict) -> dict:
+    """{scene: n, right (argmax), answered, right_where_answers} from `summarize`'s
+    per_sequence rows ("scene/material" names)."""
+    out: dict[str, dict] = {}
+    for r in summary["per_sequence"]:
+        g = out.setdefault(r["sequence"].split("/")[0], {"n": 0, "right": 0, "answered": 0,
+                                                          "right_where_answers": 0})
+        ok = r["pred"] == r["true"]
+        g["n"] += 1
+        g["right"] += int(ok)
+        g["answered"] += int(r["answered"])
+        g["right_where_answers"] += int(ok and r["answered"])
+    return out
+
+
+def score_variant(dist: Distance, calib: dict, entries: list[dict]) -> dict:
+    """A variant's inputs (e.g. its held-out syntheses) scored by a FIXED classifier: the
+    distance `dist` (fitted on the base pipeline's training syntheses) and its calibration;
+    all inputs, the unseen garments (`UNSEEN`), per garment, and (when the entries carry
+    them) their skinned stand-ins against the same syntheses."""
+    out = {}
+    for name, sel in (("all", entries), ("unseen_garments",
+                                         [e for e in entries if e["scene"] in UNSEEN])):
+        if sel:
+            out[name] = summarize(dist(sel), np.array([e["label"] for e in sel]), calib,
+                                  [f"{e['scene']}/{e['material']}" for e in sel])
+    if "all" in out:
+        out["per_garment"] = per_garment(out["all"])
+    if entries and all("skinned" in e for e in entries):
+        d = dist(entries, key="skinned")
+        s = summarize(d, np.array([e["label"] for e in entries]), calib)
+        out["skinned"] = {"n": s["n"], "answered": s["answered"],
+                          "group_answered": int(round(s["group_coverage"] * s["n"])),
+                          "min_distance_range": [float(d.min(1).min()), float(d.min(1).max())]}
+    return out
+
+
+def rule_s24(base: dict, variant: dict) -> dict:
+    """Session 24's decision rule (synthesis_rule_s24.txt) on two `summarize` results for the
+    same inputs: the variant is picked iff its per-sequence accuracy >= the base's and its
+    answers are not fewer than the base's minus one."""
+    acc = variant["seq_acc"] >= base["seq_acc"] - 1e-12
+    cov = variant["answered"] >= base["answered"] - 1
+    return {"accuracy_not_lower": bool(acc), "coverage_within_one": bool(cov),
+            "variant_picked": bool(acc and cov)}
+
+
 def calibrated_pick(rows, train):
     """A pipeline's pick (CV accuracy, ties by NLL), its CV and its calibration: temperature,
     abstain threshold, group threshold, novelty limit (2 x the largest out-of-fold
@@ -378,6 +427,22 @@ def stage_report(args) -> None:
             "synth_seconds_per_input": float(np.median([e["synth_seconds"].sum()
                                                         for e in ents])),
             "total_seconds_per_input": float(np.median([e["total_seconds"] for e in ents]))}
+        res["mismatch"][v]["rule_s24"] = rule_s24(res["mismatch"][v]["base_on_same_inputs"],
+                                                  res["mismatch"][v]["variant"])
+    # Held-out syntheses of every variant, scored by its base pipeline's final classifier
+    # (distance fitted on all of the base's training syntheses, the base's calibration).
+    res["heldout_variants"] = {}
+    for v in VARIANTS if args.heldout else ():
+        base = BASE[v]
+        ents = [e for e in load_entries(cache, v) if e["split"] == "heldout"]
+        if base in picks and ents:
+            b_spec, _, b_cal = picks[base]
+            res["heldout_variants"][v] = {"base": base, **score_variant(
+                Distance(b_spec, trains[base]), b_cal, ents),
+                "synth_seconds_per_input": float(np.median([e["synth_seconds"].sum()
+                                                            for e in ents])),
+                "total_seconds_per_input": float(np.median([e["total_seconds"]
+                                                            for e in ents]))}
     out = Path(args.out) / "synthesis_report.json"
     atomic_write_text(out, json.dumps(res, indent=1, default=float))
     for q, r in res["per_pipeline"].items():
@@ -398,6 +463,16 @@ def stage_report(args) -> None:
             "nearest_pos": r["nearest_by_position_acc"], "rms_true": r["rms_true_fabric_m"],
             "rms_other": r["rms_other_fabrics_m"], "synth_s": r["synth_seconds_per_input"],
             "total_s": r["total_seconds_per_input"]}), flush=True)
+    for v, r in res["mismatch"].items():
+        print("rule_s24", v, json.dumps(r["rule_s24"]))
+    for v, r in res["heldout_variants"].items():
+        a = r["all"]
+        print("heldout_variant", v, json.dumps({
+            "base": r["base"], "n": a["n"], "seq_acc": a["seq_acc"], "coverage": a["coverage"],
+            "where": a["acc_where_answers"], "group": a["group_acc"], "ece": a["ece"],
+            "nll": a["nll"], "per_garment": r["per_garment"], "confusion": a["confusion"],
+            "total_s": r["total_seconds_per_input"], "skinned": r.get("skinned")}),
+              flush=True)
     print(f"wrote {out}")
 
 

@@ -81,10 +81,13 @@ def test_classify_missing_model_is_an_error(tmp_path, capsys):
 
 def test_material_auto_uses_answer_or_names_the_flag(tmp_path, model_path, monkeypatch):
     from wrinkle_jax import cli_pipeline, validate
+    from wrinkle_jax.classifier import synthesis_model
 
     monkeypatch.setattr(cal, "MOTION_PATH", model_path)
-    name, result = cli_pipeline._classify_auto(_sequence(tmp_path / "seq.npz"), MATERIALS)
-    assert name == MATERIALS[2] and result.confidence >= 0.5
+    # no synthesis classifier ships here: the motion classifier answers
+    monkeypatch.setattr(synthesis_model, "SYNTHESIS_PATH", tmp_path / "none.npz")
+    name, result, kind = cli_pipeline._classify_auto(_sequence(tmp_path / "seq.npz"), MATERIALS)
+    assert name == MATERIALS[2] and result.confidence >= 0.5 and kind == "motion"
     with pytest.raises(validate.UsageError, match="abstained.*--material NAME"):
         cli_pipeline._classify_auto(_sequence(tmp_path / "lbs.npz", skinned=True), MATERIALS)
 

@@ -198,3 +198,25 @@ def test_synthesis_decisions_and_file_errors(tmp_path, capsys):
     assert not sm.is_synthesis_file(bad) and sm.is_synthesis_file(path)
     assert ccli.main(["classify", str(bad), "--kind", "synthesis"]) == 1
     assert "no synthesis classifier ships" in capsys.readouterr().err
+
+
+def test_a_shipped_synthesis_classifier_answers_material_auto(tiny, tmp_path, monkeypatch,
+                                                              capsys):
+    from wrinkle_jax import cli_pipeline, validate
+    from wrinkle_jax.classifier import cli as ccli
+    from wrinkle_jax.classifier import synthesis_model as sm
+
+    _, _, arrays = tiny
+    seq = tmp_path / "in.npz"
+    np.savez(seq, **arrays["silk_chiffon"])
+    names = ("wool_melton", "silk_chiffon")
+    monkeypatch.setattr(sm, "SYNTHESIS_PATH", sm.save(tmp_path / "ship.npz", _tiny_classifier()))
+    assert ccli.default_kind() == "synthesis"
+    name, result, kind = cli_pipeline._classify_auto(seq, names)
+    assert (name, kind) == ("silk_chiffon", "synthesis") and not result.abstained
+    capsys.readouterr()
+    assert ccli.main(["classify", str(seq), "--json"]) == 0  # no --model: the shipped one
+    assert json.loads(capsys.readouterr().out)["classifier"] == "synthesis"
+    sm.save(sm.SYNTHESIS_PATH, _tiny_classifier(novelty_limit=-1.0))  # reproduces nothing
+    with pytest.raises(validate.UsageError, match="abstained.*--material NAME"):
+        cli_pipeline._classify_auto(seq, names)

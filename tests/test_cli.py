@@ -252,9 +252,10 @@ def test_enhance_failure_midway_leaves_no_partial_output(inputs, tmp_path, monke
 
 def test_enhance_auto_material_without_classifier_fails_clearly(inputs, tmp_path, monkeypatch,
                                                                 capsys):
-    from wrinkle_jax.classifier import calibrated
+    from wrinkle_jax.classifier import calibrated, synthesis_model
 
     monkeypatch.setattr(calibrated, "MOTION_PATH", tmp_path / "no_classifier.npz")
+    monkeypatch.setattr(synthesis_model, "SYNTHESIS_PATH", tmp_path / "no_synthesis.npz")
     assert _enhance(inputs, tmp_path / "out", "--material", "auto") == 2
     err = capsys.readouterr().err
     assert "no material classifier is available" in err and "--material NAME" in err

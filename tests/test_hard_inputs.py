@@ -256,9 +256,10 @@ FAILING = [
                          ids=[c[0] for c in FAILING])
 def test_bad_input_fails_with_one_line_and_no_output(root, tmp_path, capsys, monkeypatch, name,
                                                      make, argv, code, fragments):
-    from wrinkle_jax.classifier import calibrated
+    from wrinkle_jax.classifier import calibrated, synthesis_model
 
     monkeypatch.setattr(calibrated, "MOTION_PATH", tmp_path / "no_classifier.npz")
+    monkeypatch.setattr(synthesis_model, "SYNTHESIS_PATH", tmp_path / "no_synthesis.npz")
     inputs = tmp_path / "inputs"
     inputs.mkdir()
     (inputs / "bad_model.npz").write_bytes(b"PK\x03\x04 not an enhancer")
@@ -535,7 +536,7 @@ def test_bake_never_writes_into_a_folder_with_user_files(root, tmp_path, capsys)
 
 def test_choose_material_reports_where_the_material_came_from(tmp_path, monkeypatch):
     from wrinkle_jax import MATERIALS
-    from wrinkle_jax.classifier import calibrated
+    from wrinkle_jax.classifier import calibrated, synthesis_model
 
     choose = validate.choose_material
     assert choose(None, "knit_terry", MATERIALS, "s.npz") == ("knit_terry", "stored")
@@ -545,6 +546,7 @@ def test_choose_material_reports_where_the_material_came_from(tmp_path, monkeypa
     with pytest.raises(validate.UsageError, match="s.npz stores no material.*--material NAME"):
         choose(None, None, MATERIALS, "s.npz")
     monkeypatch.setattr(calibrated, "MOTION_PATH", tmp_path / "none.npz")
+    monkeypatch.setattr(synthesis_model, "SYNTHESIS_PATH", tmp_path / "no_synthesis.npz")
     with pytest.raises(validate.UsageError, match="no material classifier is available"):
         choose("auto", "knit_terry", MATERIALS, "s.npz")
     (tmp_path / "none.npz").write_bytes(b"")  # a classifier file exists: classify

@@ -164,9 +164,10 @@ def test_material_auto_uses_the_injected_classifier(seq, model):
 
 
 def test_material_auto_without_a_classifier_is_a_clear_error(seq, monkeypatch, tmp_path):
-    from wrinkle_jax.classifier import calibrated
+    from wrinkle_jax.classifier import calibrated, synthesis_model
 
     monkeypatch.setattr(calibrated, "MOTION_PATH", tmp_path / "none.npz")  # nothing ships
+    monkeypatch.setattr(synthesis_model, "SYNTHESIS_PATH", tmp_path / "none_s.npz")
     with pytest.raises(pipeline.PipelineError, match="no material classifier is available"):
         pipeline.resolve_material("auto", ("silk_charmeuse",), seq.frames, seq.garment)
     # With a model, frames alone still cannot be classified: the motion is read against the

@@ -97,9 +97,9 @@ def _add_material(p) -> None:
     from wrinkle_jax import MATERIALS
 
     p.add_argument("--material", default=None, metavar="NAME",
-                   help=f"fabric: {', '.join(MATERIALS)}, or auto (the motion classifier; "
-                   f"none ships yet; stops when it abstains); default: the material stored "
-                   f"in the sequence")
+                   help=f"fabric: {', '.join(MATERIALS)}, or auto (the shipped material "
+                   f"classifier, analysis by synthesis else motion; none ships yet; stops "
+                   f"when it abstains); default: the material stored in the sequence")
 
 
 def _add_units(p) -> None:

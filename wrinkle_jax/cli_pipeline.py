@@ -125,15 +125,17 @@ def _load_body(path: Path):
 
 
 def _classify_auto(input_path: Path, materials) -> tuple:
-    """`--material auto`: the motion classifier's material, or a UsageError naming --material
-    when it abstains (never a silent default). Returns (material, MotionClassification)."""
+    """`--material auto`: the default classifier's material (the shipped synthesis classifier
+    if any, else the motion classifier), or a UsageError naming --material when it abstains
+    (never a silent default). Returns (material, MotionClassification, the classifier's kind:
+    "synthesis" or "motion")."""
     from wrinkle_jax.classifier import ClassifierError
-    from wrinkle_jax.classifier.cli import classify_motion_input
+    from wrinkle_jax.classifier.cli import classify_default
     from wrinkle_jax.validate import UsageError
 
     names = ", ".join(materials)
     try:
-        result = classify_motion_input(input_path)
+        kind, result = classify_default(input_path)
     except ClassifierError as e:
         raise UsageError(f"--material auto: {e}; pass --material NAME (one of {names})") from None
     if result.abstained:
@@ -142,7 +144,7 @@ def _classify_auto(input_path: Path, materials) -> tuple:
     if result.material not in materials:
         raise UsageError(f"--material auto: the classifier chose {result.material!r}, which the "
                          f"model does not know; pass --material NAME (one of {names})")
-    return result.material, result
+    return result.material, result, kind
 
 
 def _run_enhance(input_path: Path, out: Path, args, model: Path | None = None,
@@ -190,7 +192,8 @@ def _run_enhance(input_path: Path, out: Path, args, model: Path | None = None,
             display_path(input_path))
         classification = None
         if material == "auto":
-            material, classification = _classify_auto(input_path, enh.config.materials)
+            material, classification, classifier_kind = _classify_auto(input_path,
+                                                                       enh.config.materials)
         body = _load_body(Path(args.body)) if getattr(args, "body", None) else None
         # Warm-started lift: the same error as cold starts on the demo at ~0.6x the lift time
         # (benchmarks/bench_lift.py --sequence); frames are streamed in order. A chunk's
@@ -220,7 +223,8 @@ def _run_enhance(input_path: Path, out: Path, args, model: Path | None = None,
             report["material_source"] = material_source
             if classification is not None:
                 report["material_scores"] = classification.scores
-                report["material_classification"] = classification.to_json()
+                report["material_classification"] = {"classifier": classifier_kind,
+                                                     **classification.to_json()}
             report["warnings"] = warnings
             report["budget"] = {k: list(v) if isinstance(v, tuple) else v
                                 for k, v in budget.items()}

@@ -355,26 +355,28 @@ def frame_fn(pipe: Pipeline, body=None) -> Callable[..., FrameResult]:
 
 
 def classify_material(frames, garment: Garment, key):
-    """The default classifier for material "auto": the motion classifier
-    (`wrinkle_jax.classifier.calibrated`) measures the cloth's motion against the body, which a
-    `GarmentSequence` does not carry, so the library cannot run it from frames alone.
+    """The default classifier for material "auto": the shipped classifiers (the synthesis one,
+    `wrinkle_jax.classifier.synthesis_model`, or the motion one, `...calibrated`) read the
+    cloth's motion against the body and its pin track, which a `GarmentSequence` does not
+    carry, so the library cannot run them from frames alone.
 
     Raises:
       PipelineError, always: naming why (no shipped motion classifier, or no body track) and
       what to do instead (a material name, `classify_fn`, or the CLI's `classify` /
       `enhance --material auto` on an `.npz` that holds the body's capsules).
     """
-    from wrinkle_jax.classifier import ClassifierError, calibrated
+    from wrinkle_jax.classifier import ClassifierError, calibrated, synthesis_model
 
-    try:
-        calibrated.load()
-    except ClassifierError as e:
-        raise PipelineError(f"material 'auto': no material classifier is available ({e}); "
-                            f"pass a material name instead") from None
-    raise PipelineError("material 'auto': the motion classifier needs the body's motion "
-                        "(capsule_ends), which a GarmentSequence does not carry; pass a "
-                        "material name, a classify_fn, or run `wrinkle-jax classify` on the "
-                        ".npz sequence with its capsules")
+    if not synthesis_model.shipped():
+        try:
+            calibrated.load()
+        except ClassifierError as e:
+            raise PipelineError(f"material 'auto': no material classifier is available ({e}); "
+                                f"pass a material name instead") from None
+    raise PipelineError("material 'auto': the material classifiers need the body's motion "
+                        "(capsule_ends) and the pin track, which a GarmentSequence does not "
+                        "carry; pass a material name, a classify_fn, or run `wrinkle-jax "
+                        "classify` on the .npz sequence with its capsules")
 
 
 def resolve_material(material: str, materials: Sequence[str], frames=None,

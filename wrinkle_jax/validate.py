@@ -316,14 +316,15 @@ def choose_material(flag: str | None, stored, materials, source: str) -> tuple[s
         what = f"stores the unknown material {stored!r}" if stored else "stores no material"
         raise UsageError(f"{source} {what}; pass --material NAME (one of {names})")
     if flag == "auto":
-        from wrinkle_jax.classifier import calibrated
+        from wrinkle_jax.classifier import calibrated, synthesis_model
         from wrinkle_jax.outdir import display_path
 
-        # "auto" is the motion classifier (issue 25); cli_pipeline runs it on the input and
-        # stops naming --material when it abstains.
-        if not Path(calibrated.MOTION_PATH).is_file():
+        # "auto" is the shipped synthesis classifier, else the motion classifier (issue 25);
+        # cli_pipeline runs it on the input and stops naming --material when it abstains.
+        if not (synthesis_model.shipped() or Path(calibrated.MOTION_PATH).is_file()):
             raise UsageError(f"--material auto: no material classifier is available (none "
-                             f"ships at {display_path(calibrated.MOTION_PATH)}); pass "
+                             f"ships at {display_path(synthesis_model.SYNTHESIS_PATH)} or "
+                             f"{display_path(calibrated.MOTION_PATH)}); pass "
                              f"--material NAME (one of {names})")
         return "auto", "classified"
     if flag not in materials:

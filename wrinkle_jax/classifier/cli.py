@@ -99,14 +99,30 @@ def classify_motion_input(path, model_path=None):
     return calibrated.classify_features(model, feats)
 
 
+def default_kind() -> str:
+    """The default classifier: "synthesis" when one ships, else "motion"."""
+    from wrinkle_jax.classifier import synthesis_model
+
+    return "synthesis" if synthesis_model.shipped() else "motion"
+
+
+def classify_default(path):
+    """(kind, result) of the default classifier (`default_kind`) on a sequence file."""
+    kind = default_kind()
+    fn = classify_synthesis_input if kind == "synthesis" else classify_motion_input
+    return kind, fn(path, None)
+
+
 def _kind(args) -> str:
-    """--kind, or when not given: "patches" if --vgg is given or --model is a patch
-    classifier file, else "motion" (the default classifier)."""
+    """--kind, or when not given: "patches" if --vgg is given, the kind of the --model file,
+    else `default_kind()` (the shipped synthesis classifier if any, else the motion one)."""
     if args.kind:
         return args.kind
     if args.vgg:
         return "patches"
-    if args.model and Path(args.model).is_file():
+    if not args.model:
+        return default_kind()
+    if Path(args.model).is_file():
         import numpy as np
 
         from wrinkle_jax.classifier import synthesis_model
@@ -140,7 +156,7 @@ def classify_synthesis_input(path, model_path):
 
     from wrinkle_jax.classifier import synthesis_model
 
-    if model_path is None:
+    if model_path is None and not synthesis_model.shipped():
         raise ClassifierError("no synthesis classifier ships yet; pass --model PATH (a file "
                               "written by experiments/classifier_synthesis.py --stage export)")
     clf = synthesis_model.load(model_path)

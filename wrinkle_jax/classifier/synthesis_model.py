@@ -45,6 +45,9 @@ from wrinkle_jax.classifier.config import ClassifierError
 from wrinkle_jax.fileio import atomic_write_bytes
 
 FORMAT = "wrinkle-jax-synthesis-classifier/1"
+# The shipped classifier, when one ships (only once issue 25's targets hold on held-out data):
+# `wrinkle-jax classify` and `enhance --material auto` then use it instead of the motion one.
+SYNTHESIS_PATH = Path(__file__).resolve().parents[1] / "assets" / "synthesis_classifier.npz"
 SOLVERS = ("input", "fixed")
 
 
@@ -203,13 +206,18 @@ def is_synthesis_file(path: str | os.PathLike) -> bool:
         return False
 
 
-def load(path: str | os.PathLike) -> SynthesisClassifier:
-    """Read a classifier written by `save`.
+def shipped() -> bool:
+    """True when a synthesis classifier ships (`SYNTHESIS_PATH` exists)."""
+    return SYNTHESIS_PATH.is_file()
+
+
+def load(path: str | os.PathLike | None = None) -> SynthesisClassifier:
+    """Read a classifier written by `save` (default: the shipped `SYNTHESIS_PATH`).
 
     Raises:
       ClassifierError: naming the file when it is missing or not a synthesis classifier.
     """
-    path = Path(path)
+    path = Path(SYNTHESIS_PATH if path is None else path)
     if not path.is_file():
         raise ClassifierError(f"{path}: no such synthesis classifier file")
     try:

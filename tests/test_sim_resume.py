@@ -63,6 +63,17 @@ def test_checkpoint_of_other_settings_is_ignored(tmp_path):
     assert other.metadata["resumed_at_frame"] == 0
 
 
+def test_an_unreadable_checkpoint_is_replaced(tmp_path):
+    ck = tmp_path / "run.partial"
+    ck.write_bytes(b"PK\x03\x04 truncated")
+    with pytest.warns(UserWarning, match="unreadable checkpoint"):
+        got = scenes.simulate(TINY, "silk_chiffon", 0.06, frames=2, seed=2, chunk=2,
+                              checkpoint=ck)
+    fresh = scenes.simulate(TINY, "silk_chiffon", 0.06, frames=2, seed=2, chunk=2)
+    np.testing.assert_array_equal(got.frames, fresh.frames)
+    assert not ck.exists()
+
+
 def test_checkpoints_wait_for_their_interval(tmp_path):
     ck = tmp_path / "run.partial"
     with pytest.raises(Killed):  # an hour between checkpoints: none written in 3 chunks

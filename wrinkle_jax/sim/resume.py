@@ -4,7 +4,9 @@ A fine data-set sequence takes hours on two shared cores, and a session's proces
 with it; `scenes.simulate(..., checkpoint=PATH)` writes the solver state and the frames done
 so far here every few minutes and picks them up on the next call with the same settings.
 The solver is deterministic and chunks start at the same frames, so a resumed run is
-bit-identical to an uninterrupted one (tested).
+bit-identical to an uninterrupted one (tested). The key holds the settings and the package
+version, not the code: like the finished files of a resumed data set, a checkpoint assumes the
+solver did not change in between.
 
 File (`.npz`, written atomically): `key` (JSON of everything the result depends on),
 `done` (frames simulated, pre-roll included), `wall_s` (seconds spent so far), the state
@@ -18,6 +20,7 @@ import os
 import tempfile
 import time
 import warnings
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -30,19 +33,26 @@ def load(path: str | os.PathLike, key: str):
 
     Returns:
       (done frames, ClothState of NumPy arrays, frames (done, V, 3) float32, wall seconds).
-      A checkpoint written with another key (other settings) is ignored with a warning.
+      A checkpoint written with another key (other settings), or unreadable, is ignored with a
+      warning (the run starts over and overwrites it).
     """
     path = Path(path)
     if not path.exists():
         return None
-    with np.load(path) as z:
-        if str(z["key"]) != key:
-            warnings.warn(f"{path}: a checkpoint of other settings; starting from frame 0",
-                          stacklevel=2)
-            return None
-        over = z["self_overflow"] if "self_overflow" in z.files else None
-        state = ClothState(x=z["x"], v=z["v"], self_overflow=over)
-        return int(z["done"]), state, z["frames"], float(z["wall_s"])
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if str(z["key"]) != key:
+                warnings.warn(f"{path}: a checkpoint of other settings; starting from frame 0",
+                              stacklevel=2)
+                return None
+            over = z["self_overflow"] if "self_overflow" in z.files else None
+            state = ClothState(x=z["x"], v=z["v"], self_overflow=over)
+            return int(z["done"]), state, z["frames"], float(z["wall_s"])
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+        # e.g. a disk that filled up: starting over beats failing on it at every rerun
+        warnings.warn(f"{path}: unreadable checkpoint ({type(e).__name__}: {e}); starting "
+                      f"from frame 0", stacklevel=2)
+        return None
 
 
 def save(path: str | os.PathLike, key: str, done: int, state: ClothState, frames: np.ndarray,

@@ -27,7 +27,12 @@ the five fabrics on the input's own body and pin tracks, compare motion features
    each variant's syntheses of training inputs out of fold with its base pipeline's
    classifier (`BASE`); with --heldout also each variant's held-out syntheses with its base
    pipeline's final classifier (`heldout_variants`, per garment). Writes
-   --out/synthesis_report.json.
+   --out/synthesis_report.json. The held-out inputs are --heldout-data's files of
+   --heldout-seed, cached and scored as split --heldout-split (seed 1: "heldout"; session
+   24b's fresh seed 2: "fresh").
+3. `export --model-out F`: the CV pick as a `synthesis_model.SynthesisClassifier`;
+   `check --model-out F --check-inputs scene/material ...`: its `classify` on training input
+   files against the study's distances (--out/synthesis_export_check.json).
 """
 
 from __future__ import annotations
@@ -461,6 +466,15 @@ def stage_report(args) -> None:
                 "total_seconds_per_input": float(np.median([e["total_seconds"]
                                                             for e in ents]))}
     res["heldout_split"] = args.heldout_split if args.heldout else None
+    # For comparison only (never a choice): each pipeline's held-out syntheses scored by its OWN
+    # CV-chosen classifier (distance fitted on all its training syntheses, its calibration).
+    res["heldout_per_pipeline"] = {}
+    for q in picks if args.heldout else ():
+        ents = [e for e in load_entries(cache, q) if e["split"] == args.heldout_split]
+        if ents:
+            q_spec, _, q_cal = picks[q]
+            res["heldout_per_pipeline"][q] = score_variant(Distance(q_spec, trains[q]), q_cal,
+                                                           ents)
     out = Path(args.out) / "synthesis_report.json"
     atomic_write_text(out, json.dumps(res, indent=1, default=float))
     for q, r in res["per_pipeline"].items():
@@ -529,9 +543,48 @@ def stage_export(args) -> None:
           f"{json.dumps(calib)}", flush=True)
 
 
+def stage_check(args) -> None:
+    """Consistency of an exported classifier (--model-out) with the study: run
+    `synthesis_model.classify` on training input files (--check-inputs scene/material ...) and
+    compare the distances it implies (nearest distance + T * log-probability ratios) with the
+    study's `Distance` (fitted on all training inputs of the classifier's pipeline) on the cached
+    features of the same inputs."""
+    clf = synthesis_model.load(args.model_out)
+    pipe = clf.meta["pipeline"]
+    train = [e for e in load_entries(Path(args.cache), pipe) if e["split"] == "train"]
+    dist = Distance(clf.meta["spec"], train)
+    rows = []
+    for name in args.check_inputs:
+        sc, m = name.split("/")
+        e = next(e for e in train if (e["scene"], e["material"]) == (sc, m))
+        arrays = _load(Path(args.train_data) / sc / f"{m}_coarse_s0.npz")
+        t0 = time.perf_counter()
+        r = synthesis_model.classify(arrays, clf)
+        secs = time.perf_counter() - t0
+        p = np.array([r.scores[k] for k in MATERIALS])
+        e_ = -clf.temperature * np.log(np.maximum(p, 1e-300))
+        got = r.novelty + e_ - e_.min()
+        ref = dist([e])[0]
+        study = summarize(ref[None], np.array([e["label"]]), clf.meta["calibration"])
+        rows.append({"input": name, "seconds": secs, "classify_distances": got.tolist(),
+                     "study_distances": ref.tolist(),
+                     "max_abs_diff": float(np.abs(got - ref).max()),
+                     "max_rel_diff": float((np.abs(got - ref) / np.maximum(np.abs(ref),
+                                                                            1e-12)).max()),
+                     "classify": {"material": r.material, "confidence": r.confidence,
+                                  "abstained": r.abstained, "group": r.group},
+                     "study": {"pred": MATERIALS[int(ref.argmin())],
+                               "answered": bool(study["answered"])},
+                     "cache_config": str(e["config"])})
+        print("check", json.dumps(rows[-1]), flush=True)
+    out = Path(args.out) / "synthesis_export_check.json"
+    atomic_write_text(out, json.dumps({"model": str(args.model_out), "rows": rows}, indent=1))
+    print(f"wrote {out}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--stage", choices=("inputs", "synth", "report", "export"),
+    ap.add_argument("--stage", choices=("inputs", "synth", "report", "export", "check"),
                     required=True)
     ap.add_argument("--variant", choices=tuple(VARIANTS), default="main")
     ap.add_argument("--scenes", nargs="*", default=None)
@@ -551,11 +604,13 @@ def main(argv=None) -> int:
                          "report reads the training inputs only)")
     ap.add_argument("--model-out", default=None,
                     help="--stage export: where to write the synthesis classifier (.npz)")
+    ap.add_argument("--check-inputs", nargs="*", default=(),
+                    help="--stage check: training inputs as scene/material")
     ap.add_argument("--frames", type=int, default=64)
     ap.add_argument("--settle", type=int, default=12)
     args = ap.parse_args(argv)
     {"inputs": stage_inputs, "synth": stage_synth, "report": stage_report,
-     "export": stage_export}[args.stage](args)
+     "export": stage_export, "check": stage_check}[args.stage](args)
     return 0
 
 

@@ -27,7 +27,12 @@ the five fabrics on the input's own body and pin tracks, compare motion features
    each variant's syntheses of training inputs out of fold with its base pipeline's
    classifier (`BASE`); with --heldout also each variant's held-out syntheses with its base
    pipeline's final classifier (`heldout_variants`, per garment). Writes
-   --out/synthesis_report.json.
+   --out/synthesis_report.json. The held-out inputs are --heldout-data's files of
+   --heldout-seed, cached and scored as split --heldout-split (seed 1: "heldout"; session
+   24b's fresh seed 2: "fresh").
+3. `export --model-out F`: the CV pick as a `synthesis_model.SynthesisClassifier`;
+   `check --model-out F --check-inputs scene/material ...`: its `classify` on training input
+   files against the study's distances (--out/synthesis_export_check.json).
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import subprocess
 import time
 from pathlib import Path
 
@@ -42,7 +48,7 @@ import numpy as np
 
 from wrinkle_jax import MATERIALS
 from wrinkle_jax.classifier import calibrated as cal
-from wrinkle_jax.classifier import drape, motion
+from wrinkle_jax.classifier import drape, motion, synthesis_model
 from wrinkle_jax.classifier import folds as cv_folds
 from wrinkle_jax.classifier import synthesis as syn
 from wrinkle_jax.fileio import atomic_write_text
@@ -62,7 +68,7 @@ JITTER_SEED = 1
 # The synthesis pipelines the report chooses between by CV (each needs all training inputs);
 # a pipeline's fabric-mismatch variants are named <pipeline>_heavy_soft / _light_stiff
 # ("main": heavy_soft / light_stiff).
-PIPELINES = ("main", "s80")
+PIPELINES = ("main", "s80", "matched")
 # The pipeline whose classifier (distance and calibration, chosen by its own CV) scores each
 # variant in the mismatch table.
 BASE = {"main": "main", "heavy_soft": "main", "light_stiff": "main", "s80": "s80",
@@ -76,14 +82,19 @@ def _load(path: Path) -> dict:
         return {k: z[k] for k in z.files}
 
 
-def jobs(train_root: Path, heldout_root: Path, scene_filter=None) -> list[tuple]:
+def jobs(train_root: Path, heldout_root: Path, scene_filter=None, heldout_seed: int = 1,
+         heldout_split: str = "heldout") -> list[tuple]:
+    """(split, scene, material, file) of every input: the training scenes' coarse seed-0 files
+    (split "train") and the held-out cells' coarse files of `heldout_seed` under
+    `heldout_root` (split `heldout_split`: "heldout" = seed 1, read in sessions 23-24;
+    "fresh" = seed 2, session 24b)."""
     out = []
     for sc in scenes.TRAINING_SCENES + scenes.VAL_SCENES:
         for m in MATERIALS:
             out.append(("train", sc, m, train_root / sc / f"{m}_coarse_s0.npz"))
     for d in sorted(p for p in heldout_root.iterdir() if p.is_dir()):
         for m in MATERIALS:
-            out.append(("heldout", d.name, m, d / f"{m}_coarse_s1.npz"))
+            out.append((heldout_split, d.name, m, d / f"{m}_coarse_s{heldout_seed}.npz"))
     out = [j for j in out if j[3].exists()]
     if scene_filter:
         out = [j for j in out if j[1] in scene_filter]
@@ -151,7 +162,8 @@ def stage_inputs(args) -> None:
 def stage_synth(args) -> None:
     train_root = Path(args.cache) / "inputs_jitter" if args.variant == "jitter" \
         else Path(args.train_data)
-    todo = jobs(train_root, Path(args.heldout_data), args.scenes)
+    todo = jobs(train_root, Path(args.heldout_data), args.scenes, args.heldout_seed,
+                args.heldout_split)
     if args.split:
         todo = [j for j in todo if j[0] == args.split]
     for split, sc, m, src in todo:
@@ -171,6 +183,8 @@ def stage_synth(args) -> None:
 def load_entries(cache: Path, variant: str) -> list[dict]:
     out = []
     for p in sorted((cache / variant).glob("*/*/*.npz")):
+        if p.name.endswith(".tmp.npz"):  # a synthesis being written
+            continue
         z = _load(p)
         out.append({"split": p.parent.parent.name, "scene": p.parent.name,
                     "material": p.stem, "label": MATERIALS.index(p.stem), **z})
@@ -341,8 +355,9 @@ def calibrated_pick(rows, train):
     return spec, cv, calib
 
 
-def stage_report(args) -> None:
-    cache = Path(args.cache)
+def cv_pipelines(cache: Path, quiet: bool = False):
+    """Session 23's CV over `PIPELINES` on the training inputs: (candidate rows, each
+    pipeline's training entries, each pipeline's `calibrated_pick`, the best row)."""
     rows, trains = [], {}
     for pipe in PIPELINES:
         train = [e for e in load_entries(cache, pipe) if e["split"] == "train"]
@@ -356,12 +371,19 @@ def stage_report(args) -> None:
             p = syn.scores_to_probs(cv["d"], t)
             rows.append({"pipeline": pipe, **spec, "cv_seq_acc": cv["seq_acc"],
                          "cv_nll": cal.nll(p, cv["labels"]), "T": t})
-            print(f"  {pipe:5s} {'+'.join(spec['families']):62s} {spec['agg']:6s} "
-                  f"l2 {spec['l2']} CV {cv['seq_acc']:.2f} NLL {rows[-1]['cv_nll']:.3f}",
-                  flush=True)
+            if not quiet:
+                print(f"  {pipe:5s} {'+'.join(spec['families']):62s} {spec['agg']:6s} "
+                      f"l2 {spec['l2']} CV {cv['seq_acc']:.2f} NLL {rows[-1]['cv_nll']:.3f}",
+                      flush=True)
     picks = {q: calibrated_pick([r for r in rows if r["pipeline"] == q], trains[q])
              for q in trains}
     best = max(rows, key=lambda r: (r["cv_seq_acc"], -r["cv_nll"]))
+    return rows, trains, picks, best
+
+
+def stage_report(args) -> None:
+    cache = Path(args.cache)
+    rows, trains, picks, best = cv_pipelines(cache)
     pipe = best["pipeline"]
     spec, cv, calib = picks[pipe]
     train = trains[pipe]
@@ -381,7 +403,7 @@ def stage_report(args) -> None:
     # Final distance on all training inputs; the held-out set, computed once, printed.
     dist = Distance(spec, train)
     # Without --heldout the held-out inputs are not read at all (development runs).
-    held = [e for e in load_entries(cache, pipe) if e["split"] == "heldout"] \
+    held = [e for e in load_entries(cache, pipe) if e["split"] == args.heldout_split] \
         if args.heldout else []
     for name, sel in (("heldout", held), ("heldout_unseen_garments",
                                           [e for e in held if e["scene"] in UNSEEN])):
@@ -434,7 +456,7 @@ def stage_report(args) -> None:
     res["heldout_variants"] = {}
     for v in VARIANTS if args.heldout else ():
         base = BASE[v]
-        ents = [e for e in load_entries(cache, v) if e["split"] == "heldout"]
+        ents = [e for e in load_entries(cache, v) if e["split"] == args.heldout_split]
         if base in picks and ents:
             b_spec, _, b_cal = picks[base]
             res["heldout_variants"][v] = {"base": base, **score_variant(
@@ -443,6 +465,16 @@ def stage_report(args) -> None:
                                                             for e in ents])),
                 "total_seconds_per_input": float(np.median([e["total_seconds"]
                                                             for e in ents]))}
+    res["heldout_split"] = args.heldout_split if args.heldout else None
+    # For comparison only (never a choice): each pipeline's held-out syntheses scored by its OWN
+    # CV-chosen classifier (distance fitted on all its training syntheses, its calibration).
+    res["heldout_per_pipeline"] = {}
+    for q in picks if args.heldout else ():
+        ents = [e for e in load_entries(cache, q) if e["split"] == args.heldout_split]
+        if ents:
+            q_spec, _, q_cal = picks[q]
+            res["heldout_per_pipeline"][q] = score_variant(Distance(q_spec, trains[q]), q_cal,
+                                                           ents)
     out = Path(args.out) / "synthesis_report.json"
     atomic_write_text(out, json.dumps(res, indent=1, default=float))
     for q, r in res["per_pipeline"].items():
@@ -476,23 +508,109 @@ def stage_report(args) -> None:
     print(f"wrote {out}")
 
 
+def stage_export(args) -> None:
+    """The CV pick as a `synthesis_model.SynthesisClassifier` (distance fitted on ALL training
+    inputs of the picked pipeline, its CV calibration) written to --model-out."""
+    if not args.model_out:
+        raise SystemExit("--stage export needs --model-out PATH")
+    rows, trains, picks, best = cv_pipelines(Path(args.cache), quiet=True)
+    pipe = best["pipeline"]
+    spec, cv, calib = picks[pipe]
+    dist = Distance(spec, trains[pipe])
+    substeps, density, stiffness = VARIANTS[pipe]
+    if (density, stiffness) != (1.0, 1.0):
+        raise SystemExit(f"pipeline {pipe} perturbs the fabrics; not exportable")
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True,
+                                text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        commit = None
+    meta = {"source": "experiments/classifier_synthesis.py --stage export (issue 25)",
+            "pipeline": pipe, "spec": spec, "calibration": calib,
+            "cv": {k: v for k, v in summarize(cv["d"], cv["labels"], calib).items()
+                   if k != "confusion"},
+            "cv_per_pipeline": {q: {"spec": sp, "cv_seq_acc": c["seq_acc"]}
+                                for q, (sp, c, _) in picks.items()},
+            "training_inputs": len(trains[pipe]),
+            "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "commit": commit}
+    clf = synthesis_model.from_study(
+        spec, dist.scale, dist.w, calib,
+        solver="input" if substeps == "meta" else "fixed",
+        substeps=syn.SynthesisConfig().substeps if substeps == "meta" else int(substeps),
+        frames=args.frames, settle_frames=args.settle, meta=meta)
+    path = synthesis_model.save(args.model_out, clf)
+    print(f"wrote {path} ({path.stat().st_size} bytes): {pipe} {json.dumps(spec)} "
+          f"{json.dumps(calib)}", flush=True)
+
+
+def stage_check(args) -> None:
+    """Consistency of an exported classifier (--model-out) with the study: run
+    `synthesis_model.classify` on training input files (--check-inputs scene/material ...) and
+    compare the distances it implies (nearest distance + T * log-probability ratios) with the
+    study's `Distance` (fitted on all training inputs of the classifier's pipeline) on the cached
+    features of the same inputs."""
+    clf = synthesis_model.load(args.model_out)
+    pipe = clf.meta["pipeline"]
+    train = [e for e in load_entries(Path(args.cache), pipe) if e["split"] == "train"]
+    dist = Distance(clf.meta["spec"], train)
+    rows = []
+    for name in args.check_inputs:
+        sc, m = name.split("/")
+        e = next(e for e in train if (e["scene"], e["material"]) == (sc, m))
+        arrays = _load(Path(args.train_data) / sc / f"{m}_coarse_s0.npz")
+        t0 = time.perf_counter()
+        r = synthesis_model.classify(arrays, clf)
+        secs = time.perf_counter() - t0
+        p = np.array([r.scores[k] for k in MATERIALS])
+        e_ = -clf.temperature * np.log(np.maximum(p, 1e-300))
+        got = r.novelty + e_ - e_.min()
+        ref = dist([e])[0]
+        study = summarize(ref[None], np.array([e["label"]]), clf.meta["calibration"])
+        rows.append({"input": name, "seconds": secs, "classify_distances": got.tolist(),
+                     "study_distances": ref.tolist(),
+                     "max_abs_diff": float(np.abs(got - ref).max()),
+                     "max_rel_diff": float((np.abs(got - ref) / np.maximum(np.abs(ref),
+                                                                            1e-12)).max()),
+                     "classify": {"material": r.material, "confidence": r.confidence,
+                                  "abstained": r.abstained, "group": r.group},
+                     "study": {"pred": MATERIALS[int(ref.argmin())],
+                               "answered": bool(study["answered"])},
+                     "cache_config": str(e["config"])})
+        print("check", json.dumps(rows[-1]), flush=True)
+    out = Path(args.out) / "synthesis_export_check.json"
+    atomic_write_text(out, json.dumps({"model": str(args.model_out), "rows": rows}, indent=1))
+    print(f"wrote {out}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--stage", choices=("inputs", "synth", "report"), required=True)
+    ap.add_argument("--stage", choices=("inputs", "synth", "report", "export", "check"),
+                    required=True)
     ap.add_argument("--variant", choices=tuple(VARIANTS), default="main")
     ap.add_argument("--scenes", nargs="*", default=None)
-    ap.add_argument("--split", choices=("train", "heldout"), default=None)
+    ap.add_argument("--split", default=None,
+                    help="only this split: train, or the held-out split (--heldout-split)")
     ap.add_argument("--train-data", default=str(ROOT / "data" / "sequences"))
     ap.add_argument("--heldout-data", default=str(ROOT / "data" / "classifier_sequences"))
+    ap.add_argument("--heldout-seed", type=int, default=1,
+                    help="seed of the held-out files (<cell>/<material>_coarse_s<seed>.npz)")
+    ap.add_argument("--heldout-split", default="heldout",
+                    help="cache split name of those held-out inputs (seed 1: heldout; "
+                         "seed 2: fresh); the report's --heldout scores this split")
     ap.add_argument("--cache", default=str(ROOT / "data" / "classifier_synthesis"))
     ap.add_argument("--out", default=str(ROOT / "experiments" / "results" / "classifier"))
     ap.add_argument("--heldout", action="store_true",
                     help="also score the held-out inputs (once, at the end; without it the "
                          "report reads the training inputs only)")
+    ap.add_argument("--model-out", default=None,
+                    help="--stage export: where to write the synthesis classifier (.npz)")
+    ap.add_argument("--check-inputs", nargs="*", default=(),
+                    help="--stage check: training inputs as scene/material")
     ap.add_argument("--frames", type=int, default=64)
     ap.add_argument("--settle", type=int, default=12)
     args = ap.parse_args(argv)
-    {"inputs": stage_inputs, "synth": stage_synth, "report": stage_report}[args.stage](args)
+    {"inputs": stage_inputs, "synth": stage_synth, "report": stage_report,
+     "export": stage_export, "check": stage_check}[args.stage](args)
     return 0
 
 

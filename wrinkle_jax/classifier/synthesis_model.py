@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from wrinkle_jax import MATERIALS
 from wrinkle_jax.classifier import calibrated, drape, motion
 from wrinkle_jax.classifier import synthesis as syn
 from wrinkle_jax.classifier.config import ClassifierError
@@ -115,6 +116,25 @@ class SynthesisClassifier:
         q = syn.mean_squares(syn.differences(input_features, synth_features)[..., mask],
                              self.scale, self.agg)
         return q.mean(-1) if self.weights is None else q @ np.asarray(self.weights)
+
+
+def from_study(spec: Mapping, scale, weights, calibration: Mapping, *, solver: str,
+               substeps: int, frames: int = 64, settle_frames: int = 12, window: int = 32,
+               stride: int = 16, materials=None, meta: Mapping | None = None
+               ) -> SynthesisClassifier:
+    """A classifier from a study's choice (experiments/classifier_synthesis.py): `spec`
+    {"families", "agg", "l2"}, the fitted distance's `scale` and `weights` (None: uniform),
+    `calibration` {"T", "threshold", "group_threshold", "novelty_limit"}; the synthesis
+    `solver` ("input" / "fixed") and `substeps`, frames/settle/windows as the study used."""
+    return SynthesisClassifier(
+        materials=tuple(materials or MATERIALS), families=tuple(spec["families"]),
+        agg=str(spec["agg"]), scale=np.asarray(scale, np.float64),
+        weights=None if weights is None else np.asarray(weights, np.float64),
+        temperature=float(calibration["T"]), threshold=float(calibration["threshold"]),
+        group_threshold=float(calibration["group_threshold"]),
+        novelty_limit=float(calibration["novelty_limit"]), solver=solver,
+        substeps=int(substeps), frames=int(frames), settle_frames=int(settle_frames),
+        window=int(window), stride=int(stride), meta=dict(meta or {}))
 
 
 def decide(clf: SynthesisClassifier, dist, num_windows: int) -> calibrated.MotionClassification:

@@ -166,7 +166,7 @@ def test_saved_synthesis_classifier_answers_like_the_study(tiny, tmp_path, capsy
     assert out["classifier"] == "synthesis" and out["material"] == "wool_melton"
 
 
-def test_synthesis_decisions_and_file_errors(tmp_path, capsys):
+def test_synthesis_decisions_and_file_errors(tmp_path, capsys, monkeypatch):
     from wrinkle_jax.classifier import cli as ccli
     from wrinkle_jax.classifier import synthesis_model as sm
     from wrinkle_jax.classifier.config import ClassifierError
@@ -196,6 +196,7 @@ def test_synthesis_decisions_and_file_errors(tmp_path, capsys):
     with pytest.raises(ClassifierError, match="bad.npz"):
         sm.load(bad)
     assert not sm.is_synthesis_file(bad) and sm.is_synthesis_file(path)
+    monkeypatch.setattr(sm, "SYNTHESIS_PATH", tmp_path / "none.npz")  # none ships here
     assert ccli.main(["classify", str(bad), "--kind", "synthesis"]) == 1
     assert "no synthesis classifier ships" in capsys.readouterr().err
 

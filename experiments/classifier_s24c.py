@@ -1,0 +1,115 @@
+"""Issue 25, session 24c: configuration C as a saved classifier, and its consistency check.
+
+C = the exported s80 classifier (synthesis_classifier_s24.npz: session 23's CV pick) with
+solver "input" (each input re-simulated with its own metadata's solver settings, i.e. the
+`matched` synthesis) instead of "fixed"; nothing else changes (synthesis_rule_s24c.txt).
+
+    python -m experiments.classifier_s24c --stage make     # writes synthesis_classifier_s24c.npz
+    python -m experiments.classifier_s24c --stage check --inputs cape_dance/silk_charmeuse
+
+`check` runs `synthesis_model.classify` with C on seed-3 input files and compares the distances it
+implies (nearest distance + T x log-probability ratios) with the study's scoring of the same
+inputs: `Distance` of the s80 spec fitted on the s80 training syntheses, applied to the cached
+`matched` features of split fresh3 (what the report's `heldout_variants.matched` scores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import json
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+
+from experiments.classifier_synthesis import ROOT, Distance, _load, load_entries
+from wrinkle_jax import MATERIALS
+from wrinkle_jax.classifier import synthesis_model
+from wrinkle_jax.fileio import atomic_write_text
+
+RES = ROOT / "experiments" / "results" / "classifier"
+S80 = RES / "synthesis_classifier_s24.npz"
+C_PATH = RES / "synthesis_classifier_s24c.npz"
+
+
+def stage_make(args) -> None:
+    clf = synthesis_model.load(S80)
+    meta = dict(clf.meta)
+    meta["configuration"] = ("C (session 24c): the s80 classifier of synthesis_classifier_s24.npz "
+                             "unchanged, solver 'input' (matched synthesis: the input's own "
+                             "solver settings from its metadata)")
+    meta["rule"] = "experiments/results/classifier/synthesis_rule_s24c.txt"
+    meta["derived_from"] = {"file": str(S80.relative_to(ROOT)), "commit": clf.meta.get("commit"),
+                            "solver": clf.solver}
+    rep = Path(args.report)
+    if rep.exists():
+        r = json.loads(rep.read_text())["heldout_variants"]["matched"]
+        a = r["all"]
+        meta["seed3"] = {k: a[k] for k in ("n", "seq_acc", "coverage", "acc_where_answers",
+                                           "group_acc", "ece", "nll")}
+        meta["seed3"]["skinned"] = r.get("skinned")
+        meta["seed3"]["report"] = str(rep.relative_to(ROOT))
+    meta["date"] = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
+    meta["commit_s24c"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
+                                         capture_output=True, text=True).stdout.strip()
+    c = dataclasses.replace(clf, solver="input", meta=meta)
+    out = synthesis_model.save(args.model_out or C_PATH, c)
+    print("wrote", out, out.stat().st_size, "bytes")
+
+
+def stage_check(args) -> None:
+    clf = synthesis_model.load(args.model_out or C_PATH)
+    assert clf.solver == "input"
+    cache = Path(args.cache)
+    train = [e for e in load_entries(cache, "s80") if e["split"] == "train"]
+    dist = Distance(clf.meta["spec"], train)
+    held = [e for e in load_entries(cache, "matched") if e["split"] == args.split]
+    rows = []
+    for name in args.inputs:
+        sc, m = name.split("/")
+        e = next(e for e in held if (e["scene"], e["material"]) == (sc, m))
+        arrays = _load(Path(args.data) / sc / f"{m}_coarse_s{args.seed}.npz")
+        t0 = time.perf_counter()
+        r = synthesis_model.classify(arrays, clf)
+        secs = time.perf_counter() - t0
+        p = np.array([r.scores[k] for k in MATERIALS])
+        e_ = -clf.temperature * np.log(np.maximum(p, 1e-300))
+        got = r.novelty + e_ - e_.min()
+        ref = dist([e])[0]
+        rows.append({"input": name, "seconds": secs, "classify_distances": got.tolist(),
+                     "cached_matched_distances": ref.tolist(),
+                     "max_abs_diff": float(np.abs(got - ref).max()),
+                     "max_rel_diff": float((np.abs(got - ref)
+                                            / np.maximum(np.abs(ref), 1e-12)).max()),
+                     "classify": {"material": r.material, "confidence": r.confidence,
+                                  "abstained": r.abstained, "group": r.group},
+                     "cache_config": str(e["config"]) if "config" in e else None})
+        print("check", json.dumps(rows[-1]), flush=True)
+    out = Path(args.out) / "synthesis_export_check.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out, json.dumps({"model": str(args.model_out or C_PATH), "rows": rows},
+                                      indent=1))
+    print(f"wrote {out}")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--stage", choices=("make", "check"), required=True)
+    ap.add_argument("--model-out", default=None)
+    ap.add_argument("--report", default=str(RES / "s24c_seed3" / "synthesis_report.json"))
+    ap.add_argument("--cache", default=str(ROOT / "data" / "classifier_synthesis"))
+    ap.add_argument("--data", default=str(ROOT / "data" / "classifier_sequences_s3"))
+    ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--split", default="fresh3")
+    ap.add_argument("--inputs", nargs="*", default=("cape_dance/silk_charmeuse",))
+    ap.add_argument("--out", default=str(RES / "s24c_export_check"))
+    args = ap.parse_args(argv)
+    {"make": stage_make, "check": stage_check}[args.stage](args)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

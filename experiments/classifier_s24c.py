@@ -25,11 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.classifier_synthesis import ROOT, Distance, _load, load_entries
 from wrinkle_jax import MATERIALS
 from wrinkle_jax.classifier import synthesis_model
+from wrinkle_jax.classifier.synthesis_study import Distance, load_entries
+from wrinkle_jax.classifier.synthesis_study import load_npz as _load
 from wrinkle_jax.fileio import atomic_write_text
 
+ROOT = Path(__file__).resolve().parents[1]
 RES = ROOT / "experiments" / "results" / "classifier"
 S80 = RES / "synthesis_classifier_s24.npz"
 C_PATH = RES / "synthesis_classifier_s24c.npz"

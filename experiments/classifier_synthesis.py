@@ -51,6 +51,8 @@ from wrinkle_jax.classifier import calibrated as cal
 from wrinkle_jax.classifier import drape, motion, synthesis_model
 from wrinkle_jax.classifier import folds as cv_folds
 from wrinkle_jax.classifier import synthesis as syn
+from wrinkle_jax.classifier.synthesis_study import Distance, load_entries
+from wrinkle_jax.classifier.synthesis_study import load_npz as _load
 from wrinkle_jax.fileio import atomic_write_text
 from wrinkle_jax.sim import scenes
 
@@ -75,11 +77,6 @@ BASE = {"main": "main", "heavy_soft": "main", "light_stiff": "main", "s80": "s80
         "s80_heavy_soft": "s80", "s80_light_stiff": "s80", "jitter": "s80", "matched": "s80"}
 # Held-out garments that no training scene has (skirt_walk is the training flared skirt).
 UNSEEN = ("dress_dance", "dress_walk", "cape_dance", "cape_walk")
-
-
-def _load(path: Path) -> dict:
-    with np.load(path) as z:
-        return {k: z[k] for k in z.files}
 
 
 def jobs(train_root: Path, heldout_root: Path, scene_filter=None, heldout_seed: int = 1,
@@ -180,21 +177,6 @@ def stage_synth(args) -> None:
 # --------------------------------------------------------------------------------------------
 
 
-def load_entries(cache: Path, variant: str) -> list[dict]:
-    out = []
-    for p in sorted((cache / variant).glob("*/*/*.npz")):
-        if p.name.endswith(".tmp.npz"):  # a synthesis being written
-            continue
-        z = _load(p)
-        out.append({"split": p.parent.parent.name, "scene": p.parent.name,
-                    "material": p.stem, "label": MATERIALS.index(p.stem), **z})
-    return out
-
-
-def _diffs(e, key="input"):
-    return syn.differences(e[key], e["synth"])
-
-
 def candidates() -> list[dict]:
     """The study's candidates: feature families (all; all motion; each alone; all but one
     motion family) x aggregation (`synthesis.mean_squares`) with uniform weights, and all
@@ -208,25 +190,6 @@ def candidates() -> list[dict]:
     out += [{"families": list(fams), "agg": a, "l2": l2} for a in ("window", "mean")
             for l2 in (1e-2, 1e-1, 1.0)]
     return out
-
-
-class Distance:
-    """A fitted distance: scale (D,) and weights over the chosen families' columns."""
-
-    def __init__(self, spec: dict, fit_on: list[dict]):
-        self.spec, self.mask = spec, syn.feature_mask(spec["families"])
-        self.scale = syn.difference_scale([_diffs(e)[..., self.mask] for e in fit_on])
-        self.w = None
-        if spec["l2"] is not None:
-            q = np.stack([self.q(e) for e in fit_on])
-            self.w = syn.fit_weights(q, np.array([e["label"] for e in fit_on]), spec["l2"])
-
-    def q(self, e, key="input"):
-        return syn.mean_squares(_diffs(e, key)[..., self.mask], self.scale, self.spec["agg"])
-
-    def __call__(self, entries, key="input") -> np.ndarray:
-        q = np.stack([self.q(e, key) for e in entries])
-        return q.mean(-1) if self.w is None else q @ self.w
 
 
 def out_of_fold(train, spec, targets, key="input") -> np.ndarray:

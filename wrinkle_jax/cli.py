@@ -98,8 +98,9 @@ def _add_material(p) -> None:
 
     p.add_argument("--material", default=None, metavar="NAME",
                    help=f"fabric: {', '.join(MATERIALS)}, or auto (the shipped material "
-                   f"classifier, analysis by synthesis else motion; none ships yet; stops "
-                   f"when it abstains); default: the material stored in the sequence")
+                   f"classifier: re-simulates a simulated .npz garment with each fabric, "
+                   f"about a minute; stops when it abstains); default: the material stored "
+                   f"in the sequence")
 
 
 def _add_units(p) -> None:

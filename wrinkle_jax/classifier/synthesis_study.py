@@ -1,0 +1,69 @@
+"""The analysis-by-synthesis study's cache entries and fitted distance (issue 25), shared by
+`experiments/classifier_synthesis.py` (the study) and `experiments/classifier_s24c.py` (the
+shipped classifier's check).
+
+Cache layout: `<cache>/<variant>/<split>/<scene>/<material>.npz`, each holding the input's
+window features (`input` (W, D)), its skinned stand-in's (`skinned`), the five syntheses'
+(`synth` (M, W, D)), their position RMS to the input (`rms` (M,) m) and seconds.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from wrinkle_jax import MATERIALS
+from wrinkle_jax.classifier import synthesis as syn
+
+
+def load_npz(path: str | Path) -> dict:
+    """All arrays of an `.npz` file, loaded."""
+    with np.load(path) as z:
+        return {k: z[k] for k in z.files}
+
+
+def load_entries(cache: str | Path, variant: str) -> list[dict]:
+    """Every cached input of `variant`: dicts with split, scene, material, label (index in
+    `MATERIALS`) and the file's arrays; files being written (`.tmp.npz`) are skipped."""
+    out = []
+    for p in sorted((Path(cache) / variant).glob("*/*/*.npz")):
+        if p.name.endswith(".tmp.npz"):
+            continue
+        out.append({"split": p.parent.parent.name, "scene": p.parent.name,
+                    "material": p.stem, "label": MATERIALS.index(p.stem), **load_npz(p)})
+    return out
+
+
+def entry_differences(entry: dict, key: str = "input") -> np.ndarray:
+    """(M, W, D) input (or `key`, e.g. "skinned") minus synthesis features of a cache entry."""
+    return syn.differences(entry[key], entry["synth"])
+
+
+class Distance:
+    """A distance fitted on training entries: per-feature scale (D,) of the chosen families'
+    columns and, when spec["l2"] is not None, conditional-logit weights (D,); otherwise the
+    mean over features.
+
+    Args:
+      spec: {"families", "agg", "l2"}. fit_on: training cache entries.
+    """
+
+    def __init__(self, spec: dict, fit_on: list[dict]):
+        self.spec, self.mask = spec, syn.feature_mask(spec["families"])
+        self.scale = syn.difference_scale([entry_differences(e)[..., self.mask]
+                                           for e in fit_on])
+        self.w = None
+        if spec["l2"] is not None:
+            q = np.stack([self.q(e) for e in fit_on])
+            self.w = syn.fit_weights(q, np.array([e["label"] for e in fit_on]), spec["l2"])
+
+    def q(self, e, key="input"):
+        """(M, D) `synthesis.mean_squares` of one entry."""
+        return syn.mean_squares(entry_differences(e, key)[..., self.mask], self.scale,
+                                self.spec["agg"])
+
+    def __call__(self, entries, key="input") -> np.ndarray:
+        """(len(entries), M) distances."""
+        q = np.stack([self.q(e, key) for e in entries])
+        return q.mean(-1) if self.w is None else q @ self.w

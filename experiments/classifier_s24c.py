@@ -6,6 +6,8 @@ solver "input" (each input re-simulated with its own metadata's solver settings,
 
     python -m experiments.classifier_s24c --stage make     # writes synthesis_classifier_s24c.npz
     python -m experiments.classifier_s24c --stage check --inputs cape_dance/silk_charmeuse
+    python -m experiments.classifier_s24c --stage windows \
+        --out experiments/results/classifier/s24c_seed3   # accuracy vs windows, reliability
 
 `check` runs `synthesis_model.classify` with C on seed-3 input files and compares the distances it
 implies (nearest distance + T x log-probability ratios) with the study's scoring of the same
@@ -26,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from wrinkle_jax import MATERIALS
+from wrinkle_jax.classifier import calibrated as cal
 from wrinkle_jax.classifier import synthesis_model
 from wrinkle_jax.classifier.synthesis_study import Distance, load_entries
 from wrinkle_jax.classifier.synthesis_study import load_npz as _load
@@ -97,9 +100,53 @@ def stage_check(args) -> None:
     print(f"wrote {out}")
 
 
+def stage_windows(args) -> None:
+    """Descriptive, after the ship decision (no choice depends on it): C's answers on the
+    cached matched features of `--split` using only the first k of the 3 windows (k x 16 + 16
+    frames compared), and C's reliability table and diagram on the full windows."""
+    clf = synthesis_model.load(args.model_out or C_PATH)
+    held = [e for e in load_entries(Path(args.cache), "matched") if e["split"] == args.split]
+    labels = np.array([e["label"] for e in held])
+    rows = []
+    for k in range(1, min(len(e["input"]) for e in held) + 1):
+        res = [synthesis_model.decide(clf, clf.distances(e["input"][:k], e["synth"][:, :k]), k)
+               for e in held]
+        pred = np.array([MATERIALS.index(max(r.scores, key=r.scores.get)) for r in res])
+        ans = np.array([not r.abstained for r in res])
+        rows.append({"windows": k, "frames_compared": clf.window + (k - 1) * clf.stride,
+                     "seq_acc": float(np.mean(pred == labels)), "coverage": float(ans.mean()),
+                     "acc_where_answers": float(np.mean(pred[ans] == labels[ans]))
+                     if ans.any() else None})
+        print("windows", json.dumps(rows[-1]), flush=True)
+    probs = np.array([[r.scores[m] for m in MATERIALS] for r in res])
+    counts, conf, acc, ece = cal.reliability(probs, labels)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "windows_and_reliability.json", json.dumps(
+        {"split": args.split, "n": len(held), "by_windows": rows,
+         "reliability": {"counts": counts.tolist(), "mean_confidence": conf.tolist(),
+                         "accuracy": acc.tolist(), "ece": ece}}, indent=1, default=float))
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(4, 4))
+    ok = counts > 0
+    ax.plot([0, 1], [0, 1], "k:", lw=1)
+    ax.plot(conf[ok], acc[ok], "o-")
+    for c, a, n in zip(conf[ok], acc[ok], counts[ok], strict=True):
+        ax.annotate(str(n), (c, a), textcoords="offset points", xytext=(4, -10), fontsize=8)
+    ax.set(xlabel="confidence (max p)", ylabel="accuracy", xlim=(0, 1), ylim=(0, 1.05),
+           title=f"shipped classifier, {args.split}: ECE {ece:.2f}")
+    fig.tight_layout()
+    fig.savefig(out / "reliability.png", dpi=100)
+    print(f"wrote {out}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--stage", choices=("make", "check"), required=True)
+    ap.add_argument("--stage", choices=("make", "check", "windows"), required=True)
     ap.add_argument("--model-out", default=None)
     ap.add_argument("--report", default=str(RES / "s24c_seed3" / "synthesis_report.json"))
     ap.add_argument("--cache", default=str(ROOT / "data" / "classifier_synthesis"))
@@ -109,7 +156,7 @@ def main(argv=None) -> int:
     ap.add_argument("--inputs", nargs="*", default=("cape_dance/silk_charmeuse",))
     ap.add_argument("--out", default=str(RES / "s24c_export_check"))
     args = ap.parse_args(argv)
-    {"make": stage_make, "check": stage_check}[args.stage](args)
+    {"make": stage_make, "check": stage_check, "windows": stage_windows}[args.stage](args)
     return 0
 
 

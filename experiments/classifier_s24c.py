@@ -22,7 +22,6 @@ import dataclasses
 import datetime
 import json
 import subprocess
-import time
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +29,7 @@ import numpy as np
 from wrinkle_jax import MATERIALS
 from wrinkle_jax.classifier import calibrated as cal
 from wrinkle_jax.classifier import synthesis_model
-from wrinkle_jax.classifier.synthesis_study import Distance, load_entries
+from wrinkle_jax.classifier.synthesis_study import Distance, check_classify, load_entries
 from wrinkle_jax.classifier.synthesis_study import load_npz as _load
 from wrinkle_jax.fileio import atomic_write_text
 
@@ -77,21 +76,8 @@ def stage_check(args) -> None:
         sc, m = name.split("/")
         e = next(e for e in held if (e["scene"], e["material"]) == (sc, m))
         arrays = _load(Path(args.data) / sc / f"{m}_coarse_s{args.seed}.npz")
-        t0 = time.perf_counter()
-        r = synthesis_model.classify(arrays, clf)
-        secs = time.perf_counter() - t0
-        p = np.array([r.scores[k] for k in MATERIALS])
-        e_ = -clf.temperature * np.log(np.maximum(p, 1e-300))
-        got = r.novelty + e_ - e_.min()
-        ref = dist([e])[0]
-        rows.append({"input": name, "seconds": secs, "classify_distances": got.tolist(),
-                     "cached_matched_distances": ref.tolist(),
-                     "max_abs_diff": float(np.abs(got - ref).max()),
-                     "max_rel_diff": float((np.abs(got - ref)
-                                            / np.maximum(np.abs(ref), 1e-12)).max()),
-                     "classify": {"material": r.material, "confidence": r.confidence,
-                                  "abstained": r.abstained, "group": r.group},
-                     "cache_config": str(e["config"]) if "config" in e else None})
+        row, _ = check_classify(clf, arrays, dist, e)
+        rows.append({"input": name, **row})
         print("check", json.dumps(rows[-1]), flush=True)
     out = Path(args.out) / "synthesis_export_check.json"
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -51,7 +51,7 @@ from wrinkle_jax.classifier import calibrated as cal
 from wrinkle_jax.classifier import drape, motion, synthesis_model
 from wrinkle_jax.classifier import folds as cv_folds
 from wrinkle_jax.classifier import synthesis as syn
-from wrinkle_jax.classifier.synthesis_study import Distance, load_entries
+from wrinkle_jax.classifier.synthesis_study import Distance, check_classify, load_entries
 from wrinkle_jax.classifier.synthesis_study import load_npz as _load
 from wrinkle_jax.fileio import atomic_write_text
 from wrinkle_jax.sim import scenes
@@ -521,24 +521,12 @@ def stage_check(args) -> None:
         sc, m = name.split("/")
         e = next(e for e in train if (e["scene"], e["material"]) == (sc, m))
         arrays = _load(Path(args.train_data) / sc / f"{m}_coarse_s0.npz")
-        t0 = time.perf_counter()
-        r = synthesis_model.classify(arrays, clf)
-        secs = time.perf_counter() - t0
-        p = np.array([r.scores[k] for k in MATERIALS])
-        e_ = -clf.temperature * np.log(np.maximum(p, 1e-300))
-        got = r.novelty + e_ - e_.min()
-        ref = dist([e])[0]
+        row, _ = check_classify(clf, arrays, dist, e)
+        ref = np.asarray(row["reference_distances"])
         study = summarize(ref[None], np.array([e["label"]]), clf.meta["calibration"])
-        rows.append({"input": name, "seconds": secs, "classify_distances": got.tolist(),
-                     "study_distances": ref.tolist(),
-                     "max_abs_diff": float(np.abs(got - ref).max()),
-                     "max_rel_diff": float((np.abs(got - ref) / np.maximum(np.abs(ref),
-                                                                            1e-12)).max()),
-                     "classify": {"material": r.material, "confidence": r.confidence,
-                                  "abstained": r.abstained, "group": r.group},
+        rows.append({"input": name, **row,
                      "study": {"pred": MATERIALS[int(ref.argmin())],
-                               "answered": bool(study["answered"])},
-                     "cache_config": str(e["config"])})
+                               "answered": bool(study["answered"])}})
         print("check", json.dumps(rows[-1]), flush=True)
     out = Path(args.out) / "synthesis_export_check.json"
     atomic_write_text(out, json.dumps({"model": str(args.model_out), "rows": rows}, indent=1))

@@ -9,6 +9,7 @@ window features (`input` (W, D)), its skinned stand-in's (`skinned`), the five s
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -67,3 +68,31 @@ class Distance:
         """(len(entries), M) distances."""
         q = np.stack([self.q(e, key) for e in entries])
         return q.mean(-1) if self.w is None else q @ self.w
+
+
+def check_classify(clf, arrays: dict, dist: Distance, entry: dict) -> tuple[dict, object]:
+    """Run `synthesis_model.classify(arrays, clf)` on an input file's arrays and compare the
+    distances its answer implies (nearest distance + T x log-probability ratios) with the
+    study's `dist` on the cached `entry` of the same input.
+
+    Returns:
+      (row, result): row = {seconds, classify_distances, reference_distances, max_abs_diff,
+      max_rel_diff, classify: {material, confidence, abstained, group}, cache_config}; result
+      the `MotionClassification`.
+    """
+    from wrinkle_jax.classifier import synthesis_model
+
+    t0 = time.perf_counter()
+    r = synthesis_model.classify(arrays, clf)
+    secs = time.perf_counter() - t0
+    p = np.array([r.scores[k] for k in clf.materials])
+    energy = -clf.temperature * np.log(np.maximum(p, 1e-300))
+    got = r.novelty + energy - energy.min()
+    ref = dist([entry])[0]
+    row = {"seconds": secs, "classify_distances": got.tolist(),
+           "reference_distances": ref.tolist(), "max_abs_diff": float(np.abs(got - ref).max()),
+           "max_rel_diff": float((np.abs(got - ref) / np.maximum(np.abs(ref), 1e-12)).max()),
+           "classify": {"material": r.material, "confidence": r.confidence,
+                        "abstained": r.abstained, "group": r.group},
+           "cache_config": str(entry["config"]) if "config" in entry else None}
+    return row, r

@@ -76,23 +76,19 @@ def save(path: str | os.PathLike, key: str, done: int, state: ClothState, frames
 
 
 class Writer:
-    """`simulate_frames`'s `on_chunk` callback: keeps the frames and writes a checkpoint
-    when `every_s` seconds have passed since the last one (0: after every chunk).
+    """`simulate_frames`'s `on_chunk` callback: writes a checkpoint (the frames before the
+    resumed run, `prior`, then the run's chunks so far) when `every_s` seconds have passed
+    since the last one (0: after every chunk)."""
 
-    Attributes:
-      frames: list of (n, V, 3) arrays, the frames before `start` first.
-    """
-
-    def __init__(self, path, key: str, every_s: float, frames: list, wall_s: float):
+    def __init__(self, path, key: str, every_s: float, prior: list, wall_s: float):
         self.path, self.key, self.every_s = path, key, float(every_s)
-        self.frames = list(frames)
+        self.prior = list(prior)
         self.wall0 = wall_s
         self.t0 = self.last = time.perf_counter()
 
-    def __call__(self, done: int, state: ClothState, xs: np.ndarray) -> None:
-        self.frames.append(xs)
+    def __call__(self, done: int, state: ClothState, chunks: list) -> None:
         now = time.perf_counter()
-        if self.path is not None and now - self.last >= self.every_s:
-            save(self.path, self.key, done, state, np.concatenate(self.frames),
+        if now - self.last >= self.every_s:
+            save(self.path, self.key, done, state, np.concatenate(self.prior + chunks),
                  self.wall0 + now - self.t0)
             self.last = now

@@ -430,7 +430,8 @@ def simulate(scene: str | SceneConfig, material: str, resolution: str | float = 
         start, saved, frames_done, wall0 = got
         state = jax.tree_util.tree_map(jnp.asarray, saved)
         prior = [frames_done]
-    writer = resume.Writer(checkpoint, key, checkpoint_every_s, prior, wall0)
+    writer = (None if checkpoint is None
+              else resume.Writer(checkpoint, key, checkpoint_every_s, prior, wall0))
     done = [start]
 
     def tick(n):
@@ -441,11 +442,11 @@ def simulate(scene: str | SceneConfig, material: str, resolution: str | float = 
     if start and progress is not None:
         progress(start, total)
     t0 = time.perf_counter()
-    final, _ = xpbd.simulate_frames(config, setup.model, params, state, setup.drives, chunk,
-                                    tick, start=start, on_chunk=writer)
+    final, xs = xpbd.simulate_frames(config, setup.model, params, state, setup.drives, chunk,
+                                     tick, start=start, on_chunk=writer)
     wall = wall0 + time.perf_counter() - t0
-    xs = np.concatenate(writer.frames) if writer.frames else np.zeros((0,) + state.x.shape,
-                                                                       np.float32)
+    if prior:
+        xs = np.concatenate(prior + [xs])
     out = xs[setup.preroll_frames - 1:]
     g = setup.mesh.garment
     keep = np.arange(setup.preroll_frames, setup.preroll_frames + frames)

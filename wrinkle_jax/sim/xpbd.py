@@ -445,8 +445,9 @@ def simulate_frames(config: SimConfig, model: ClothModel, params: SimParams,
     Args:
       start: frames already simulated, `state` being the state after them (a resumed run;
         a multiple of `chunk` keeps the chunks, and so the result, those of a whole run).
-      on_chunk: optional callback(frames done, state, positions (n, V, 3)) after each chunk,
-        before `progress` (checkpoints: `resume.Writer`).
+      on_chunk: optional callback(frames done, state, this call's chunks so far: a list of
+        (n, V, 3) positions, not copied) after each chunk, before `progress` (checkpoints:
+        `resume.Writer`).
     Returns:
       (final ClothState, positions (T - start, V, 3) NumPy float32).
     """
@@ -460,7 +461,7 @@ def simulate_frames(config: SimConfig, model: ClothModel, params: SimParams,
         out.append(np.asarray(xs[:n]))
         done += n
         if on_chunk is not None:
-            on_chunk(done, state, out[-1])
+            on_chunk(done, state, out)
         if progress is not None:
             progress(n)
     return state, np.concatenate(out) if out else np.zeros((0,) + state.x.shape, np.float32)

@@ -265,19 +265,19 @@ def mean_squares(diffs, scale, agg: str = "window") -> np.ndarray:
 
 
 def distances(diffs, scale, weights=None, agg: str = "window") -> np.ndarray:
-    """Weighted mean squared scaled difference per fabric.
+    """Scaled squared difference per fabric: the study's and the shipped classifier's distance.
 
     Args:
       diffs: (M, W, D) `differences`.
       scale: (D,) positive per-feature scales (a typical between-fabric difference).
-      weights: (D,) non-negative feature weights (0 drops a feature), default all 1.
+      weights: (D,) non-negative feature weights from `fit_weights` (0 drops a feature; not
+        normalized: their size acts as an inverse temperature), or None: the mean over features.
       agg: see `mean_squares`.
     Returns:
-      (M,) d_m = sum_j w_j q_mj / sum_j w_j, q = `mean_squares(diffs, scale, agg)`.
+      (M,) d_m = sum_j w_j q_mj (or mean_j q_mj), q = `mean_squares(diffs, scale, agg)`.
     """
     q = mean_squares(diffs, scale, agg)
-    w = np.ones(q.shape[-1]) if weights is None else np.asarray(weights, np.float64)
-    return q @ w / max(w.sum(), 1e-12)
+    return q.mean(-1) if weights is None else q @ np.asarray(weights, np.float64)
 
 
 @functools.partial(jax.jit, static_argnames="steps")

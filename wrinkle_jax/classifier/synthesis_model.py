@@ -113,9 +113,8 @@ class SynthesisClassifier:
         """(M,) distances of the input's window features (W, FEATURE_DIM) to each fabric's
         synthesis' (M, W, FEATURE_DIM)."""
         mask = syn.feature_mask(self.families)
-        q = syn.mean_squares(syn.differences(input_features, synth_features)[..., mask],
-                             self.scale, self.agg)
-        return q.mean(-1) if self.weights is None else q @ np.asarray(self.weights)
+        return syn.distances(syn.differences(input_features, synth_features)[..., mask],
+                             self.scale, self.weights, self.agg)
 
 
 def from_study(spec: Mapping, scale, weights, calibration: Mapping, *, solver: str,

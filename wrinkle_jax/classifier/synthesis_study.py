@@ -65,9 +65,9 @@ class Distance:
                                 self.spec["agg"])
 
     def __call__(self, entries, key="input") -> np.ndarray:
-        """(len(entries), M) distances."""
-        q = np.stack([self.q(e, key) for e in entries])
-        return q.mean(-1) if self.w is None else q @ self.w
+        """(len(entries), M) distances (`synthesis.distances`)."""
+        return np.stack([syn.distances(entry_differences(e, key)[..., self.mask], self.scale,
+                                       self.w, self.spec["agg"]) for e in entries])
 
 
 def check_classify(clf, arrays: dict, dist: Distance, entry: dict) -> tuple[dict, object]:

@@ -31,6 +31,7 @@ from wrinkle_jax.classifier import calibrated as cal
 from wrinkle_jax.classifier import synthesis_model
 from wrinkle_jax.classifier.synthesis_study import Distance, check_classify, load_entries
 from wrinkle_jax.classifier.synthesis_study import load_npz as _load
+from wrinkle_jax.evaluation.suite import portable_path
 from wrinkle_jax.fileio import atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -81,8 +82,8 @@ def stage_check(args) -> None:
         print("check", json.dumps(rows[-1]), flush=True)
     out = Path(args.out) / "synthesis_export_check.json"
     out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out, json.dumps({"model": str(args.model_out or C_PATH), "rows": rows},
-                                      indent=1))
+    model = portable_path(args.model_out or C_PATH)
+    atomic_write_text(out, json.dumps({"model": model, "rows": rows}, indent=1))
     print(f"wrote {out}")
 
 

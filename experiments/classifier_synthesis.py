@@ -53,6 +53,7 @@ from wrinkle_jax.classifier import folds as cv_folds
 from wrinkle_jax.classifier import synthesis as syn
 from wrinkle_jax.classifier.synthesis_study import Distance, check_classify, load_entries
 from wrinkle_jax.classifier.synthesis_study import load_npz as _load
+from wrinkle_jax.evaluation.suite import portable_path
 from wrinkle_jax.fileio import atomic_write_text
 from wrinkle_jax.sim import scenes
 
@@ -529,7 +530,8 @@ def stage_check(args) -> None:
                                "answered": bool(study["answered"])}})
         print("check", json.dumps(rows[-1]), flush=True)
     out = Path(args.out) / "synthesis_export_check.json"
-    atomic_write_text(out, json.dumps({"model": str(args.model_out), "rows": rows}, indent=1))
+    model = portable_path(args.model_out)
+    atomic_write_text(out, json.dumps({"model": model, "rows": rows}, indent=1))
     print(f"wrote {out}")
 
 

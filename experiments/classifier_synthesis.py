@@ -288,7 +288,8 @@ def score_variant(dist: Distance, calib: dict, entries: list[dict]) -> dict:
         s = summarize(d, np.array([e["label"] for e in entries]), calib)
         out["skinned"] = {"n": s["n"], "answered": s["answered"],
                           "group_answered": int(round(s["group_coverage"] * s["n"])),
-                          "min_distance_range": [float(d.min(1).min()), float(d.min(1).max())]}
+                          "min_distance_range": [float(d.min(1).min()), float(d.min(1).max())],
+                          "max_confidence": float(syn.scores_to_probs(d, calib["T"]).max())}
     return out
 
 
@@ -369,20 +370,12 @@ def stage_report(args) -> None:
     # Without --heldout the held-out inputs are not read at all (development runs).
     held = [e for e in load_entries(cache, pipe) if e["split"] == args.heldout_split] \
         if args.heldout else []
-    for name, sel in (("heldout", held), ("heldout_unseen_garments",
-                                          [e for e in held if e["scene"] in UNSEEN])):
-        if sel:
-            d = dist(sel)
-            res[name] = summarize(d, np.array([e["label"] for e in sel]), calib,
-                                  [f"{e['scene']}/{e['material']}" for e in sel])
-    if held:
-        d = dist(held, key="skinned")
-        s = summarize(d, np.array([e["label"] for e in held]), calib)
-        res["skinned"] = {"n": s["n"], "answered": s["answered"],
-                          "group_answered": int(round(s["group_coverage"] * s["n"])),
-                          "min_distance_range": [float(d.min(1).min()), float(d.min(1).max())],
-                          "novelty_limit": calib["novelty_limit"],
-                          "max_confidence": float(syn.scores_to_probs(d, calib["T"]).max())}
+    scored = score_variant(dist, calib, held)
+    for name, key in (("heldout", "all"), ("heldout_unseen_garments", "unseen_garments")):
+        if key in scored:
+            res[name] = scored[key]
+    if "skinned" in scored:
+        res["skinned"] = {**scored["skinned"], "novelty_limit": calib["novelty_limit"]}
     # Model mismatch: the chosen classifier (its distance fitted out of fold on the chosen
     # pipeline's training syntheses, its calibration) on the syntheses of other variants, for
     # the same training inputs; and the calibration-free nearest synthesis by position RMS.

@@ -3,6 +3,10 @@
 A file holds named float arrays (parameter pytrees flattened to "a/b/c" keys), plus
 ``config.json`` and ``meta.json`` stored as uint8 bytes of JSON -- no pickle, readable with
 `np.load(allow_pickle=False)`. ``meta["format"]`` names the kind and version of the file.
+
+The calibrated classifiers (`classifier.calibrated`, `classifier.synthesis_model`) use a
+second, "headed" layout (`write_headed` / `read_headed`): named arrays plus one ``head``
+array, the uint8 bytes of a JSON object whose first key is ``format``; stored uncompressed.
 """
 
 from __future__ import annotations
@@ -86,6 +90,54 @@ def read(path: Path, kind: str, fmt: str, error_cls) -> tuple[dict, dict, dict]:
     if meta.get("format") != fmt:
         raise error_cls(f"{path}: unknown format {meta.get('format')!r}")
     return files, config, meta
+
+
+HEAD = "head"
+
+
+def write_headed(path: str | os.PathLike, fmt: str, arrays: dict) -> Path:
+    """Write a headed file atomically: `arrays` (name -> array, written in this order) whose
+    `HEAD` entry is a JSON-able dict, stored with ``format = fmt`` as its first key."""
+    path = Path(path)
+    out = {k: (np.frombuffer(json.dumps({"format": fmt, **v}).encode(), np.uint8)
+               if k == HEAD else v) for k, v in arrays.items()}
+    buf = io.BytesIO()
+    np.savez(buf, **out)
+    atomic_write_bytes(path, buf.getvalue())
+    return path
+
+
+def head_format(head: np.ndarray) -> str | None:
+    """The ``format`` named by a `HEAD` array, or None (not a JSON object naming one)."""
+    try:
+        obj = json.loads(bytes(head).decode())
+    except (ValueError, TypeError):
+        return None
+    return obj.get("format") if isinstance(obj, dict) else None
+
+
+def read_headed(path: str | os.PathLike, fmt: str, what: str, error_cls, build):
+    """``build(head, arrays)`` for the headed file at `path`: head = its JSON object without
+    ``format``, arrays = its other members as stored.
+
+    Raises:
+      error_cls: naming the file and `what` ("motion classifier", ...): missing, or unreadable,
+        of another format, or refused by `build` (KeyError, ValueError, TypeError).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise error_cls(f"{path}: no such {what} file")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+        head = json.loads(bytes(arrays.pop(HEAD)).decode())
+        got = head.get("format") if isinstance(head, dict) else None
+        if got != fmt:
+            raise ValueError(f"format {got!r}, expected {fmt!r}")
+        del head["format"]
+        return build(head, arrays)
+    except (OSError, EOFError, KeyError, ValueError, TypeError, zipfile.BadZipFile) as e:
+        raise error_cls(f"{path}: not a readable {what} ({e})") from None
 
 
 def float32_params(files: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

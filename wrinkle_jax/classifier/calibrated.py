@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import os
 from pathlib import Path
 from typing import NamedTuple
@@ -32,10 +31,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from wrinkle_jax import MATERIALS
+from wrinkle_jax import MATERIALS, modelfile
 from wrinkle_jax.classifier.config import ClassifierError
 from wrinkle_jax.classifier.motion import FAMILIES, family_slices
-from wrinkle_jax.fileio import atomic_write_bytes
 
 MOTION_PATH = Path(__file__).resolve().parents[1] / "assets" / "motion_classifier.npz"
 _FORMAT = "wrinkle-jax-motion-classifier/1"
@@ -294,21 +292,12 @@ def classify_features(model: MotionClassifier, features) -> MotionClassification
 
 def save(path: str | os.PathLike, model: MotionClassifier, meta: dict | None = None) -> Path:
     """Write the model as a plain `.npz` (float32 arrays, JSON config), atomically."""
-    import io
-
-    path = Path(path)
-    cfg = dataclasses.asdict(model.config)
-    head = {"format": _FORMAT, "config": cfg, "temperature": model.temperature,
+    head = {"config": dataclasses.asdict(model.config), "temperature": model.temperature,
             "threshold": model.threshold, "novelty_limit": model.novelty_limit,
             "group_threshold": model.group_threshold, "meta": meta or {}}
-    buf = io.BytesIO()
-    np.savez(buf, weights=np.asarray(model.weights, np.float32),
-             bias=np.asarray(model.bias, np.float32), mean=np.asarray(model.mean, np.float32),
-             std=np.asarray(model.std, np.float32),
-             head=np.frombuffer(json.dumps(head).encode(), np.uint8))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(path, buf.getvalue())
-    return path
+    arrays = {k: np.asarray(getattr(model, k), np.float32)
+              for k in ("weights", "bias", "mean", "std")}
+    return modelfile.write_headed(path, _FORMAT, {**arrays, modelfile.HEAD: head})
 
 
 def load(path: str | os.PathLike | None = None) -> MotionClassifier:
@@ -318,25 +307,20 @@ def load(path: str | os.PathLike | None = None) -> MotionClassifier:
       ClassifierError: naming the file when it is missing or not a motion classifier.
     """
     path = Path(MOTION_PATH if path is None else path)
-    if not path.is_file():
-        raise ClassifierError(f"{path}: no such motion classifier file")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            head = json.loads(bytes(z["head"]).decode())
-            arrays = {k: np.asarray(z[k], np.float64) for k in ("weights", "bias", "mean",
-                                                                 "std")}
-        if head.get("format") != _FORMAT:
-            raise ValueError(f"format {head.get('format')!r}, expected {_FORMAT!r}")
-        cfg = head["config"]
-        config = MotionConfig(**{**cfg, "families": tuple(cfg["families"]),
-                                 "materials": tuple(cfg["materials"])})
-    except (OSError, KeyError, ValueError, TypeError) as e:
-        raise ClassifierError(f"{path}: not a readable motion classifier ({e})") from None
-    d, m = len(config.columns()), len(config.materials)
-    if arrays["weights"].shape != (d, m) or arrays["bias"].shape != (m,):
-        raise ClassifierError(f"{path}: weights {arrays['weights'].shape} do not match the "
+    model = modelfile.read_headed(path, _FORMAT, "motion classifier", ClassifierError, _decode)
+    d, m = len(model.config.columns()), len(model.config.materials)
+    if model.weights.shape != (d, m) or model.bias.shape != (m,):
+        raise ClassifierError(f"{path}: weights {model.weights.shape} do not match the "
                               f"config ({d} features, {m} materials)")
-    return MotionClassifier(arrays["weights"], arrays["bias"], arrays["mean"], arrays["std"],
-                            float(head["temperature"]), float(head["threshold"]),
-                            float(head["novelty_limit"]), config,
+    return model
+
+
+def _decode(head: dict, arrays: dict) -> MotionClassifier:
+    cfg = head["config"]
+    config = MotionConfig(**{**cfg, "families": tuple(cfg["families"]),
+                             "materials": tuple(cfg["materials"])})
+    weights, bias, mean, std = (np.asarray(arrays[k], np.float64)
+                                for k in ("weights", "bias", "mean", "std"))
+    return MotionClassifier(weights, bias, mean, std, float(head["temperature"]),
+                            float(head["threshold"]), float(head["novelty_limit"]), config,
                             float(head.get("group_threshold", 1.0)))

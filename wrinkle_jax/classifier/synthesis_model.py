@@ -31,19 +31,18 @@ families' feature columns.
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 import os
+import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
-from wrinkle_jax import MATERIALS
+from wrinkle_jax import MATERIALS, modelfile
 from wrinkle_jax.classifier import calibrated, drape, motion
 from wrinkle_jax.classifier import synthesis as syn
 from wrinkle_jax.classifier.config import ClassifierError
-from wrinkle_jax.fileio import atomic_write_bytes
 
 FORMAT = "wrinkle-jax-synthesis-classifier/1"
 # The shipped classifier, when one ships (only once issue 25's targets hold on held-out data):
@@ -200,29 +199,27 @@ def classify(arrays: Mapping, clf: SynthesisClassifier) -> calibrated.MotionClas
 
 def save(path: str | os.PathLike, clf: SynthesisClassifier) -> Path:
     """Write `clf` as a plain `.npz` (atomically)."""
-    path = Path(path)
-    head = {"format": FORMAT, **{f.name: getattr(clf, f.name)
-                                 for f in dataclasses.fields(clf)
-                                 if f.name not in ("scale", "weights")}}
+    head = {f.name: getattr(clf, f.name) for f in dataclasses.fields(clf)
+            if f.name not in ("scale", "weights")}
     head["materials"], head["families"] = list(clf.materials), list(clf.families)
-    arrays = {"scale": np.asarray(clf.scale, np.float64),
-              "head": np.frombuffer(json.dumps(head).encode(), np.uint8)}
+    arrays = {"scale": np.asarray(clf.scale, np.float64), modelfile.HEAD: head}
     if clf.weights is not None:
         arrays["weights"] = np.asarray(clf.weights, np.float64)
-    buf = io.BytesIO()
-    np.savez(buf, **arrays)
-    atomic_write_bytes(path, buf.getvalue())
-    return path
+    return modelfile.write_headed(path, FORMAT, arrays)
 
 
 def is_synthesis_file(path: str | os.PathLike) -> bool:
     """True when `path` is a readable `.npz` written by `save`."""
     try:
         with np.load(path, allow_pickle=False) as z:
-            return "head" in z.files and json.loads(bytes(z["head"]).decode()).get(
-                "format") == FORMAT
-    except (OSError, ValueError, KeyError):
+            return is_synthesis_head(z[modelfile.HEAD]) if modelfile.HEAD in z.files else False
+    except (OSError, EOFError, ValueError, TypeError, zipfile.BadZipFile):
         return False
+
+
+def is_synthesis_head(head: np.ndarray) -> bool:
+    """True when a file's head array (`modelfile.HEAD`) names this format."""
+    return modelfile.head_format(head) == FORMAT
 
 
 def shipped() -> bool:
@@ -236,17 +233,12 @@ def load(path: str | os.PathLike | None = None) -> SynthesisClassifier:
     Raises:
       ClassifierError: naming the file when it is missing or not a synthesis classifier.
     """
-    path = Path(SYNTHESIS_PATH if path is None else path)
-    if not path.is_file():
-        raise ClassifierError(f"{path}: no such synthesis classifier file")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            head = json.loads(bytes(z["head"]).decode())
-            scale = np.asarray(z["scale"], np.float64)
-            weights = np.asarray(z["weights"], np.float64) if "weights" in z.files else None
-        if head.pop("format", None) != FORMAT:
-            raise ValueError(f"not format {FORMAT!r}")
-        head["materials"], head["families"] = tuple(head["materials"]), tuple(head["families"])
-        return SynthesisClassifier(scale=scale, weights=weights, **head)
-    except (OSError, KeyError, ValueError, TypeError) as e:
-        raise ClassifierError(f"{path}: not a readable synthesis classifier ({e})") from None
+    path = SYNTHESIS_PATH if path is None else path
+    return modelfile.read_headed(path, FORMAT, "synthesis classifier", ClassifierError, _build)
+
+
+def _build(head: dict, arrays: dict) -> SynthesisClassifier:
+    head["materials"], head["families"] = tuple(head["materials"]), tuple(head["families"])
+    weights = np.asarray(arrays["weights"], np.float64) if "weights" in arrays else None
+    return SynthesisClassifier(scale=np.asarray(arrays["scale"], np.float64), weights=weights,
+                               **head)

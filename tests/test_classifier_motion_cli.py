@@ -122,3 +122,36 @@ def test_classify_bakes_the_drape_family_when_the_model_uses_it(tmp_path, capsys
     assert cli.main(["classify", str(seq), "--json", "--model", str(path)]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["material"] == MATERIALS[2] and not out["abstained"]
+
+
+def test_kind_of_a_model_file_reads_it_once(tmp_path, monkeypatch):
+    import argparse
+
+    from wrinkle_jax.classifier import cli as ccli
+    from wrinkle_jax.classifier import synthesis_model as sm
+
+    cfg = cal.MotionConfig(families=("kinematic",))
+    d = len(cfg.columns())
+    motion_file = cal.save(tmp_path / "m.npz", cal.MotionClassifier(
+        np.zeros((d, 5)), np.zeros(5), np.zeros(d), np.ones(d), 1.0, 0.5, 1.0, cfg))
+    patches_file = tmp_path / "p.npz"
+    np.savez(patches_file, **{"config.json": np.zeros(2, np.uint8)})
+    text = tmp_path / "t.npz"
+    text.write_text("not a model")
+    truncated = tmp_path / "cut.npz"
+    truncated.write_bytes(motion_file.read_bytes()[:100])
+    loads = []
+    real_load = np.load
+    monkeypatch.setattr(np, "load", lambda *a, **k: loads.append(a[0]) or real_load(*a, **k))
+
+    def kind(model, kind=None, vgg=None):
+        loads.clear()
+        out = ccli._kind(argparse.Namespace(kind=kind, vgg=vgg, model=model and str(model)))
+        assert len(loads) <= 1, loads
+        return out
+
+    assert kind(sm.SYNTHESIS_PATH) == "synthesis"
+    assert kind(motion_file) == "motion" and kind(patches_file) == "patches"
+    assert kind(text) == "motion" and kind(truncated) == "motion"  # the loader reports it
+    assert kind(tmp_path / "missing.npz") == "motion"
+    assert kind(motion_file, kind="synthesis") == "synthesis" and kind(None, vgg="v") == "patches"

@@ -123,17 +123,20 @@ def _kind(args) -> str:
     if not args.model:
         return default_kind()
     if Path(args.model).is_file():
+        import zipfile
+
         import numpy as np
 
         from wrinkle_jax.classifier import synthesis_model
 
-        if synthesis_model.is_synthesis_file(args.model):
-            return "synthesis"
         try:
             with np.load(args.model, allow_pickle=False) as z:
-                return "motion" if "head" in z.files else "patches"
-        except (OSError, ValueError):
+                if "head" not in z.files:
+                    return "patches"
+                head = z["head"]
+        except (OSError, EOFError, ValueError, TypeError, zipfile.BadZipFile):
             return "motion"  # unreadable: the motion loader reports it
+        return "synthesis" if synthesis_model.is_synthesis_head(head) else "motion"
     return "motion"
 
 

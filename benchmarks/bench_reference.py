@@ -65,7 +65,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import ctypes
 import json
 import os
 import platform
@@ -74,6 +73,8 @@ import sys
 import tempfile
 import time
 import types
+
+from wrinkle_jax.runtime import retain_freed_memory  # before JAX: no JAX import
 
 
 def _parse():
@@ -99,17 +100,6 @@ def _parse():
                    help="retain: glibc keeps freed memory (XLA's per-call temporaries do not "
                         "page-fault again); the setting bench_unet uses by default")
     return p.parse_args()
-
-
-def retain_freed_memory() -> bool:
-    """glibc mallopt: one arena, no mmap'd blocks, no trimming (before JAX or torch start)."""
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:
-        return False
-    m_trim_threshold, m_mmap_max, m_arena_max = -1, -4, -8
-    return bool(libc.mallopt(m_arena_max, 1) and libc.mallopt(m_mmap_max, 0)
-                and libc.mallopt(m_trim_threshold, 2**31 - 1))
 
 
 ARGS = _parse() if __name__ == "__main__" else None

@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import ctypes
 import dataclasses
 import glob
 import json
@@ -48,23 +47,14 @@ import os
 import platform
 import time
 
+from wrinkle_jax.runtime import retain_freed_memory  # before JAX: no JAX import
+
 PYTORCH_INFER_PATCHES_PER_S = 16.0  # authors' network, width 64, fp32, 2 threads: 15-17
 PYTORCH_TRAIN_S_PER_PATCH = 0.77  # batch 8, full VGG loss
 PLAIN, FAST, EXACT = "xla", "im2col_bf16", "im2col_f32"
 PATCH = 128
 TRAIN_BATCH = 8
 PLAIN_STEP_REPS = 1
-
-
-def retain_freed_memory() -> bool:
-    """glibc: keep freed memory in the heap (no per-call page faults for XLA temporaries)."""
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:
-        return False
-    m_trim_threshold, m_mmap_max, m_arena_max = -1, -4, -8
-    return bool(libc.mallopt(m_arena_max, 1) and libc.mallopt(m_mmap_max, 0)
-                and libc.mallopt(m_trim_threshold, 2**31 - 1))
 
 
 def _parse():

@@ -77,6 +77,40 @@ def test_peirce_closed_form_and_interpolation():
     assert math.isnan(textile.bending_length([0.01, 0.02], [0.1, 0.2]))  # not bracketed
 
 
+def _loop_grid_faces(idx):
+    """The strips' grid triangles as first written (a double loop over the cells of an
+    (I + 1, J + 1) index grid, diagonal a-c on even cells, b-d on odd ones)."""
+    faces = []
+    for i in range(idx.shape[0] - 1):
+        for j in range(idx.shape[1] - 1):
+            a, b, c, d = idx[i, j], idx[i + 1, j], idx[i + 1, j + 1], idx[i, j + 1]
+            faces += [(a, b, c), (a, c, d)] if (i + j) % 2 == 0 else [(a, b, d), (b, c, d)]
+    return np.asarray(faces, np.int32)
+
+
+@pytest.mark.parametrize("pd", [0.01, 0.03, 0.2])
+def test_strip_meshes_keep_their_grid_triangles(pd):
+    m = textile.hanging_strip_mesh(pd, length=0.31, width=0.07)
+    nx, nz = max(1, round(0.07 / pd)), max(1, round(0.31 / pd))
+    idx = np.arange((nx + 1) * (nz + 1)).reshape(nx + 1, nz + 1)
+    assert m.garment.faces.dtype == np.int32
+    np.testing.assert_array_equal(m.garment.faces, _loop_grid_faces(idx))
+    np.testing.assert_array_equal(m.clamped, idx[:, 0])
+    overhangs, width = [0.05, 0.12], 0.025
+    s = textile.cantilever_strips(overhangs, pd, width)
+    ny, n_p = max(1, round(width / pd)), max(1, round(0.03 / pd))
+    faces, panels, base = [], [], 0
+    for k, length in enumerate(overhangs):
+        nx = n_p + 1 + max(1, round(length / pd))
+        idx = np.arange(nx * (ny + 1)).reshape(nx, ny + 1) + base
+        faces.append(_loop_grid_faces(idx))
+        panels.append(np.repeat(2 * k + (np.arange(nx - 1) >= n_p), 2 * ny))
+        base += idx.size
+    np.testing.assert_array_equal(s.garment.faces, np.concatenate(faces))
+    np.testing.assert_array_equal(s.garment.uv_faces, np.concatenate(faces))
+    np.testing.assert_array_equal(s.garment.panels, np.concatenate(panels))
+
+
 def test_drape_mesh_clamps_exactly_the_support_disc():
     mesh = patterns.mesh_pattern(textile.drape_pattern(0.12, 0.06), 0.03)
     x = np.asarray(mesh.garment.vertices)

@@ -222,6 +222,19 @@ class StripMesh:
     z_edge: float
 
 
+def _grid_triangles(idx: np.ndarray) -> np.ndarray:
+    """(2 I J, 3) int32 triangles of a structured grid of vertex indices `idx` (I + 1, J + 1),
+    two per cell, cells in row-major order: with a = idx[i, j], b = idx[i + 1, j],
+    c = idx[i + 1, j + 1], d = idx[i, j + 1], (a, b, c), (a, c, d) where i + j is even and
+    (a, b, d), (b, c, d) where it is odd (alternating diagonals: no preferred shear)."""
+    a, b, c, d = idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]
+    i, j = np.indices(a.shape)
+    even = ((i + j) % 2 == 0)[..., None]
+    first = np.where(even, np.stack([a, b, c], -1), np.stack([a, b, d], -1))
+    second = np.where(even, np.stack([a, c, d], -1), np.stack([b, c, d], -1))
+    return np.stack([first, second], 2).reshape(-1, 3).astype(np.int32)
+
+
 def cantilever_strips(overhangs, pd: float, width: float = 0.025, platform: float = 0.03,
                       spacing: float = 0.05, z: float = 0.5) -> StripMesh:
     """Strips k = 0.. along +x at y = k (width + spacing), flat at height z: a clamped part on
@@ -244,19 +257,15 @@ def cantilever_strips(overhangs, pd: float, width: float = 0.025, platform: floa
         nx = len(xs)
         v = np.stack([gx.ravel(), gy.ravel() + k * (width + spacing), np.full(gx.size, z)], 1)
         idx = np.arange(gx.size).reshape(nx, ny + 1) + base
-        for i in range(nx - 1):
-            for j in range(ny):
-                a, b, c, d = idx[i, j], idx[i + 1, j], idx[i + 1, j + 1], idx[i, j + 1]
-                tri = [(a, b, c), (a, c, d)] if (i + j) % 2 == 0 else [(a, b, d), (b, c, d)]
-                faces += tri
-                panels += [2 * k + (i >= n_p)] * 2
+        faces.append(_grid_triangles(idx))
+        panels.append(np.repeat(2 * k + (np.arange(nx - 1) >= n_p), 2 * ny))
         clamped.append(idx[: n_p + 1].ravel())
         tips.append(idx[-1].ravel())
         verts.append(v)
         base += gx.size
     x = np.concatenate(verts)
-    f = np.asarray(faces, np.int32)
-    g = make_garment(x, f, x[:, :2], f, np.asarray(panels, np.int32),
+    f = np.concatenate(faces)
+    g = make_garment(x, f, x[:, :2], f, np.concatenate(panels).astype(np.int32),
                      source=f"cantilever strips (pd={pd})")
     return StripMesh(g, np.concatenate(clamped).astype(np.int32), tuple(tips), float(z))
 
@@ -324,12 +333,7 @@ def hanging_strip_mesh(pd: float, length: float = 0.5, width: float = 0.1,
     ds = np.linspace(0.0, length, nz + 1)  # depth below the top row
     gx, gd = np.meshgrid(xs, ds, indexing="ij")  # (nx + 1, nz + 1)
     idx = np.arange(gx.size).reshape(gx.shape)
-    faces = []
-    for i in range(nx):
-        for j in range(nz):
-            a, b, c, d = idx[i, j], idx[i + 1, j], idx[i + 1, j + 1], idx[i, j + 1]
-            faces += [(a, b, c), (a, c, d)] if (i + j) % 2 == 0 else [(a, b, d), (b, c, d)]
-    f = np.asarray(faces, np.int32)
+    f = _grid_triangles(idx)
     x = np.stack([gx.ravel(), np.zeros(gx.size), z - gd.ravel()], 1)
     uv = np.stack([gx.ravel(), length - gd.ravel()], 1)
     g = make_garment(x, f, uv, f, np.zeros(len(f), np.int32),

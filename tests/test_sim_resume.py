@@ -85,3 +85,18 @@ def test_checkpoints_wait_for_their_interval(tmp_path):
 def _key_of(path):
     with np.load(path) as z:
         return str(z["key"])
+
+
+def test_a_checkpoint_gets_the_usual_file_mode(tmp_path, monkeypatch):
+    import os
+    import stat
+
+    from wrinkle_jax import fileio
+    from wrinkle_jax.sim.cloth_model import ClothState
+
+    monkeypatch.setattr(fileio, "_UMASK", 0o002)  # 0o664, neither mkstemp's 0o600 nor 0o644
+    x = np.zeros((3, 3), np.float32)
+    path = tmp_path / "ck.npz"
+    resume.save(path, "k", 2, ClothState(x=x, v=x, self_overflow=None), x[None], 1.5)
+    assert stat.S_IMODE(os.stat(path).st_mode) == 0o664
+    assert resume.load(path, "k")[0] == 2 and os.listdir(tmp_path) == ["ck.npz"]

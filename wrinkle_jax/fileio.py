@@ -3,10 +3,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
+from typing import BinaryIO
 
 # Read once at import: os.umask can only be read by setting it, which races with threads.
 _UMASK = os.umask(0o022)
@@ -39,6 +42,16 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, fsync: bool = Fa
         leave an empty or truncated file under `path` (for cache entries that are read back
         without being rewritten; costs a disk sync per call).
     """
+    with atomic_open(path, fsync=fsync) as fh:
+        fh.write(data)
+
+
+@contextlib.contextmanager
+def atomic_open(path: str | os.PathLike, *, fsync: bool = False) -> Iterator[BinaryIO]:
+    """A binary file to write that replaces `path` only when the block ends without error
+    (a temporary file in the same folder, then `os.replace`; on error it is removed and
+    `path` is left as it was). The file gets the mode `open()` would give a new one,
+    0o666 minus the umask (not `mkstemp`'s 0o600). `fsync`: as in `atomic_write_bytes`."""
     path = Path(path)
     if path.is_dir():
         raise IsADirectoryError(f"{path}: is a directory, cannot write a file there")
@@ -46,11 +59,10 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, fsync: bool = Fa
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
+            yield fh
             if fsync:
                 fh.flush()
                 os.fsync(fh.fileno())
-        # mkstemp creates 0600 files; give the result the usual permissions (umask applied).
         os.chmod(tmp, 0o666 & ~_UMASK)
         os.replace(tmp, path)
     except BaseException:

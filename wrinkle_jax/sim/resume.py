@@ -17,7 +17,6 @@ File (`.npz`, written atomically): `key` (JSON of everything the result depends 
 from __future__ import annotations
 
 import os
-import tempfile
 import time
 import warnings
 import zipfile
@@ -25,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from wrinkle_jax.fileio import atomic_open
 from wrinkle_jax.sim.cloth_model import ClothState
 
 
@@ -57,22 +57,14 @@ def load(path: str | os.PathLike, key: str):
 
 def save(path: str | os.PathLike, key: str, done: int, state: ClothState, frames: np.ndarray,
          wall_s: float) -> None:
-    """Write a checkpoint atomically (a temporary file in the same folder, then a rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Write a checkpoint atomically (`fileio.atomic_open`: a temporary file in the same
+    folder, then a rename; the usual file mode, umask applied)."""
     arrays = {"key": np.array(key), "done": np.int64(done), "wall_s": np.float64(wall_s),
               "x": np.asarray(state.x), "v": np.asarray(state.v), "frames": frames}
     if state.self_overflow is not None:
         arrays["self_overflow"] = np.asarray(state.self_overflow)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_open(path) as fh:
+        np.savez(fh, **arrays)
 
 
 class Writer:

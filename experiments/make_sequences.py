@@ -86,13 +86,16 @@ def plan(train_frames: int, test_frames: int, val_frames: int = 150) -> list[dic
     return jobs
 
 
-def self_collision_for(resolution: str, setting: str, substeps: int | None = None):
-    """The `SelfCollisionConfig` a job of `resolution` simulates with at `substeps` per frame:
-    `scenes.self_collision_config`'s for "on" (the same rebuild interval in time at any
-    substeps), None for "off"."""
+def self_collision_for(resolution: str, setting: str, substeps: int | None = None,
+                       scene: str | None = None):
+    """The `SelfCollisionConfig` a job of `scene` at `resolution` simulates with at `substeps`
+    per frame: `scenes.self_collision_config`'s for "on" (the same rebuild interval in time
+    at any substeps; a scene's own fine rebuild interval), None for "off"."""
     if setting not in ("on", "off"):
         raise ValueError(f"self-collision setting must be 'on' or 'off', got {setting!r}")
-    return scenes.self_collision_config(resolution, substeps) if setting == "on" else None
+    if setting == "off":
+        return None
+    return scenes.self_collision_config(resolution, substeps, scene)
 
 
 def substeps_for(resolution: str, coarse_substeps: int | None) -> int | None:
@@ -304,8 +307,9 @@ def main(argv=None) -> int:
             seq = scenes.simulate(job["scene"], job["material"], job["resolution"],
                                   job["frames"], job["seed"], progress=progress, setup=setup,
                                   substeps=substeps,
-                                  self_collision=self_collision_for(job["resolution"],
-                                                                    args.self_collision, substeps),
+                                  self_collision=self_collision_for(
+                                      job["resolution"], args.self_collision, substeps,
+                                      job["scene"]),
                                   checkpoint=partial, checkpoint_every_s=args.checkpoint_every)
             scenes.save_simulation(path, seq)
             wall = time.perf_counter() - t0

@@ -4,7 +4,8 @@
         [--frames 90] [--every 6] [--material silk_charmeuse] [--thickness MM] [--margin MM]
         [--rebuild-every N] [--max-raw R] [--max-contacts K] [--max-box B]
         [--rest-exclusion MM] [--pairs-per-vertex P] [--raw-per-vertex R]
-        [--box-per-vertex B] [--block G] [--out PATH] [--log PATH]
+        [--box-per-vertex B] [--block G] [--passes N] [--post-passes N] [--out PATH]
+        [--log PATH]
 
 For each scene of `sim.scenes` and resolution, simulates the pre-roll and the first `--frames`
 frames of the motion twice in one process, with self-collision off and on (the same frames,
@@ -119,6 +120,8 @@ def main(argv=None) -> None:
     ap.add_argument("--raw-per-vertex", type=float, help="> 0: the flat build (build_pairs)")
     ap.add_argument("--box-per-vertex", type=float)
     ap.add_argument("--block", type=int, help="> 0: the blocked flat build (selfcollision_blocks)")
+    ap.add_argument("--passes", type=int, help="projection passes before the body contacts")
+    ap.add_argument("--post-passes", type=int, help="passes after the body contacts")
     ap.add_argument("--out", default=str(ROOT / "experiments" / "results" / "sim"
                                          / "self_collision_scenes.json"))
     ap.add_argument("--log", default=None, help="JSON lines, one per row (default OUT.log)")
@@ -135,7 +138,9 @@ def main(argv=None) -> None:
                               ("pairs_per_vertex", args.pairs_per_vertex),
                               ("raw_per_vertex", args.raw_per_vertex),
                               ("box_per_vertex", args.box_per_vertex),
-                              ("block", args.block)) if v is not None}
+                              ("block", args.block),
+                              ("passes", args.passes),
+                              ("post_passes", args.post_passes)) if v is not None}
     # Rows of other scenes / resolutions already in --out are kept (runs can be split).
     out = Path(args.out)
     rows = json.loads(out.read_text())["rows"] if out.exists() else []

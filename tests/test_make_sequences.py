@@ -1,6 +1,7 @@
 """experiments.make_sequences: the self-collision setting per job and the resume guard (a folder
 simulated with one setting is never topped up with the other)."""
 
+import dataclasses
 import json
 
 import pytest
@@ -18,6 +19,23 @@ def test_self_collision_per_resolution():
         assert on80 == scenes.self_collision_config(res, 80) and on80.rebuild_every == 16
     with pytest.raises(ValueError, match="'on' or 'off'"):
         make_sequences.self_collision_for("fine", "yes")
+
+
+def test_a_scene_may_rebuild_its_fine_candidates_more_often():
+    """skirt_walk's fine candidates are rebuilt every 2 substeps (its hem outruns the margin
+    at 4); its coarse ones and every other scene's keep the default, and the scene JSON of
+    scenes without the setting is what their stored files hold (no new key)."""
+    fine = scenes.SELF_COLLISION["fine"]
+    walk = make_sequences.self_collision_for("fine", "on", None, "skirt_walk")
+    assert walk.rebuild_every == 2 and walk == dataclasses.replace(fine, rebuild_every=2)
+    assert scenes.dataset_solver("skirt_walk", "fine") == (20, walk)
+    assert make_sequences.self_collision_for("fine", "on", None, "skirt_dance") is fine
+    coarse = make_sequences.self_collision_for("coarse", "on", 80, "skirt_walk")
+    assert coarse == scenes.self_collision_config("coarse", 80)
+    # Kept in time at more substeps, as the default is: every 2 of 20 -> every 8 of 80.
+    assert scenes.self_collision_config("fine", 80, "skirt_walk").rebuild_every == 8
+    assert "fine_rebuild_every" in scenes.get_scene("skirt_walk").to_json()
+    assert "fine_rebuild_every" not in scenes.get_scene("skirt_dance").to_json()
 
 
 def test_resume_refuses_another_self_collision_setting(tmp_path):
@@ -98,12 +116,12 @@ def test_dataset_solver_is_what_make_sequences_writes_by_default():
     must name make_sequences' default settings: coarse at its default substeps, fine at the
     scene's own, self-collision on."""
     default = scenes.DATASET_COARSE_SUBSTEPS
-    for name in ("dress_dance", "skirt_dance"):
+    for name in ("dress_dance", "skirt_dance", "skirt_walk"):
         sc = scenes.get_scene(name)
         for res in ("fine", "coarse"):
             substeps = make_sequences.substeps_for(res, default)
             want = (sc.substeps if substeps is None else substeps,
-                    make_sequences.self_collision_for(res, "on", substeps))
+                    make_sequences.self_collision_for(res, "on", substeps, name))
             assert scenes.dataset_solver(name, res) == want
     assert scenes.dataset_solver("dress_dance", "coarse")[0] == 80
     assert scenes.dataset_solver("dress_dance", "coarse")[1].rebuild_every == 16

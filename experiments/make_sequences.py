@@ -283,6 +283,10 @@ def main(argv=None) -> int:
     failures = 0
     for k, job in enumerate(todo):
         path = job_path(out, job)
+        if path.exists():  # written meanwhile by another run (e.g. a parallel --only)
+            log(f"  {job['scene']} {job['material']} {job['resolution']}: written by another "
+                f"run, skipped")
+            continue
         key = (job["scene"], job["resolution"], job["frames"], job["seed"])
         try:
             if key != setup_key:

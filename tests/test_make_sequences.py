@@ -148,3 +148,25 @@ def test_each_job_checkpoints_under_partial_and_a_rerun_says_it_resumes(tmp_path
     path.write_bytes(b"")  # a checkpoint left by a killed run
     assert make_sequences.main(args) == 1
     assert "resuming from .partial/apron_dance/" in (tmp_path / "make_sequences.log").read_text()
+
+
+def test_a_file_written_meanwhile_by_another_run_is_not_simulated_again(tmp_path, monkeypatch):
+    """Two runs share the folder (a second one with --only): a job whose file appeared after
+    this run started is skipped, not simulated and overwritten."""
+    calls = []
+
+    def fake_simulate(scene, material, resolution, frames, seed, **kw):
+        calls.append(scene)
+        name = ({"apron_dance", "skirt_dance"} - {scene}).pop()
+        other = make_sequences.job_path(tmp_path, {"scene": name, "material": material,
+                                                   "resolution": resolution, "seed": 0})
+        other.parent.mkdir(parents=True, exist_ok=True)
+        other.write_bytes(b"written by the other run")
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(make_sequences.scenes, "setup_scene", lambda *a, **k: None)
+    monkeypatch.setattr(make_sequences.scenes, "simulate", fake_simulate)
+    args = ["--out", str(tmp_path), "--tiny", "--only", "apron_dance,skirt_dance"]
+    assert make_sequences.main(args) == 1
+    assert len(calls) == 1  # the first job only; the second's file appeared meanwhile
+    assert "written by another run, skipped" in (tmp_path / "make_sequences.log").read_text()

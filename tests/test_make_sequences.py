@@ -38,8 +38,11 @@ def test_a_scene_may_rebuild_its_fine_candidates_more_often():
     # A solver setting (in the files' "self_collision" metadata), not part of the scene's
     # identity: the stored coarse files of these scenes still match.
     walk_scene = scenes.get_scene("skirt_walk")
-    plain = dataclasses.replace(walk_scene, fine_rebuild_every=None)
+    plain = dataclasses.replace(walk_scene, fine_self_collision=())
     assert walk_scene.to_json() == plain.to_json()
+    bad = dataclasses.replace(walk_scene, fine_self_collision=(("rebuild_evry", 2),))
+    with pytest.raises(scenes.SceneError, match="rebuild_evry"):
+        scenes.self_collision_config("fine", None, bad)
 
 
 def test_resume_refuses_another_self_collision_setting(tmp_path):

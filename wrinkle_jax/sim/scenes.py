@@ -124,8 +124,8 @@ def self_collision_config(resolution: str, substeps: int | None = None,
 
     Args:
       resolution: "fine" or "coarse". substeps: solver substeps per frame (None: 20).
-      scene: optional; a scene whose `fine_rebuild_every` is set rebuilds its fine
-        candidates at that interval (at 20 substeps) instead of the default's.
+      scene: optional; a scene's `fine_self_collision` overrides the fine defaults (its
+        rebuild interval counts substeps of 20 per frame, like the default's).
     Raises:
       SceneError: unknown resolution or substeps < 1.
     """
@@ -134,8 +134,13 @@ def self_collision_config(resolution: str, substeps: int | None = None,
                          f"choose one of {sorted(SELF_COLLISION)}")
     base = SELF_COLLISION[resolution]
     sc = get_scene(scene) if isinstance(scene, str) else scene
-    if resolution == "fine" and sc is not None and sc.fine_rebuild_every is not None:
-        base = dataclasses.replace(base, rebuild_every=sc.fine_rebuild_every)
+    if resolution == "fine" and sc is not None and sc.fine_self_collision:
+        over = dict(sc.fine_self_collision)
+        unknown = set(over) - {f.name for f in dataclasses.fields(SelfCollisionConfig)}
+        if unknown:
+            raise SceneError(f"scene {sc.name!r}: fine_self_collision names no setting "
+                             f"{sorted(unknown)}")
+        base = dataclasses.replace(base, **over)
     if substeps is None or substeps == SELF_COLLISION_SUBSTEPS:
         return base
     if substeps < 1:
@@ -180,10 +185,10 @@ class SceneConfig:
       test_only: never used for training (held-out evaluation).
       val_only: never used for training; the validation garment that checkpoint and recipe
         choices read (so held-out scenes need not).
-      fine_rebuild_every: substeps (of 20 per frame) between the fine self-collision
-        candidate rebuilds when the motion needs them closer than `SELF_COLLISION["fine"]`'s
-        (None: the default). The walk's shins kick the flared skirt's hem faster than the
-        14 mm margin covers in 4 substeps (`self_collision_config`).
+      fine_self_collision: (name, value) pairs overriding `SELF_COLLISION["fine"]` where the
+        motion needs more than the default (`self_collision_config`), e.g. the walk's shins
+        kick the flared skirt's hem faster than the 14 mm margin covers in 4 substeps, so
+        skirt_walk rebuilds every 2. () = the default.
     """
 
     name: str
@@ -202,7 +207,7 @@ class SceneConfig:
     test_only: bool = False
     val_only: bool = False
     description: str = ""
-    fine_rebuild_every: int | None = None
+    fine_self_collision: tuple[tuple[str, float], ...] = ()
 
     def to_json(self) -> str:
         d = dataclasses.asdict(self)
@@ -211,7 +216,7 @@ class SceneConfig:
         # A solver setting, recorded with the others in a file's "self_collision" metadata
         # (and matched there, `evaluation.cells`); kept out of the scene's identity so the
         # coarse files, which it does not touch, still match.
-        del d["fine_rebuild_every"]
+        del d["fine_self_collision"]
         return json.dumps(d, sort_keys=True)
 
 
@@ -236,7 +241,8 @@ SCENES = {s.name: s for s in (
     # screen (results/sim/self_collision_rule_s25.txt): at every 4, knit_terry intersected on
     # 0.38 % of faces over 300 frames, 3.6 % in one frame.
     SceneConfig("skirt_dance2", "flared_skirt", "dance2", "waist", "pelvis",
-                fine_rebuild_every=2, description="long flared 4-gore skirt, dance 2"),
+                fine_self_collision=(("rebuild_every", 2),),
+                description="long flared 4-gore skirt, dance 2"),
     SceneConfig("apron_dance2", "apron", "dance2", "top", "pelvis",
                 description="apron hanging in front of the legs from the waist, dance 2"),
     SceneConfig("tabard_dance2", "tabard", "dance2", "top", "chest", val_only=True,
@@ -251,7 +257,7 @@ SCENES = {s.name: s for s in (
     # 0.074 % at 1.4-1.6x the cost, while larger candidate bounds did not help (1.34 %) and
     # two projection passes helped less (0.54 %) (experiments/results/sim/README.md).
     SceneConfig("skirt_walk", "flared_skirt", "walk", "waist", "pelvis", test_only=True,
-                fine_rebuild_every=2,
+                fine_self_collision=(("rebuild_every", 2),),
                 description="TEST: flared skirt, walk (unseen motion)"),
 )}
 TRAINING_SCENES = tuple(n for n, s in SCENES.items() if not (s.test_only or s.val_only))

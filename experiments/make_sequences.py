@@ -17,8 +17,9 @@ tracks) for:
     (PD 30 mm), seed 1.
 
 Self-collision (`--self-collision`, default on since issue 24): each resolution simulates with
-`scenes.self_collision_config(resolution, substeps)` (`scenes.SELF_COLLISION`'s settings at
-the job's substeps; recorded in every file's metadata, with the dropped-candidate counts).
+`scenes.self_collision_config(resolution, substeps, scene)` (`scenes.SELF_COLLISION`'s settings
+at the job's substeps, with the scene's fine overrides; recorded in every file's metadata, with
+the dropped-candidate counts).
 
 Coarse substeps (`--coarse-substeps N`, default `scenes.DATASET_COARSE_SUBSTEPS` = 80; the
 scenes' own is 20): the coarse (PD 30 mm) jobs' solver substeps per frame. At 20 the coarse
@@ -29,8 +30,9 @@ same interval in time (`scenes.self_collision_config`). Fine jobs always use the
 Recorded in the manifest; a folder that already holds coarse files refuses another value (fine
 files do not depend on it, so a folder of fine files can take any).
 
-Files already present are skipped, each file is written atomically (temporary file + rename),
-the file being simulated is checkpointed every `--checkpoint-every` seconds under
+Files already present are skipped (also those another run writes while this one runs),
+each file is written atomically (temporary file + rename), the file being simulated is
+checkpointed every `--checkpoint-every` seconds under
 `<out>/.partial/` (`scenes.simulate(checkpoint=...)`; the next run resumes it bit-identically,
 so a killed session loses minutes, not hours), and progress goes to `<out>/make_sequences.log`
 (one line per chunk of frames and per file, with ms/frame and an ETA) and `<out>/manifest.json`
@@ -90,7 +92,8 @@ def self_collision_for(resolution: str, setting: str, substeps: int | None = Non
                        scene: str | None = None):
     """The `SelfCollisionConfig` a job of `scene` at `resolution` simulates with at `substeps`
     per frame: `scenes.self_collision_config`'s for "on" (the same rebuild interval in time
-    at any substeps; a scene's own fine rebuild interval), None for "off"."""
+    at any substeps; the scene's own fine overrides, `SceneConfig.fine_self_collision`),
+    None for "off"."""
     if setting not in ("on", "off"):
         raise ValueError(f"self-collision setting must be 'on' or 'off', got {setting!r}")
     if setting == "off":

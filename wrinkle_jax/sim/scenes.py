@@ -255,7 +255,8 @@ SCENES = {s.name: s for s in (
     # Session 25: rebuilt every 2 substeps at PD 10 mm. At every 4, silk and wool both
     # intersected on 0.84 % of faces (a 300-frame file each); frames 0-120, silk: 0.95 % ->
     # 0.074 % at 1.4-1.6x the cost, while larger candidate bounds did not help (1.34 %) and
-    # two projection passes helped less (0.54 %) (experiments/results/sim/README.md).
+    # two projection passes helped less (0.54 %); the whole re-simulated silk file: 0.26 %
+    # (experiments/results/sim/README.md).
     SceneConfig("skirt_walk", "flared_skirt", "walk", "waist", "pelvis", test_only=True,
                 fine_self_collision=(("rebuild_every", 2),),
                 description="TEST: flared skirt, walk (unseen motion)"),

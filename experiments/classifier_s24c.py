@@ -29,8 +29,7 @@ import numpy as np
 from wrinkle_jax import MATERIALS
 from wrinkle_jax.classifier import calibrated as cal
 from wrinkle_jax.classifier import synthesis_model
-from wrinkle_jax.classifier.synthesis_study import Distance, check_classify, load_entries
-from wrinkle_jax.classifier.synthesis_study import load_npz as _load
+from wrinkle_jax.classifier.synthesis_study import Distance, check_inputs, load_entries
 from wrinkle_jax.evaluation.suite import portable_path
 from wrinkle_jax.fileio import atomic_write_text
 
@@ -73,11 +72,7 @@ def stage_check(args) -> None:
     dist = Distance(clf.meta["spec"], train)
     held = [e for e in load_entries(cache, "matched") if e["split"] == args.split]
     rows = []
-    for name in args.inputs:
-        sc, m = name.split("/")
-        e = next(e for e in held if (e["scene"], e["material"]) == (sc, m))
-        arrays = _load(Path(args.data) / sc / f"{m}_coarse_s{args.seed}.npz")
-        row, _ = check_classify(clf, arrays, dist, e)
+    for name, _, row in check_inputs(clf, dist, held, args.inputs, args.data, args.seed):
         rows.append({"input": name, **row})
         print("check", json.dumps(rows[-1]), flush=True)
     out = Path(args.out) / "synthesis_export_check.json"

@@ -51,7 +51,7 @@ from wrinkle_jax.classifier import calibrated as cal
 from wrinkle_jax.classifier import drape, motion, synthesis_model
 from wrinkle_jax.classifier import folds as cv_folds
 from wrinkle_jax.classifier import synthesis as syn
-from wrinkle_jax.classifier.synthesis_study import Distance, check_classify, load_entries
+from wrinkle_jax.classifier.synthesis_study import Distance, check_inputs, load_entries
 from wrinkle_jax.classifier.synthesis_study import load_npz as _load
 from wrinkle_jax.evaluation.suite import portable_path
 from wrinkle_jax.fileio import atomic_write_text
@@ -511,11 +511,7 @@ def stage_check(args) -> None:
     train = [e for e in load_entries(Path(args.cache), pipe) if e["split"] == "train"]
     dist = Distance(clf.meta["spec"], train)
     rows = []
-    for name in args.check_inputs:
-        sc, m = name.split("/")
-        e = next(e for e in train if (e["scene"], e["material"]) == (sc, m))
-        arrays = _load(Path(args.train_data) / sc / f"{m}_coarse_s0.npz")
-        row, _ = check_classify(clf, arrays, dist, e)
+    for name, e, row in check_inputs(clf, dist, train, args.check_inputs, args.train_data, 0):
         ref = np.asarray(row["reference_distances"])
         study = summarize(ref[None], np.array([e["label"]]), clf.meta["calibration"])
         rows.append({"input": name, **row,

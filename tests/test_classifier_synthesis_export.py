@@ -88,3 +88,36 @@ def test_jobs_heldout_seed_and_split(tmp_path):
         ("fresh", "cape_walk", MATERIALS[0], f"{MATERIALS[0]}_coarse_s2.npz")]
     assert cs.jobs(train, held)[0][0] == "heldout" and cs.jobs(train, held)[0][3].name.endswith(
         "_s1.npz")
+
+
+def test_check_inputs_reads_each_named_file_against_its_entry(tmp_path, monkeypatch):
+    """Both export checks (the study's and s24c's) run `synthesis_study.check_inputs`: each
+    named input's coarse file of the given seed, scored against its own cached entry."""
+    from types import SimpleNamespace
+
+    from wrinkle_jax.classifier import synthesis_study
+
+    _write_cache(tmp_path, "s80", np.random.default_rng(2))
+    entries = [e for e in cs.load_entries(tmp_path, "s80") if e["split"] == "train"]
+    dist = cs.Distance({"families": list(motion.FAMILIES), "agg": "mean", "l2": None}, entries)
+    names = ["skirt_dance/denim_light", "sheet_balls_wind/silk_chiffon"]
+    for i, name in enumerate(names):
+        sc, m = name.split("/")
+        p = tmp_path / "data" / sc / f"{m}_coarse_s3.npz"
+        p.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(p, tag=np.array(i))
+    read = []
+
+    def fake_classify(arrays, clf):
+        read.append(int(arrays["tag"]))
+        return SimpleNamespace(scores={m: 1.0 / len(MATERIALS) for m in MATERIALS}, novelty=7.0,
+                               material=MATERIALS[0], confidence=0.2, abstained=True, group=None)
+
+    monkeypatch.setattr(synthesis_model, "classify", fake_classify)
+    clf = SimpleNamespace(materials=MATERIALS, temperature=1.0)
+    got = list(synthesis_study.check_inputs(clf, dist, entries, names, tmp_path / "data", 3))
+    assert [name for name, _, _ in got] == names and read == [0, 1]
+    for name, entry, row in got:
+        assert f"{entry['scene']}/{entry['material']}" == name
+        np.testing.assert_allclose(row["reference_distances"], dist([entry])[0])
+        np.testing.assert_allclose(row["classify_distances"], 7.0, rtol=1e-12)

@@ -96,3 +96,20 @@ def check_classify(clf, arrays: dict, dist: Distance, entry: dict) -> tuple[dict
                         "abstained": r.abstained, "group": r.group},
            "cache_config": str(entry["config"]) if "config" in entry else None}
     return row, r
+
+
+def check_inputs(clf, dist: Distance, entries: list[dict], names, data: str | Path, seed: int):
+    """`check_classify` on the inputs named "scene/material" in `names`: each one's coarse
+    file `<data>/<scene>/<material>_coarse_s<seed>.npz` against its cached entry among
+    `entries`.
+
+    Yields:
+      (name, entry, row) per input, in order (one input costs a re-simulation, so callers
+      can report each as it is done).
+    """
+    for name in names:
+        sc, m = name.split("/")
+        entry = next(e for e in entries if (e["scene"], e["material"]) == (sc, m))
+        arrays = load_npz(Path(data) / sc / f"{m}_coarse_s{seed}.npz")
+        row, _ = check_classify(clf, arrays, dist, entry)
+        yield name, entry, row

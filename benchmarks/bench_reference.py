@@ -23,7 +23,8 @@ back, so load drifts hit all alike; ratios are medians of the per-round ratios):
     input convention; the normalization is inside the timed call, as ours is inside our
     network). Ours: the same weights converted by `unet.from_torch_state_dict` (seeded random
     init, with the CIN scales and shifts perturbed so that a wrong material row would show), in
-    the "xla" and "im2col_bf16" convolution forms, jitted. Reported: ms/patch, patches/s,
+    the "xla", "im2col_bf16" and "winograd_bf16" convolution forms (`INFER_IMPLS`), jitted.
+    Reported: ms/patch, patches/s,
     speedups (their time / ours, wall and process CPU), and the agreement on one batch in the
     network's own output units (ImageNet-normalized): max |ours - theirs| / RMS(theirs) and the
     relative RMS error.
@@ -133,6 +134,8 @@ from wrinkle_jax.reference import (  # noqa: E402
 )
 
 PATCH = 128
+# Our U-Net forms timed and checked against theirs in the inference section.
+INFER_IMPLS = ("xla", "im2col_bf16", "winograd_bf16")
 NUM_MATERIALS = 5
 AUTHORS_DIR = "network_train_and_run"
 AUTHORS_MODULES = ("models", "DataIO", "VGG_Model", "Losses", "Geometry_Opt")
@@ -272,7 +275,7 @@ def bench_unet(authors: dict, args, rng) -> dict:
     runs = {"authors_torch": theirs}
     compile_s, outs = {}, {}
     xj, mj = jnp.asarray(x), jnp.asarray(mats, jnp.int32)
-    for impl in ("xla", "im2col_bf16"):
+    for impl in INFER_IMPLS:
         model = unet.CINUNet(**kwargs, conv_impl=impl)
         t0 = time.perf_counter()
         compiled = jax.jit(model.apply).lower({"params": params}, xj, mj).compile()
@@ -282,7 +285,7 @@ def bench_unet(authors: dict, args, rng) -> dict:
     # is de-normalized to the RGB form inside the network, so normalize it back.
     ref = theirs().cpu().numpy().transpose(0, 2, 3, 1)
     errors = {}
-    for impl in ("xla", "im2col_bf16"):
+    for impl in INFER_IMPLS:
         outs[impl] = (np.asarray(runs[f"ours_{impl}"]()) - mean) / std
         errors[impl] = agreement(outs[impl], ref)
 

@@ -106,11 +106,18 @@ def test_speedups_are_median_per_round_ratios_and_the_targets_read_them():
     s = reference.speedups(t)
     assert s == {"speedup_vs_authors_wall": {"ours": 6.0},  # median of 6, 4, 10
                  "speedup_vs_authors_cpu": {"ours": 2.0}}
-    report = {"unet": {**s, "agreement_vs_authors": {"im2col_bf16": {"rel_rms": 0.004}}},
-              "lift": {"speedup_vs_authors_wall": {"ours_default": 80.0}}}
+    unet_part = {"speedup_vs_authors_wall": {"ours_xla": 1.0, "ours_im2col_bf16": 6.0,
+                                             "ours_winograd_bf16": 2.5},
+                 "agreement_vs_authors": {"xla": {"rel_rms": 0.5},
+                                          "im2col_bf16": {"rel_rms": 0.004},
+                                          "winograd_bf16": {"rel_rms": 0.02}}}
+    report = {"unet": unet_part, "lift": {"speedup_vs_authors_wall": {"ours_default": 80.0}}}
     got = reference.target_summary(report)
     assert got["unet_inference_x_authors_best"] == 6.0 and got["unet_inference_goal_3x_met"]
+    assert got["unet_inference_best_form"] == "im2col_bf16"
     assert got["im2col_bf16_error_goal_1pct_met"]
+    assert not got["winograd_bf16_error_goal_1pct_met"]  # each bfloat16 form bounded
+    assert "xla_error_goal_1pct_met" not in got  # the float32 form has no such goal
     assert got["lift_default_x_authors"] == 80.0 and not got["lift_goal_100x_met"]
     assert not any(k.startswith("train") for k in got)  # no training section, no targets
     assert reference.target_summary({}) == {}

@@ -176,18 +176,22 @@ def target_summary(report: dict) -> dict:
         (their "speedup_vs_authors_wall": variant -> the authors' time / ours).
     Returns:
       the best speed-ups (x the authors'), the relative errors and whether each goal is met:
-      U-Net inference >= 3x, im2col_bf16 relative RMS error <= 1 %, training step >= 4x,
+      U-Net inference >= 3x (and the fastest form), each bfloat16 form's relative RMS error
+      <= 1 %, training step >= 4x,
       lifting at the default settings >= 100x.
     """
     out = {}
     if "unet" in report:
         u = report["unet"]
-        best = max(u["speedup_vs_authors_wall"].values())
-        out["unet_inference_x_authors_best"] = best
-        out["unet_inference_goal_3x_met"] = best >= 3.0
-        out["im2col_bf16_rel_rms_vs_authors"] = u["agreement_vs_authors"]["im2col_bf16"][
-            "rel_rms"]
-        out["im2col_bf16_error_goal_1pct_met"] = out["im2col_bf16_rel_rms_vs_authors"] <= 0.01
+        speed = u["speedup_vs_authors_wall"]
+        best = max(speed, key=speed.get)
+        out["unet_inference_x_authors_best"] = speed[best]
+        out["unet_inference_best_form"] = best.removeprefix("ours_")
+        out["unet_inference_goal_3x_met"] = speed[best] >= 3.0
+        for form, agreement in u["agreement_vs_authors"].items():
+            if form.endswith("bf16"):  # the error bound is on the bfloat16 forms
+                out[f"{form}_rel_rms_vs_authors"] = agreement["rel_rms"]
+                out[f"{form}_error_goal_1pct_met"] = agreement["rel_rms"] <= 0.01
     if "train" in report:
         tr = report["train"]
         best = max(tr["speedup_vs_authors_wall"].values())

@@ -38,7 +38,11 @@ infers 1.4-2.7x faster than "xla", and a training step (with the fast VGG loss) 
 (8x at width 64: XLA:CPU's own transposed-conv gradients are pathologically slow), with ~4e-3
 relative output error (see `benchmarks/bench_unet.py`). "im2col_f32" is the same index
 arithmetic with float32 dots: exact to float32 rounding, and (since it avoids XLA's
-transposed-conv gradient) a training step ~5x faster than "xla" without any bfloat16. All forms
+transposed-conv gradient) a training step ~5x faster than "xla" without any bfloat16.
+"winograd_bf16" is "im2col_bf16" with the layers that have enough channels and texels
+(`winograd.use_winograd`) computed by Winograd F(2x2, 3x3) / F(3x3, 2x2) transforms: 2.25x
+fewer products there, ~1.5x the per-layer bfloat16 error; an inference form (its gradients
+are the im2col form's, recomputed, so training is no faster). All forms
 have the same parameters (names, shapes, init), so converted weights and checkpoints work with
 any of them.
 
@@ -76,13 +80,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax import detail, sharpen
-from wrinkle_jax.nn import fastconv
+from wrinkle_jax.nn import fastconv, winograd
 from wrinkle_jax.numerics import to_device
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 NUM_LEVELS = 4
-CONV_IMPLS = {"xla": None, "im2col_f32": jnp.float32, "im2col_bf16": jnp.bfloat16}
+CONV_IMPLS = {"xla": None, "im2col_f32": jnp.float32, "im2col_bf16": jnp.bfloat16,
+              "winograd_bf16": jnp.bfloat16}
 
 
 class CIN(nn.Module):
@@ -278,9 +283,11 @@ class CINUNet(nn.Module):
             deconv = functools.partial(nn.ConvTranspose, kernel_size=(4, 4), strides=(2, 2),
                                        padding=((2, 2), (2, 2)), dtype=self.dtype)
         else:
-            conv = functools.partial(FastConv, kernel_size=3, compute_dtype=compute)
+            wino = self.conv_impl == "winograd_bf16"
+            conv = functools.partial(FastConv, kernel_size=3, compute_dtype=compute,
+                                     winograd=wino)
             deconv = functools.partial(FastConv, kernel_size=4, transpose=True,
-                                       compute_dtype=compute)
+                                       compute_dtype=compute, winograd=wino)
             if norm is CIN:
                 norm = functools.partial(CIN, fused=True)
         skips = []
@@ -450,12 +457,15 @@ class FastConv(nn.Module):
       kernel_size: 3 (conv) or 4 (transposed conv).
       transpose: transposed conv (kernel_size 4 only).
       compute_dtype: dot operand dtype (accumulation is float32).
+      winograd: the `wrinkle_jax.nn.winograd` form where `winograd.use_winograd` says it pays
+        (same parameters and result up to rounding).
     """
 
     features: int
     kernel_size: int = 3
     transpose: bool = False
     compute_dtype: jnp.dtype = jnp.bfloat16
+    winograd: bool = False
 
     @nn.compact
     def __call__(self, x):
@@ -467,9 +477,13 @@ class FastConv(nn.Module):
         kernel = self.param("kernel", nn.initializers.lecun_normal(),
                             (k, k, x.shape[-1], self.features), jnp.float32)
         bias = self.param("bias", nn.initializers.zeros_init(), (self.features,), jnp.float32)
+        ops = fastconv
+        if self.winograd and winograd.use_winograd(x.shape[-1], self.features,
+                                                   min(x.shape[1], x.shape[2])):
+            ops = winograd
         if self.transpose:
-            return fastconv.conv_transpose4x4s2(x, kernel, bias, compute_dtype=self.compute_dtype)
-        return fastconv.conv3x3(x, kernel, bias, compute_dtype=self.compute_dtype)
+            return ops.conv_transpose4x4s2(x, kernel, bias, compute_dtype=self.compute_dtype)
+        return ops.conv3x3(x, kernel, bias, compute_dtype=self.compute_dtype)
 
 
 def count_params(params) -> int:

@@ -237,3 +237,23 @@ def test_config_json_is_flat_and_round_trips():
     assert enhancer.EnhancerConfig.from_json(d) == conf
     with pytest.raises(ValueError, match="unknown enhancer config fields.*colour"):
         enhancer.EnhancerConfig.from_json({**d, "colour": 1})
+
+
+def test_shipped_model_default_form_is_winograd_and_close_to_exact():
+    """Loaded models run the Winograd form; on the shipped model (two of its layers qualify)
+    its output stays within the bfloat16 forms' error of the exact float32 form, and
+    differs from the im2col form (so the form is really in use)."""
+    enh = enhancer.load_enhancer()
+    assert enh.model.conv_impl == enhancer.INFERENCE_CONV_IMPL == "winograd_bf16"
+    y, x = np.mgrid[0:128, 0:128] / 128.0
+    n = np.stack([0.3 * np.sin(40 * x + 3 * y), 0.2 * np.cos(25 * y), np.ones_like(x)], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    rgb = jnp.asarray(np.stack([(n + 1) / 2, (n[:, ::-1] + 1) / 2]), jnp.float32)
+    m = jnp.array([0, 3])
+    outs = {impl: np.asarray(jax.jit(enh.config.model(impl).apply)({"params": enh.params}, rgb,
+                                                                   m))
+            for impl in ("winograd_bf16", "im2col_bf16", "im2col_f32")}
+    exact = outs["im2col_f32"]
+    for impl in ("winograd_bf16", "im2col_bf16"):
+        assert np.sqrt(np.mean((outs[impl] - exact) ** 2) / np.mean(exact**2)) < 1e-3
+    assert np.any(outs["winograd_bf16"] != outs["im2col_bf16"])

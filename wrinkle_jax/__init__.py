@@ -20,7 +20,7 @@ def material_index(name: str) -> int:
         raise ValueError(f"unknown material {name!r}; expected one of {choices}") from None
 
 
-def load_enhancer(path=None, conv_impl: str = "im2col_bf16"):
+def load_enhancer(path=None, conv_impl: str = "winograd_bf16"):
     """Load an enhancer model file; None loads the shipped default model.
 
     The same as `wrinkle_jax.enhancer.load_enhancer` (imported on first call, so importing

@@ -270,14 +270,19 @@ def test_bfloat16_compute_is_close(gatys_params):
     assert rel < 3e-2
 
 
-def test_im2col_bf16_features_and_gradients_are_close(gatys_params):
-    """The fast conv form agrees with XLA convolutions to bfloat16 rounding, values and input
-    gradients alike (the loss backpropagates through VGG to the U-Net output)."""
+@pytest.mark.parametrize("impl", ["im2col_bf16", "winograd_bf16"])
+def test_fast_forms_features_and_gradients_are_close(gatys_params, impl):
+    """The fast conv forms agree with XLA convolutions to bfloat16 rounding, values and input
+    gradients alike (the loss backpropagates through VGG to the U-Net output). At 32 x 32,
+    conv1_2 and conv2_1 qualify for the Winograd form; it differs from im2col's rounding."""
     rng = np.random.default_rng(4)
     images = jnp.asarray(rng.uniform(size=(2, 32, 32, 3)), jnp.float32)
     layers = ("relu1_1", "relu2_1", "relu3_1")
     ref = features_jit(gatys_params, images, layers=layers)
-    fast = features_jit(gatys_params, images, layers=layers, conv_impl="im2col_bf16")
+    fast = features_jit(gatys_params, images, layers=layers, conv_impl=impl)
+    if impl == "winograd_bf16":
+        im2col = features_jit(gatys_params, images, layers=layers, conv_impl="im2col_bf16")
+        assert np.any(np.asarray(fast["relu2_1"]) != np.asarray(im2col["relu2_1"]))
     for name in layers:
         assert fast[name].dtype == jnp.float32 and fast[name].shape == ref[name].shape
         rel = float(jnp.linalg.norm(fast[name] - ref[name]) / jnp.linalg.norm(ref[name]))
@@ -293,7 +298,7 @@ def test_im2col_bf16_features_and_gradients_are_close(gatys_params):
         return jnp.mean(f ** 2)
 
     g_ref = jax.jit(jax.grad(energy), static_argnums=1)(images, "xla")
-    g_fast = jax.jit(jax.grad(energy), static_argnums=1)(images, "im2col_bf16")
+    g_fast = jax.jit(jax.grad(energy), static_argnums=1)(images, impl)
     cos = float(jnp.vdot(g_ref, g_fast) / (jnp.linalg.norm(g_ref) * jnp.linalg.norm(g_fast)))
     assert cos > 0.999, cos
     with pytest.raises(ValueError, match="conv_impl"):

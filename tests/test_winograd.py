@@ -86,16 +86,17 @@ def test_docstring_example():
     assert round(float(y[0, 4, 4, 0]), 2) == 1.0 and round(float(y[0, 0, 0, 0]), 2) == 0.44
 
 
-def test_gradients_are_the_im2col_forms():
-    """float32: the forward passes agree to rounding, so the gradients (the im2col backward)
-    must agree with XLA's to float32 rounding."""
+def test_gradients_match_xla():
+    """float32: the Winograd input gradients and the im2col kernel gradients agree with XLA's
+    to float32 rounding (odd sizes: partial tiles in the backward too)."""
     x = _normal(9, (2, 6, 7, 3))
     k3, k4 = _normal(10, (3, 3, 3, 4), 0.3), _normal(11, (4, 4, 3, 4), 0.3)
     w = _normal(12, (2, 12, 14, 4))
-    cases = [(lambda x, k: winograd.conv3x3(x, k, compute_dtype=jnp.float32, padding="REFLECT"),
-              lambda x, k: _xla_conv3x3(x, k, "REFLECT"), k3, _normal(13, (2, 6, 7, 4))),
-             (lambda x, k: winograd.conv_transpose4x4s2(x, k, compute_dtype=jnp.float32),
-              _xla_deconv, k4, w)]
+    cases = [(lambda x, k, p=p: winograd.conv3x3(x, k, compute_dtype=jnp.float32, padding=p),
+              lambda x, k, p=p: _xla_conv3x3(x, k, p), k3, _normal(13, (2, 6, 7, 4)))
+             for p in ("ZERO", "REFLECT")]
+    cases.append((lambda x, k: winograd.conv_transpose4x4s2(x, k, compute_dtype=jnp.float32),
+                  _xla_deconv, k4, w))
     for fast, ref, k, wt in cases:
         g = jax.grad(lambda x, k, f=fast, wt=wt: jnp.sum(wt * f(x, k)), (0, 1))(x, k)
         gr = jax.grad(lambda x, k, f=ref, wt=wt: jnp.sum(wt * f(x, k)), (0, 1))(x, k)
@@ -133,3 +134,11 @@ def test_unet_winograd_form(monkeypatch):
     assert np.any(np.asarray(wino) != np.asarray(im2col))
     assert _rel_rms(wino, exact) < fastconv.BF16_RTOL
     assert _rel_max(wino, exact) < fastconv.BF16_MAX_RTOL
+
+    def grad(impl):  # the parameter gradient of a training-like loss, flattened
+        g = jax.jit(jax.grad(lambda p: jnp.sum(model.clone(conv_impl=impl).apply(
+            {"params": p}, x, m) ** 2)))(params)
+        return np.concatenate([np.ravel(a) for a in jax.tree_util.tree_leaves(g)])
+
+    g_exact, g_wino = grad("im2col_f32"), grad("winograd_bf16")
+    assert np.linalg.norm(g_wino - g_exact) / np.linalg.norm(g_exact) < 2e-2  # as im2col_bf16

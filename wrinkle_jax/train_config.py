@@ -33,8 +33,8 @@ class TrainConfig:
       style_layers, content_layer, w_c, w_s, normalize_channels, pool: the loss (see
         `nn.losses.enhancer_loss`).
       conv_impl: convolution form of the U-Net and of the loss's VGG ("xla", "im2col_f32" --
-        U-Net only, exact -- or "im2col_bf16"; see `nn.unet`). Parameters are the same for all
-        forms, so a run may resume with another one.
+        U-Net only, exact -- "im2col_bf16" or "winograd_bf16"; see `nn.unet`). Parameters are
+        the same for all forms, so a run may resume with another one.
       relative_floor: None for the paper's absolute style loss, or the floor of the per-patch
         relative style loss (`nn.losses.enhancer_loss`); the "style" metric is then a ratio.
       relative_log: the log of that ratio instead (the median-seeking form; "style" is then
@@ -86,7 +86,7 @@ class TrainConfig:
 
     @property
     def vgg_conv_impl(self) -> str:
-        return "im2col_bf16" if self.conv_impl == "im2col_bf16" else "xla"
+        return self.conv_impl if self.conv_impl in ("im2col_bf16", "winograd_bf16") else "xla"
 
     def to_json(self) -> dict:
         """Flat: the U-Net's settings among the training fields (the run-config format)."""

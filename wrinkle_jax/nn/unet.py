@@ -41,8 +41,7 @@ arithmetic with float32 dots: exact to float32 rounding, and (since it avoids XL
 transposed-conv gradient) a training step ~5x faster than "xla" without any bfloat16.
 "winograd_bf16" is "im2col_bf16" with the layers that have enough channels and texels
 (`winograd.use_winograd`) computed by Winograd F(2x2, 3x3) / F(3x3, 2x2) transforms: 2.25x
-fewer products there, ~1.5x the per-layer bfloat16 error; an inference form (its gradients
-are the im2col form's, recomputed, so training is no faster). All forms
+fewer products there (input gradients too), ~1.5x the per-layer bfloat16 error. All forms
 have the same parameters (names, shapes, init), so converted weights and checkpoints work with
 any of them.
 

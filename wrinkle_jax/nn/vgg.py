@@ -53,7 +53,7 @@ import numpy as np
 
 from wrinkle_jax.fileio import atomic_write_bytes, user_cache_dir
 from wrinkle_jax.io import torch_pickle
-from wrinkle_jax.nn import fastconv
+from wrinkle_jax.nn import fastconv, winograd
 from wrinkle_jax.numerics import to_device
 
 __all__ = [
@@ -103,7 +103,7 @@ _IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
 _CACHE_VERSION = "v1"
 _PREPROCESS = ("gatys_bgr255", "imagenet_rgb", "custom")
 _PADDING = ("REFLECT", "ZERO")
-CONV_IMPLS = ("xla", "im2col_bf16")
+CONV_IMPLS = ("xla", "im2col_bf16", "winograd_bf16")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -153,12 +153,17 @@ def _conv3x3(x, layer, padding, dtype, conv_impl="xla"):
     ``conv_impl="im2col_bf16"``: patches + one bfloat16 dot with float32 accumulation
     (:func:`wrinkle_jax.nn.fastconv.conv3x3`; `dtype` is ignored); on the raw RGB image
     (conv1_1, 3 channels) the same form in float32: bfloat16 would round the image's fine
-    detail to 8 bits, and the layer is ~1% of the FLOPs.
+    detail to 8 bits, and the layer is ~1% of the FLOPs. ``"winograd_bf16"``: the same, with
+    the layers `winograd.use_winograd` picks in :mod:`wrinkle_jax.nn.winograd`'s form.
     """
-    if conv_impl == "im2col_bf16":
+    if conv_impl in ("im2col_bf16", "winograd_bf16"):
         compute = jnp.float32 if x.shape[-1] <= 4 else jnp.bfloat16
-        return fastconv.conv3x3(x, layer["kernel"], layer["bias"], padding=padding,
-                                compute_dtype=compute)
+        ops = fastconv
+        if conv_impl == "winograd_bf16" and winograd.use_winograd(
+                x.shape[-1], layer["kernel"].shape[-1], min(x.shape[1], x.shape[2])):
+            ops = winograd
+        return ops.conv3x3(x, layer["kernel"], layer["bias"], padding=padding,
+                           compute_dtype=compute)
     kernel = layer["kernel"]
     if dtype is not None:
         x = x.astype(dtype)
@@ -207,7 +212,8 @@ def features(params, images, layers=DEFAULT_LAYERS, pool="avg", dtype=None, conv
         accumulation, bias, ReLU and pooling stay float32 (static).
       conv_impl: ``"xla"`` (XLA convolutions) or ``"im2col_bf16"`` (patches + bfloat16 dots,
         ~1.5-2x faster forward and backward on AVX512-BF16 CPUs, ~2.5e-3 relative error per
-        layer; see :mod:`wrinkle_jax.nn.fastconv`) (static).
+        layer; see :mod:`wrinkle_jax.nn.fastconv`) or ``"winograd_bf16"`` (the wide layers by
+        Winograd transforms, ~1.5x that error; :mod:`wrinkle_jax.nn.winograd`) (static).
 
     Returns:
       dict layer name -> (N, H // 2**layer_level(name), W // 2**layer_level(name), C) float32.

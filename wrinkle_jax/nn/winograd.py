@@ -23,9 +23,12 @@ float32, so at few channels they cost more than the saved products. `use_winogra
 rule measured on this machine (`benchmarks/bench_unet.py --winograd`): both channel counts at
 least `MIN_CHANNELS` and an input of at least `MIN_SIDE` x `MIN_SIDE` texels.
 
-Gradients: reverse mode through `jax.custom_vjp` with `fastconv`'s im2col backward (it
-recomputes the im2col forward's residual): correct, but training gets no faster -- use
-"im2col_bf16" there. Shapes: NHWC activations, HWIO kernels as `fastconv`.
+Gradients (reverse mode, `jax.custom_vjp`): the input gradient of either layer is itself a
+correlation (a 3x3 conv of the output gradient with the flipped, transposed kernel; a 2x2
+correlation of the space-to-depth output gradient, see `fastconv`), computed by the same
+Winograd forms; the kernel gradient is `fastconv`'s im2col one, its patches recomputed from
+the saved input (and dropped by XLA when unused, as for a frozen VGG in a loss).
+Shapes: NHWC activations, HWIO kernels as `fastconv`.
 """
 
 from __future__ import annotations
@@ -179,10 +182,29 @@ def _conv3x3_fwd(x, kernel, padding, compute):
     return _conv3x3(x, kernel, padding, compute), (x, kernel)
 
 
+def _kernel_grad(fn, x, kernel, g):
+    """The kernel gradient of the im2col form `fn(x, kernel)` (its forward's patches are
+    recomputed; XLA drops all of it when the caller does not use the kernel gradient, e.g.
+    the frozen VGG of a loss)."""
+    _, vjp = jax.vjp(lambda k: fn(x, k), kernel)
+    return vjp(g)[0]
+
+
 def _conv3x3_bwd(padding, compute, res, g):
-    _, vjp = jax.vjp(functools.partial(fastconv.conv3x3, compute_dtype=compute,
-                                       padding=padding), *res)
-    return vjp(g)
+    x, kernel = res
+    dt = fastconv._DTYPES[compute]
+    n, h, w, _ = x.shape
+    k_in = fastconv._flip_transpose(kernel)  # the input gradient is a 3x3 conv of g with it
+    if padding == "ZERO":
+        dx = _conv3x3_forward(g, k_in, "ZERO", dt)
+    else:  # full correlation onto the reflection-padded input, then its adjoint
+        th, tw = -(-(h + 2) // 2), -(-(w + 2) // 2)
+        gp = jnp.pad(g, ((0, 0), (2, 2 * th - h), (2, 2 * tw - w), (0, 0)))
+        dx = fastconv._reflect_pad_adjoint(_correlate(gp, k_in, F23, th, tw, dt)[:, :h + 2,
+                                                                                 :w + 2])
+    dk = _kernel_grad(functools.partial(fastconv.conv3x3, compute_dtype=compute,
+                                        padding=padding), x, kernel, g)
+    return dx.astype(x.dtype), dk
 
 
 _conv3x3.defvjp(_conv3x3_fwd, _conv3x3_bwd)
@@ -198,9 +220,20 @@ def _deconv_fwd(x, kernel, compute):
 
 
 def _deconv_bwd(compute, res, g):
-    _, vjp = jax.vjp(functools.partial(fastconv.conv_transpose4x4s2, compute_dtype=compute),
-                     *res)
-    return vjp(g)
+    x, kernel = res
+    dt = fastconv._DTYPES[compute]
+    n, h, w, _ = x.shape
+    c, o = kernel.shape[2:]
+    # The input gradient: a 2x2 valid correlation of the space-to-depth output gradient
+    # (N, H+1, W+1, 4 O) with `fastconv._grad_kernel` (`fastconv._deconv_bwd`), by F(3, 2).
+    s2d = fastconv._space_to_depth_padded(g.astype(jnp.float32))
+    th, tw = -(-h // 3), -(-w // 3)
+    sp = jnp.pad(s2d, ((0, 0), (0, 3 * th + 1 - (h + 1)), (0, 3 * tw + 1 - (w + 1)), (0, 0)))
+    k_in = fastconv._grad_kernel(kernel).reshape(2, 2, 4 * o, c)
+    dx = _correlate(sp, k_in, F32, th, tw, dt)[:, :h, :w]
+    dk = _kernel_grad(functools.partial(fastconv.conv_transpose4x4s2, compute_dtype=compute),
+                      x, kernel, g)
+    return dx.astype(x.dtype), dk
 
 
 _deconv.defvjp(_deconv_fwd, _deconv_bwd)

@@ -43,7 +43,8 @@ bench: venv
 	  if [ "$$f" = benchmarks/bench_reference.py ]; then \
 	    if [ -z "$(AUTHORS_REPO)" ]; then \
 	      echo "== $$f skipped (needs AUTHORS_REPO=PATH and torch)"; continue; fi; \
-	    echo "== $$f"; $(PY) $$f --authors-repo "$(AUTHORS_REPO)" --train-impls im2col_bf16 \
+	    echo "== $$f"; $(PY) $$f --authors-repo "$(AUTHORS_REPO)" \
+	      --train-impls im2col_bf16 winograd_bf16 \
 	      || exit 1; continue; fi; \
 	  echo "== $$f"; $(PY) $$f || exit 1; done
 

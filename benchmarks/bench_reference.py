@@ -59,7 +59,7 @@ scripts print progress: it is sent to stderr, so stdout holds only the JSON.
 
     python benchmarks/bench_reference.py --authors-repo PATH [--rounds N] [--device cpu]
         [--skip-unet] [--skip-train] [--skip-lift] [--train-batch 32]
-        [--train-impls xla im2col_bf16] [--malloc retain|default]
+        [--train-impls xla im2col_bf16 winograd_bf16] [--malloc retain|default]
 """
 
 from __future__ import annotations
@@ -92,7 +92,7 @@ def _parse():
                    help="largest GN iteration count tried for ours_matched")
     p.add_argument("--train-batch", type=int, default=32,
                    help="training-step batch (their script's: 32)")
-    p.add_argument("--train-impls", nargs="+", default=["xla", "im2col_bf16"],
+    p.add_argument("--train-impls", nargs="+", default=["xla", "im2col_bf16", "winograd_bf16"],
                    help="our convolution forms timed in the training step")
     p.add_argument("--skip-unet", action="store_true")
     p.add_argument("--skip-train", action="store_true")

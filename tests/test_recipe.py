@@ -156,3 +156,9 @@ def test_init_from_a_narrower_run_widens_it_and_refuses_other_differences():
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert np.asarray(got["enc1"]["kernel"]).shape[-1] == 4
     assert '"widened_from": 2' in logged[0]
+
+
+def test_conv_impl_flag_sets_the_form_only():
+    got = _parse(["--conv-impl", "winograd_bf16"])
+    assert got == dataclasses.replace(train.RECIPE, conv_impl="winograd_bf16")
+    assert got.vgg_conv_impl == "winograd_bf16"  # the loss's VGG follows

@@ -140,6 +140,11 @@ def add_recipe_args(ap: argparse.ArgumentParser) -> None:
                          "checkpoint choice on validation data has candidates")
     ap.add_argument("--eval-batches", type=int, default=lambda r, u: r.eval_batches,
                     help="batches of the periodic evaluation (evenly spaced over its split)")
+    ap.add_argument("--conv-impl", default=lambda r, u: r.conv_impl,
+                    choices=("xla", "im2col_f32", "im2col_bf16", "winograd_bf16"),
+                    help="convolution form of the U-Net and the loss's VGG: winograd_bf16 "
+                         "steps ~1.4x faster than the recipe's im2col_bf16 (session 26, "
+                         "experiments/results/timing/reference_s26_train_winograd.json)")
 
 
 def config_from_args(args: argparse.Namespace) -> train.TrainConfig:
@@ -161,7 +166,7 @@ def config_from_args(args: argparse.Namespace) -> train.TrainConfig:
         relative_log=bool(args.relative_log), band_weight=args.band_weight,
         bank_weight=args.bank_weight, bank_size=args.bank_size, batch_size=args.batch_size,
         keep_checkpoints=args.keep_checkpoints,
-        eval_batches=args.eval_batches)
+        eval_batches=args.eval_batches, conv_impl=args.conv_impl)
 
 
 def add_run_args(ap: argparse.ArgumentParser, minutes: float | None = None) -> None:

@@ -1,3 +1,4 @@
+import dataclasses
 import json
 
 import jax
@@ -239,12 +240,14 @@ def test_config_json_is_flat_and_round_trips():
         enhancer.EnhancerConfig.from_json({**d, "colour": 1})
 
 
-def test_shipped_model_default_form_is_winograd_and_close_to_exact():
-    """Loaded models run the Winograd form; on the shipped model (two of its layers qualify)
-    its output stays within the bfloat16 forms' error of the exact float32 form, and
-    differs from the im2col form (so the form is really in use)."""
+def test_default_form_by_width_and_the_winograd_form_on_the_shipped_model():
+    """Loaded models pick their form by width (Winograd from 32); on the shipped width-16
+    model the Winograd form (two layers qualify) stays within the bfloat16 forms' error of the
+    exact float32 form, and differs from the im2col form (so it is really in use)."""
     enh = enhancer.load_enhancer()
-    assert enh.model.conv_impl == enhancer.INFERENCE_CONV_IMPL == "winograd_bf16"
+    assert enh.config.unet.width == 16 and enh.model.conv_impl == "im2col_bf16"
+    wide = dataclasses.replace(enh.config, unet=dataclasses.replace(enh.config.unet, width=32))
+    assert wide.model().conv_impl == "winograd_bf16" and wide.model("xla").conv_impl == "xla"
     y, x = np.mgrid[0:128, 0:128] / 128.0
     n = np.stack([0.3 * np.sin(40 * x + 3 * y), 0.2 * np.cos(25 * y), np.ones_like(x)], -1)
     n /= np.linalg.norm(n, axis=-1, keepdims=True)

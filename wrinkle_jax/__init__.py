@@ -20,11 +20,12 @@ def material_index(name: str) -> int:
         raise ValueError(f"unknown material {name!r}; expected one of {choices}") from None
 
 
-def load_enhancer(path=None, conv_impl: str = "winograd_bf16"):
+def load_enhancer(path=None, conv_impl: str | None = None):
     """Load an enhancer model file; None loads the shipped default model.
 
     The same as `wrinkle_jax.enhancer.load_enhancer` (imported on first call, so importing
-    the package stays light). Returns an `Enhancer` (model, params, config, meta).
+    the package stays light). Returns an `Enhancer` (model, params, config, meta); `conv_impl`
+    None picks the U-Net's form by width (`enhancer.inference_conv_impl`).
 
     Raises:
       enhancer.EnhancerError: naming the file, if it is missing or not an enhancer file.

@@ -42,9 +42,17 @@ __all__ = ["DEFAULT_PATH", "Enhancer", "EnhancerConfig", "EnhancerError", "from_
 
 DEFAULT_PATH = Path(__file__).resolve().parent / "assets" / "enhancer.npz"
 _FORMAT = "wrinkle-jax-enhancer/1"
-# The U-Net form loaded models run in: the fastest inference form on CPU (`nn.winograd`; its
-# output is within ~1e-4 relative RMS of "im2col_bf16" on the shipped model).
-INFERENCE_CONV_IMPL = "winograd_bf16"
+# Loaded models of at least this width run the Winograd form (`inference_conv_impl`).
+WINOGRAD_MIN_WIDTH = 32
+
+
+def inference_conv_impl(config: unet.UNetConfig) -> str:
+    """The U-Net form a loaded model runs in by default: "winograd_bf16" from width
+    `WINOGRAD_MIN_WIDTH` (forward per 16 patches, quiet, session 26: width 32 115.7 -> 103.5 ms,
+    width 64 1.25x), else "im2col_bf16": at the shipped width 16 only two small layers qualify,
+    the forward gained 0-8 % in repeated runs, and the Winograd program compiles ~0.8 s
+    longer."""
+    return "winograd_bf16" if config.width >= WINOGRAD_MIN_WIDTH else "im2col_bf16"
 
 
 class EnhancerError(ValueError):
@@ -69,8 +77,9 @@ class EnhancerConfig:
     texel_size: float = normalmap.DEFAULT_TEXEL_SIZE
     coarse_pd: float = 0.03
 
-    def model(self, conv_impl: str = INFERENCE_CONV_IMPL) -> unet.CINUNet:
-        return self.unet.module(len(self.materials), conv_impl)
+    def model(self, conv_impl: str | None = None) -> unet.CINUNet:
+        """The U-Net in `conv_impl` (None: `inference_conv_impl`)."""
+        return self.unet.module(len(self.materials), conv_impl or inference_conv_impl(self.unet))
 
     def material_id(self, name: str) -> int:
         if name not in self.materials:
@@ -133,14 +142,14 @@ def save_enhancer(path: str | os.PathLike, params, config: EnhancerConfig,
 
 
 def load_enhancer(path: str | os.PathLike | None = None,
-                  conv_impl: str = INFERENCE_CONV_IMPL) -> Enhancer:
+                  conv_impl: str | None = None) -> Enhancer:
     """Load an enhancer file (default: the shipped model).
 
     Args:
       path: an ``.npz`` written by :func:`save_enhancer`; None for ``DEFAULT_PATH``.
-      conv_impl: the U-Net's convolution form (`INFERENCE_CONV_IMPL`, "winograd_bf16", the
-        fastest on CPU; "im2col_bf16" trains faster; "im2col_f32" or "xla" exact); the
-        parameters are the same for all forms.
+      conv_impl: the U-Net's convolution form: None picks by width (`inference_conv_impl`);
+        "winograd_bf16" (fastest on CPU from width 32) or "im2col_bf16"; "im2col_f32" or
+        "xla" exact. The parameters are the same for all forms.
 
     Raises:
       EnhancerError: naming the file, if it is missing, not an enhancer file, or its
@@ -175,7 +184,7 @@ def load_enhancer(path: str | os.PathLike | None = None,
 def from_torch_checkpoint(path: str | os.PathLike, materials: tuple[str, ...] | None = None, *,
                           patch_size: int = 128,
                           texel_size: float = normalmap.DEFAULT_TEXEL_SIZE,
-                          conv_impl: str = INFERENCE_CONV_IMPL) -> Enhancer:
+                          conv_impl: str | None = None) -> Enhancer:
     """The authors' PyTorch U-Net checkpoint as a pipeline-ready enhancer (no torch needed).
 
     The weights are converted by `unet.load_torch_checkpoint` (the allow-listed reader). Their

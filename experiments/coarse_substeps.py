@@ -25,6 +25,7 @@ import numpy as np
 
 from wrinkle_jax import MATERIALS
 from wrinkle_jax.classifier import motion
+from wrinkle_jax.fileio import atomic_write_text
 from wrinkle_jax.sim import scenes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -64,9 +65,8 @@ def main(argv=None) -> int:
                        "wall_s": round(time.perf_counter() - t0, 1)}
                 rows.append(row)
                 print(json.dumps(row), flush=True)
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps({"frames": args.frames, "self_collision": "off",
-                                          "rows": rows}, indent=1))
+    atomic_write_text(args.out, json.dumps({"frames": args.frames, "self_collision": "off",
+                                            "rows": rows}, indent=1))
     return 0
 
 

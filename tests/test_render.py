@@ -400,6 +400,16 @@ def test_write_mp4_streams_readable_frames(tmp_path):
     assert sorted(p.name for p in path.parent.iterdir()) == ["video.mp4"]  # no temporaries
 
 
+@pytest.mark.parametrize("umask", [0o022, 0o077])
+def test_write_mp4_file_mode_follows_the_umask(tmp_path, monkeypatch, umask):
+    from wrinkle_jax import fileio
+
+    monkeypatch.setattr(fileio, "_UMASK", umask)
+    path = tmp_path / "v.mp4"
+    render.write_mp4(path, [np.zeros((16, 16, 3), np.uint8)] * 2, fps=5)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask
+
+
 def test_write_mp4_rejects_bad_frames_and_leaves_nothing(tmp_path):
     path = tmp_path / "bad.mp4"
     frames = [np.zeros((16, 16, 3), np.uint8), np.zeros((16, 20, 3), np.uint8)]

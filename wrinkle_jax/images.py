@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from wrinkle_jax import fileio
 from wrinkle_jax.camera import RenderError
 
 __all__ = ["normal_map_image", "to_uint8", "write_mp4", "write_png"]
@@ -117,7 +118,7 @@ def write_mp4(path: str | os.PathLike, frames: Iterable, fps: float = 24.0) -> i
         writer = None
         if os.path.getsize(tmp) == 0:
             raise RenderError(f"{path}: OpenCV wrote an empty video")
-        os.chmod(tmp, 0o644)
+        os.chmod(tmp, 0o666 & ~fileio._UMASK)  # a new file's mode, as open() would give
         os.replace(tmp, path)
     finally:
         if writer is not None:

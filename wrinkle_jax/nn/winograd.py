@@ -20,7 +20,7 @@ and F(3, 2) use the points 0, 1, -1 (transform coefficients 0, +-1, +-1/2), whos
 
 Where it pays: the transforms move alpha^2 / m^2 (4 or 1.8) values per output and channel in
 float32, so at few channels they cost more than the saved products. `use_winograd` holds the
-rule measured on this machine (`benchmarks/bench_unet.py --winograd`): both channel counts at
+rule measured on this machine (`benchmarks/bench_winograd.py`): both channel counts at
 least `MIN_CHANNELS` and an input of at least `MIN_SIDE` x `MIN_SIDE` texels.
 
 Gradients (reverse mode, `jax.custom_vjp`): the input gradient of either layer is itself a

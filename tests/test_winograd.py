@@ -120,25 +120,28 @@ def _small_net():
 def test_unet_winograd_form(monkeypatch):
     """Below the rule's thresholds the form is the im2col form, bit for bit; with the
     thresholds lowered every eligible layer runs by Winograd (the output changes by rounding
-    only) and stays within the bfloat16 bounds of the exact form."""
+    only) and output and parameter gradient stay within the bfloat16 bounds of the exact
+    form (the gradient's as for im2col_bf16, test_fastconv)."""
     model, params, x, m = _small_net()
 
     def run(impl):
         return jax.jit(model.clone(conv_impl=impl).apply)({"params": params}, x, m)
 
-    exact, im2col = run("im2col_f32"), run("im2col_bf16")
+    def value_and_grad(impl):  # output and the parameter gradient of a training-like loss
+        def loss(p):
+            y = model.clone(conv_impl=impl).apply({"params": p}, x, m)
+            return jnp.sum(y**2), y
+
+        (_, y), g = jax.jit(jax.value_and_grad(loss, has_aux=True))(params)
+        return y, np.concatenate([np.ravel(a) for a in jax.tree_util.tree_leaves(g)])
+
+    im2col = run("im2col_bf16")
     np.testing.assert_array_equal(run("winograd_bf16"), im2col)  # width 4: no layer qualifies
+    exact, g_exact = value_and_grad("im2col_f32")
     monkeypatch.setattr(winograd, "MIN_CHANNELS", 1)
     monkeypatch.setattr(winograd, "MIN_SIDE", 1)
-    wino = run("winograd_bf16")
+    wino, g_wino = value_and_grad("winograd_bf16")
     assert np.any(np.asarray(wino) != np.asarray(im2col))
     assert _rel_rms(wino, exact) < fastconv.BF16_RTOL
     assert _rel_max(wino, exact) < fastconv.BF16_MAX_RTOL
-
-    def grad(impl):  # the parameter gradient of a training-like loss, flattened
-        g = jax.jit(jax.grad(lambda p: jnp.sum(model.clone(conv_impl=impl).apply(
-            {"params": p}, x, m) ** 2)))(params)
-        return np.concatenate([np.ravel(a) for a in jax.tree_util.tree_leaves(g)])
-
-    g_exact, g_wino = grad("im2col_f32"), grad("winograd_bf16")
-    assert np.linalg.norm(g_wino - g_exact) / np.linalg.norm(g_exact) < 2e-2  # as im2col_bf16
+    assert np.linalg.norm(g_wino - g_exact) / np.linalg.norm(g_exact) < 2e-2

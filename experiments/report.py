@@ -45,6 +45,11 @@ COMMANDS = {
     "stride": "python -m experiments.stride",
     "temporal": "python -m experiments.temporal --frames 30",
     "timing": "python -m experiments.timing --frames 30 --model wrinkle_jax/assets/enhancer.npz",
+    "reference_unet": ("python benchmarks/bench_reference.py --authors-repo PATH --skip-train "
+                       "--skip-lift --rounds 5 > experiments/results/timing/reference_unet.json"),
+    "reference_train": ("python benchmarks/bench_reference.py --authors-repo PATH --skip-unet "
+                        "--skip-lift --train-impls im2col_bf16 winograd_bf16 --rounds 3 "
+                        "> experiments/results/timing/reference_train.json"),
     "lift": "python benchmarks/bench_lift.py --quick > experiments/results/lift/bench.json",
     "substeps": ("python benchmarks/bench_sim.py --quick --part substeps "
                  "> experiments/results/sim/substeps.json"),
@@ -393,6 +398,40 @@ def timing_section(rep: Report, timing) -> None:
     rep.image("timing/timing.png", "per-stage timing")
 
 
+def reference_section(rep: Report, unet_run, train_run) -> None:
+    """Our U-Net forms beside the authors' PyTorch code (`benchmarks/bench_reference.py`):
+    speed-ups (their wall time / ours, medians of per-round ratios) and errors against theirs."""
+    rep.add("### Beside the authors' code", "")
+    if not unet_run and not train_run:
+        rep.not_run("the side-by-side runs with the authors' network", "reference_unet")
+        return
+    rep.add("Same weights, their PyTorch (CPU) and our forms in one process, alternating; "
+            "inference: width 64, batch 8 of 128 x 128 patches; training step: their recipe, "
+            "batch 32. Errors: relative RMS against their output / parameter gradient.", "")
+    rep.add("| form | inference, x their speed | output error | training step, x their speed "
+            "| gradient error |", "|---|---|---|---|---|")
+    u = (unet_run or {}).get("unet", {})
+    t = (train_run or {}).get("train", {})
+    forms = list(dict.fromkeys(
+        [k.removeprefix("ours_") for k in u.get("speedup_vs_authors_wall", {})]
+        + [k.removeprefix("ours_") for k in t.get("speedup_vs_authors_wall", {})]))
+
+    def cell(d, key, fmt):
+        return fmt.format(d[key]) if key in d else "-"
+
+    for form in forms:
+        err = u.get("agreement_vs_authors", {}).get(form, {})
+        grad = t.get("agreement", {}).get(form, {}).get("grad_rel_rms_vs_authors", {})
+        infer = cell(u.get("speedup_vs_authors_wall", {}), "ours_" + form, "{:.2f}x")
+        step = cell(t.get("speedup_vs_authors_wall", {}), "ours_" + form, "{:.2f}x")
+        rep.add(f"| {form} | {infer} | {cell(err, 'rel_rms', '{:.2%}')} | {step} "
+                f"| {cell(grad, 'all', '{:.2%}')} |")
+    loads = [r["timing"]["load_avg_1m"] for r in (u, t) if r and "timing" in r]
+    rep.add("", "Targets (issue 22): inference >= 3x, training step >= 4x, bfloat16 output "
+            "error <= 1 %. 1-minute load before/after: "
+            + "; ".join(f"{x['before']}/{x['after']}" for x in loads) + ".", "")
+
+
 # --------------------------------------------------------------------------------------------
 # Speed against error
 # --------------------------------------------------------------------------------------------
@@ -542,6 +581,8 @@ def build(results: Path) -> Report:
     ablations_section(rep, t1, stride)
     temporal_section(rep, temporal)
     timing_section(rep, timing)
+    reference_section(rep, rep.load("reference_unet", "timing/reference_unet.json"),
+                      rep.load("reference_train", "timing/reference_train.json"))
     pareto_section(rep, stride)
     machines_section(rep)
     return rep

@@ -453,6 +453,23 @@ def test_report_assembles_stored_results_and_names_what_is_missing(tmp_path, mon
     assert report.main(["--results", str(results), "--out", str(out), "--strict"]) == 1
 
 
+def test_report_reference_section_reads_both_runs_and_says_what_is_missing():
+    unet_run = json.loads((suite.RESULTS / "timing" / "reference_unet.json").read_text())
+    train_run = json.loads((suite.RESULTS / "timing" / "reference_train.json").read_text())
+    rep = report.Report(suite.RESULTS)
+    report.reference_section(rep, unet_run, train_run)
+    text = "\n".join(rep.lines)
+    for form in ("im2col_bf16", "winograd_bf16"):
+        infer = unet_run["unet"]["speedup_vs_authors_wall"][f"ours_{form}"]
+        step = train_run["train"]["speedup_vs_authors_wall"][f"ours_{form}"]
+        err = unet_run["unet"]["agreement_vs_authors"][form]["rel_rms"]
+        assert f"| {form} | {infer:.2f}x | {err:.2%} | {step:.2f}x |" in text
+    assert "| xla | " in text and "| - | - |" in text  # timed for inference only
+    rep = report.Report(suite.RESULTS)
+    report.reference_section(rep, None, None)
+    assert "**Not run yet**" in "\n".join(rep.lines)
+
+
 def test_make_sequences_only_selects_the_named_scenes_in_plan_order():
     from experiments import make_sequences
 

@@ -144,7 +144,7 @@ def add_recipe_args(ap: argparse.ArgumentParser) -> None:
                     choices=("xla", "im2col_f32", "im2col_bf16", "winograd_bf16"),
                     help="convolution form of the U-Net and the loss's VGG: winograd_bf16 "
                          "steps ~1.4x faster than the recipe's im2col_bf16 (session 26, "
-                         "experiments/results/timing/reference_s26_train_winograd.json)")
+                         "experiments/results/timing/reference_train.json)")
 
 
 def config_from_args(args: argparse.Namespace) -> train.TrainConfig:

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from wrinkle_jax.nn import unet
+from wrinkle_jax.nn import unet, vgg
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,7 +86,7 @@ class TrainConfig:
 
     @property
     def vgg_conv_impl(self) -> str:
-        return self.conv_impl if self.conv_impl in ("im2col_bf16", "winograd_bf16") else "xla"
+        return self.conv_impl if self.conv_impl in vgg.CONV_IMPLS else "xla"  # im2col_f32: xla
 
     def to_json(self) -> dict:
         """Flat: the U-Net's settings among the training fields (the run-config format)."""

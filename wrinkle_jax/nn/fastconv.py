@@ -158,6 +158,17 @@ def _reflect_pad_adjoint(gp):
 _BITS = {2: jnp.uint16, 4: jnp.uint32}
 
 
+def _check_layer(x, kernel, taps: int, padding: str = "ZERO"):
+    """Raise ValueError unless `padding` is known and x (N, H, W, C) and kernel
+    (taps, taps, C, O) fit the 3x3 conv (taps 3) or the transposed conv (taps 4)."""
+    if padding not in _PADDINGS:
+        raise ValueError(f"padding must be one of {_PADDINGS}, got {padding!r}")
+    if x.ndim != 4 or kernel.shape[:2] != (taps, taps) or kernel.shape[2] != x.shape[-1]:
+        name = "conv3x3" if taps == 3 else "conv_transpose4x4s2"
+        raise ValueError(f"{name}: x {x.shape} and kernel {kernel.shape} do not match "
+                         f"(N, H, W, C) / ({taps}, {taps}, C, O)")
+
+
 def _bits(x):
     """Reinterpret float `x` as unsigned integers of the same width.
 
@@ -334,11 +345,7 @@ def conv3x3(x, kernel, bias=None, *, compute_dtype=jnp.bfloat16, padding="ZERO")
       >>> y.shape, float(y[0, 4, 4, 0]), float(y[0, 0, 0, 0])
       ((1, 8, 8, 5), 1.001953125, 0.4453125)
     """
-    if padding not in _PADDINGS:
-        raise ValueError(f"padding must be one of {_PADDINGS}, got {padding!r}")
-    if x.ndim != 4 or kernel.shape[:2] != (3, 3) or kernel.shape[2] != x.shape[-1]:
-        raise ValueError(f"conv3x3: x {x.shape} and kernel {kernel.shape} do not match "
-                         "(N, H, W, C) / (3, 3, C, O)")
+    _check_layer(x, kernel, 3, padding)
     y = _conv3x3(x, kernel, padding, _dtype_name(compute_dtype), jnp.dtype(x.dtype).name)
     return y if bias is None else y + bias.astype(jnp.float32)
 
@@ -447,9 +454,7 @@ def conv_transpose4x4s2(x, kernel, bias=None, *, compute_dtype=jnp.bfloat16):
     Returns:
       (N, 2H, 2W, O) float32.
     """
-    if x.ndim != 4 or kernel.shape[:2] != (4, 4) or kernel.shape[2] != x.shape[-1]:
-        raise ValueError(f"conv_transpose4x4s2: x {x.shape} and kernel {kernel.shape} do not "
-                         "match (N, H, W, C) / (4, 4, C, O)")
+    _check_layer(x, kernel, 4)
     y = _deconv(x, kernel, _dtype_name(compute_dtype), jnp.dtype(x.dtype).name)
     return y if bias is None else y + bias.astype(jnp.float32)
 

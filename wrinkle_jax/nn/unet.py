@@ -476,10 +476,7 @@ class FastConv(nn.Module):
         kernel = self.param("kernel", nn.initializers.lecun_normal(),
                             (k, k, x.shape[-1], self.features), jnp.float32)
         bias = self.param("bias", nn.initializers.zeros_init(), (self.features,), jnp.float32)
-        ops = fastconv
-        if self.winograd and winograd.use_winograd(x.shape[-1], self.features,
-                                                   min(x.shape[1], x.shape[2])):
-            ops = winograd
+        ops = winograd.layer_ops(x, self.features, self.winograd)
         if self.transpose:
             return ops.conv_transpose4x4s2(x, kernel, bias, compute_dtype=self.compute_dtype)
         return ops.conv3x3(x, kernel, bias, compute_dtype=self.compute_dtype)

@@ -53,7 +53,7 @@ import numpy as np
 
 from wrinkle_jax.fileio import atomic_write_bytes, user_cache_dir
 from wrinkle_jax.io import torch_pickle
-from wrinkle_jax.nn import fastconv, winograd
+from wrinkle_jax.nn import winograd
 from wrinkle_jax.numerics import to_device
 
 __all__ = [
@@ -158,10 +158,7 @@ def _conv3x3(x, layer, padding, dtype, conv_impl="xla"):
     """
     if conv_impl in ("im2col_bf16", "winograd_bf16"):
         compute = jnp.float32 if x.shape[-1] <= 4 else jnp.bfloat16
-        ops = fastconv
-        if conv_impl == "winograd_bf16" and winograd.use_winograd(
-                x.shape[-1], layer["kernel"].shape[-1], min(x.shape[1], x.shape[2])):
-            ops = winograd
+        ops = winograd.layer_ops(x, layer["kernel"].shape[-1], conv_impl == "winograd_bf16")
         return ops.conv3x3(x, layer["kernel"], layer["bias"], padding=padding,
                            compute_dtype=compute)
     kernel = layer["kernel"]

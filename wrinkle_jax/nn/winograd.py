@@ -34,6 +34,7 @@ Shapes: NHWC activations, HWIO kernels as `fastconv`.
 from __future__ import annotations
 
 import functools
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -43,8 +44,8 @@ from numpy.polynomial import polynomial as npoly
 
 from wrinkle_jax.nn import fastconv
 
-__all__ = ["MIN_CHANNELS", "MIN_SIDE", "conv3x3", "conv_transpose4x4s2", "toom_cook",
-           "use_winograd"]
+__all__ = ["MIN_CHANNELS", "MIN_SIDE", "conv3x3", "conv_transpose4x4s2", "layer_ops",
+           "toom_cook", "use_winograd"]
 
 # Measured rule (see the module docstring): the Winograd form is used for a layer whose input
 # and output channels are both >= MIN_CHANNELS and whose input is >= MIN_SIDE texels per side.
@@ -85,6 +86,14 @@ def use_winograd(c_in: int, c_out: int, side: int) -> bool:
     """The measured rule: Winograd for a layer of c_in -> c_out channels on a `side`-texel
     input (the smaller of H and W)."""
     return min(c_in, c_out) >= MIN_CHANNELS and side >= MIN_SIDE
+
+
+def layer_ops(x, c_out: int, enabled: bool = True):
+    """The module whose `conv3x3` / `conv_transpose4x4s2` runs a layer of input x
+    (N, H, W, C) and c_out output channels: this one where `enabled` and the rule picks the
+    layer, else `fastconv` (same signatures)."""
+    picked = enabled and use_winograd(x.shape[-1], c_out, min(x.shape[1], x.shape[2]))
+    return sys.modules[__name__] if picked else fastconv
 
 
 def _lin(parts, coefs):
@@ -258,11 +267,7 @@ def conv3x3(x, kernel, bias=None, *, compute_dtype=jnp.bfloat16, padding="ZERO")
       >>> y.shape, round(float(y[0, 4, 4, 0]), 2), round(float(y[0, 0, 0, 0]), 2)
       ((1, 8, 8, 5), 1.0, 0.44)
     """
-    if padding not in fastconv._PADDINGS:
-        raise ValueError(f"padding must be one of {fastconv._PADDINGS}, got {padding!r}")
-    if x.ndim != 4 or kernel.shape[:2] != (3, 3) or kernel.shape[2] != x.shape[-1]:
-        raise ValueError(f"conv3x3: x {x.shape} and kernel {kernel.shape} do not match "
-                         "(N, H, W, C) / (3, 3, C, O)")
+    fastconv._check_layer(x, kernel, 3, padding)
     y = _conv3x3(x, kernel, padding, fastconv._dtype_name(compute_dtype))
     return y if bias is None else y + bias.astype(jnp.float32)
 
@@ -277,8 +282,6 @@ def conv_transpose4x4s2(x, kernel, bias=None, *, compute_dtype=jnp.bfloat16):
     Returns:
       (N, 2H, 2W, O) float32.
     """
-    if x.ndim != 4 or kernel.shape[:2] != (4, 4) or kernel.shape[2] != x.shape[-1]:
-        raise ValueError(f"conv_transpose4x4s2: x {x.shape} and kernel {kernel.shape} do not "
-                         "match (N, H, W, C) / (4, 4, C, O)")
+    fastconv._check_layer(x, kernel, 4)
     y = _deconv(x, kernel, fastconv._dtype_name(compute_dtype))
     return y if bias is None else y + bias.astype(jnp.float32)

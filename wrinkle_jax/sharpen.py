@@ -104,7 +104,8 @@ def masked_blur(n, mask, sigma: float, order: int = 1):
     The Gaussian moments are separable sums of dense banded matmuls on the planes laid out as
     (H, C + 1, N, W), where both the row and the column pass are plain matrix products (no
     transposes between them), and each row pass is shared by the column passes that need it:
-    order 1 costs 2 (C + 1) + 1 row and 4 (C + 1) + 2 column passes.
+    order 1 costs 2 (C + 1) + 1 row and 3 (C + 1) + 3 column passes (one pass: one plane's
+    (H, H) matmul).
     """
     if order not in (0, 1):
         raise ValueError(f"masked_blur order must be 0 or 1, got {order!r}")
@@ -118,9 +119,11 @@ def masked_blur(n, mask, sigma: float, order: int = 1):
     d = np.arange(len(g), dtype=np.float32) - (len(g) - 1) // 2  # offset q - p (texels)
     g1, g2 = g * d, g * d * d
     rows = _rows(planes, g, g1)                      # (2, H, C+1, N, W): taps g, g1 along H
-    both = _cols(rows, g, g1)                        # (2, H, C+1, N, 2, W): then g, g1 along W
-    m0, mx = both[0, ..., 0, :], both[0, ..., 1, :]  # moments 1, x of (values, mask)
-    my, mxy = both[1, ..., 0, :], both[1, :, -1, :, 1, :]
+    # Only the column passes that a moment uses: (g1, g1) is the mask's alone.
+    both = _cols(rows[0], g, g1)                     # (H, C+1, N, 2, W): then g, g1 along W
+    m0, mx = both[..., 0, :], both[..., 1, :]        # moments 1, x of (values, mask)
+    my = _cols(rows[1], g)[..., 0, :]
+    mxy = _cols(rows[1, :, -1], g1)[..., 0, :]       # (H, N, W)
     mk = planes[:, -1]                               # (H, N, W)
     myy = _cols(_rows(mk, g2)[0], g)[..., 0, :]
     mxx = _cols(rows[0, :, -1], g2)[..., 0, :]

@@ -402,3 +402,19 @@ def test_two_sheets_do_not_pass_through():
     upper = np.zeros(len(scene.x0), bool)
     upper[np.asarray(g.faces)[np.asarray(g.panels) == 1].reshape(-1)] = True
     assert _layers_ordered(xs[-1], ~upper, upper)
+
+
+@pytest.mark.parametrize("n", [1, 4095, 4096, 4097, 70_001])
+def test_prefix_sum_equals_cumsum(n):
+    # The builds' running counts: the blocked form (n >= 16 rows of 256) and the plain one.
+    rng = np.random.default_rng(n)
+    ints = rng.integers(-3, 9, n).astype(np.int32)
+    bools = rng.random(n) < 0.3
+    fn = jax.jit(S.prefix_sum)
+    for v in (ints, bools):
+        got = np.asarray(fn(jnp.asarray(v)))
+        assert got.dtype == np.int32
+        np.testing.assert_array_equal(got, np.cumsum(v.astype(np.int64)))
+    m = rng.integers(0, 5, (37, 8)).astype(np.int32)
+    np.testing.assert_array_equal(np.asarray(S.prefix_rows(jnp.asarray(m))),
+                                  np.cumsum(m.reshape(-1)).reshape(m.shape))

@@ -260,6 +260,31 @@ def _pair_thickness(topo: SelfTopology, v, t, cfg: SelfCollisionConfig):
     return jnp.where(same, jnp.minimum(cfg.thickness, 0.9 * jnp.sqrt(rest2)), cfg.thickness)
 
 
+def prefix_rows(m):
+    """Inclusive running count (N, G) int32 of m (N, G) in row-major order.
+
+    A cumsum over the rows' totals and a log-depth scan within rows: XLA's CPU cumsum is a
+    sequential loop (~7 ns per entry measured at 0.26-1.2 M entries, session 27; ~25 ns under
+    load), the scan within rows vectorizes.
+    """
+    m = m.astype(jnp.int32)
+    inrow = jax.lax.associative_scan(jnp.add, m, axis=1)
+    tot = inrow[:, -1]
+    return inrow + (jnp.cumsum(tot) - tot)[:, None]
+
+
+def prefix_sum(v, width: int = 256):
+    """`jnp.cumsum` of an integer or bool vector v (N,) as int32, the same values: rows of
+    `width` through `prefix_rows` (measured 1.5-2x faster at 35 k-1.2 M entries, session 27).
+    Short vectors use the plain cumsum."""
+    n = v.shape[0]
+    if n < 16 * width:
+        return jnp.cumsum(v.astype(jnp.int32))
+    rows = -(-n // width)
+    p = jnp.pad(v.astype(jnp.int32), (0, rows * width - n)).reshape(rows, width)
+    return prefix_rows(p).reshape(-1)[:n]
+
+
 def _budget(per_vertex: float, num_vertices: int) -> int:
     return max(1, int(np.ceil(per_vertex * num_vertices)))
 
@@ -277,7 +302,7 @@ def _keep_nearest(valid, dist, size: int, top: float, bins: int = 64):
     whole = jnp.sum(cum <= size)                     # the first `whole` bins fit entirely
     room = size - jnp.where(whole > 0, cum[jnp.maximum(whole - 1, 0)], 0)
     partial = valid & (b == whole)
-    return (valid & (b < whole)) | (partial & (jnp.cumsum(partial) <= room))
+    return (valid & (b < whole)) | (partial & (prefix_sum(partial) <= room))
 
 
 def _select(valid, dist, size: int, top: float):
@@ -288,7 +313,7 @@ def _select(valid, dist, size: int, top: float):
     # The ranking costs a histogram over all N entries: only when the bound is exceeded.
     keep = jax.lax.cond(n > size, lambda: _keep_nearest(valid, dist, size, top),
                         lambda: valid)
-    pos = jnp.where(keep, jnp.cumsum(keep) - 1, size)
+    pos = jnp.where(keep, prefix_sum(keep) - 1, size)
     idx = jnp.zeros(size, jnp.int32).at[pos].set(jnp.arange(valid.shape[0], dtype=jnp.int32),
                                                   mode="drop")
     return idx, jnp.arange(size) < jnp.minimum(n, size), jnp.maximum(n - size, 0)
@@ -318,13 +343,13 @@ def build_pairs(x, faces, topo: SelfTopology, cfg: SelfCollisionConfig) -> tuple
     reach = cfg.thickness + cfg.margin
     tri = x[faces]
     _, _, stri, start, count = _cell_lists(x, tri, reach)
-    ends = jnp.cumsum(count)
+    ends = prefix_sum(count)
     offs = ends - count
     # The vertex of each slot: the number of vertices whose slots start at or before it,
     # minus one (a vertex with an empty cell starts where the next one does, so the last
     # of them, the owner, is counted last). One scatter-add of V and one cumsum, no search.
     first = jnp.zeros(n_raw, jnp.int32).at[offs].add(1, mode="drop")
-    owner = jnp.maximum(jnp.cumsum(first) - 1, 0).astype(jnp.int32)
+    owner = jnp.maximum(prefix_sum(first) - 1, 0)
     slot = jnp.arange(n_raw, dtype=jnp.int32)
     read = slot < ends[-1]
     t = stri[jnp.clip(slot + (start - offs)[owner], 0, stri.shape[0] - 1)]
@@ -446,7 +471,7 @@ def flatten(cand: Candidates, size: int) -> tuple[Pairs, Any]:
     vertex order; returns the list and the number of valid slots that did not fit (int32)."""
     num_v, k = cand.tri.shape
     valid = cand.valid.reshape(-1)
-    pos = jnp.where(valid, jnp.cumsum(valid) - 1, size)      # out of range -> dropped
+    pos = jnp.where(valid, prefix_sum(valid) - 1, size)      # out of range -> dropped
     vert = jnp.repeat(jnp.arange(num_v, dtype=jnp.int32), k)
 
     def put(a, fill):

@@ -51,6 +51,9 @@ def compiled_stage(enh, blur, tiles, batch: int):
     """The jitted network stage compiled with `blur` as `sharpen.masked_blur`."""
     saved = sharpen.masked_blur
     sharpen.masked_blur = blur
+    # Jitted callers (`sharpen.unsharp_rgb`) keep the trace of the blur they first saw:
+    # without clearing, every variant after the first ran the first variant's unsharp blur.
+    jax.clear_caches()
     try:
         apply = enhancer.make_apply(enh)
         fn = jax.jit(stages.network_stage, static_argnames=("apply", "batch_size"))

@@ -150,8 +150,8 @@ def train_step_profile(args) -> dict:
         return optax.apply_updates(p, updates), o
 
     step = train.make_train_step(cfg, vp)
-    box = {"state": train.TrainState(jnp.zeros((), jnp.int32), jax.tree.map(jnp.copy, params),
-                                     tx.init(params))}
+    box = {"state": train.place_state(train.TrainState(
+        jnp.zeros((), jnp.int32), jax.tree.map(jnp.copy, params), tx.init(params)))}
     batch = train.shard_batch({"input": np.asarray(x), "target": np.asarray(tgt),
                                "mask": np.asarray(mask), "material": np.asarray(mats)},
                               train.data_mesh())

@@ -14,8 +14,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax.sharding import NamedSharding
-from jax.sharding import PartitionSpec as P
 
 from wrinkle_jax import data, train
 from wrinkle_jax.nn import unet, vgg
@@ -23,12 +21,6 @@ from wrinkle_jax.nn import unet, vgg
 CONFIG = train.TrainConfig(unet.UNetConfig(width=4, residual=True), batch_size=4, steps=4,
                            learning_rate=1e-3, style_layers=("relu1_2", "relu2_1"), w_s=10.0,
                            eval_every=2, eval_batches=1, checkpoint_every=2)
-
-
-def _placed(state):
-    """The state placed as `train.train` places it (replicated on the data mesh), the placement
-    the step returns: a fresh state is another input type to jit, a second compile."""
-    return jax.device_put(state, NamedSharding(train.data_mesh(), P()))
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +41,8 @@ def test_overfits_four_patches(data_root, tiny_vgg):
     # (the identity start is tested in test_residual_network_starts_as_identity). CONFIG's
     # network: its step is the program `train.train` runs in the tests below (compiled once).
     cfg = dataclasses.replace(CONFIG, zero_init_output=False)
-    state = _placed(train.create_train_state(cfg, jax.random.key(1, impl="rbg"), patch_size=32))
+    state = train.place_state(
+        train.create_train_state(cfg, jax.random.key(1, impl="rbg"), patch_size=32))
     step = train.make_train_step(cfg, tiny_vgg)
     losses = []
     for _ in range(50):
@@ -58,6 +51,8 @@ def test_overfits_four_patches(data_root, tiny_vgg):
     assert np.isfinite(losses).all()
     assert losses[-1] <= 0.5 * losses[0], (losses[0], losses[-1])
     assert int(state.step) == 50
+    # The placed start is the input type the step returns: 50 steps, one program.
+    assert step._cache_size() == 1
 
 
 def test_checkpoint_round_trip_is_bit_identical(tmp_path, tiny_vgg):
@@ -228,7 +223,8 @@ def test_detail_noise_recipe_trains_and_scores_detail(data_root, tiny_vgg):
     ds = data.PatchDataset(data_root, "train")
     it = data.BatchIterator(ds, 4, seed=0, origins=True)
     batch = train.shard_batch(next(it), train.data_mesh())
-    state = _placed(train.create_train_state(cfg, jax.random.key(3, impl="rbg"), patch_size=32))
+    state = train.place_state(
+        train.create_train_state(cfg, jax.random.key(3, impl="rbg"), patch_size=32))
     ev = train.make_eval_step(cfg, tiny_vgg)
     start = jax.device_get(ev(state.params, batch))
     # The identity up to the float32 round trip through the detail frame.

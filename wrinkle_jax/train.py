@@ -134,10 +134,24 @@ def shard_batch(batch: dict, mesh: jax.sharding.Mesh) -> dict:
             for k, v in batch.items()}
 
 
+def place_state(state, mesh: jax.sharding.Mesh | None = None):
+    """`state` (a `TrainState`, or any pytree of arrays) replicated on `mesh` (default: all
+    devices), as the train step returns it.
+
+    Place a state before its first step: its avals then carry the mesh like the step's
+    output, so the second step reuses the first one's program. A state placed otherwise is
+    another input type to jit and the step compiles again (about 50 s for the authors' width-64
+    recipe in the Winograd form, session 27).
+    """
+    mesh = data_mesh() if mesh is None else mesh
+    return jax.device_put(state, NamedSharding(mesh, P()))
+
+
 def make_train_step(config: TrainConfig, vgg_params, mesh: jax.sharding.Mesh | None = None,
                     bank=None):
     """The jitted `(state, batch) -> (state, metrics)` step, data parallel over `mesh`
-    (`bank`: see `loss_fn`)."""
+    (`bank`: see `loss_fn`). Pass it a state placed by `place_state` and a batch from
+    `shard_batch` on the same mesh, or its second call compiles again."""
     mesh = data_mesh() if mesh is None else mesh
     tx = optimizer(config)
     replicated = NamedSharding(mesh, P())
@@ -428,7 +442,7 @@ def train(config: TrainConfig, data_root: str | os.PathLike, out_dir: str | os.P
     # One placement for every start (fresh, warm-started or restored): the step returns its
     # state replicated on the mesh, and a state placed otherwise is another input type to
     # jit (its avals carry the mesh), so the step and the eval step would compile again.
-    state = jax.device_put(state, NamedSharding(mesh, P()))
+    state = place_state(state, mesh)
     bank = (training_bank(config, train_set, vgg_params, out_dir / "bank.npz")
             if config.bank_weight > 0 else None)
     # Reused across calls (a resume compiles nothing new; see `cached_step`).

@@ -162,3 +162,13 @@ def test_conv_impl_flag_sets_the_form_only():
     got = _parse(["--conv-impl", "winograd_bf16"])
     assert got == dataclasses.replace(train.RECIPE, conv_impl="winograd_bf16")
     assert got.vgg_conv_impl == "winograd_bf16"  # the loss's VGG follows
+
+
+def test_conv_impl_choices_are_the_networks_forms():
+    """The parser lists the forms literally (it imports no JAX); they must be the U-Net's."""
+    ap = argparse.ArgumentParser()
+    recipe.add_recipe_args(ap)
+    action = next(a for a in ap._actions if "--conv-impl" in a.option_strings)
+    assert tuple(action.choices) == tuple(unet.CONV_IMPLS)
+    for impl in unet.CONV_IMPLS:  # each parses to a config that builds
+        assert _parse(["--conv-impl", impl]).model().conv_impl == impl

@@ -157,7 +157,7 @@ def _correlate(xp, kernel, transform, th: int, tw: int, dtype):
 
 
 def _conv3x3_forward(x, kernel, padding: str, dtype):
-    n, h, w, c = x.shape
+    _, h, w, _ = x.shape
     th, tw = -(-h // 2), -(-w // 2)
     if padding == "REFLECT":
         x = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)), mode="reflect")
@@ -202,7 +202,7 @@ def _kernel_grad(fn, x, kernel, g):
 def _conv3x3_bwd(padding, compute, res, g):
     x, kernel = res
     dt = fastconv._DTYPES[compute]
-    n, h, w, _ = x.shape
+    _, h, w, _ = x.shape
     k_in = fastconv._flip_transpose(kernel)  # the input gradient is a 3x3 conv of g with it
     if padding == "ZERO":
         dx = _conv3x3_forward(g, k_in, "ZERO", dt)
@@ -231,7 +231,7 @@ def _deconv_fwd(x, kernel, compute):
 def _deconv_bwd(compute, res, g):
     x, kernel = res
     dt = fastconv._DTYPES[compute]
-    n, h, w, _ = x.shape
+    _, h, w, _ = x.shape
     c, o = kernel.shape[2:]
     # The input gradient: a 2x2 valid correlation of the space-to-depth output gradient
     # (N, H+1, W+1, 4 O) with `fastconv._grad_kernel` (`fastconv._deconv_bwd`), by F(3, 2).

@@ -143,7 +143,8 @@ def add_recipe_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--conv-impl", default=lambda r, u: r.conv_impl,
                     choices=("xla", "im2col_f32", "im2col_bf16", "winograd_bf16"),
                     help="convolution form of the U-Net and the loss's VGG: winograd_bf16 "
-                         "stepped 1.46x (session 26) and 1.06x (session 27) as fast as the "
+                         "stepped 1.46x (session 26), 1.06x (session 27) and 1.42x "
+                         "(session 28) as fast as the "
                          "recipe's im2col_bf16 in the authors' recipe (bench_reference; "
                          "experiments/results/timing/reference_train.json)")
 

@@ -41,3 +41,107 @@ def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
     assert path.read_bytes() == b"old" and os.listdir(tmp_path) == ["f.bin"]
     with pytest.raises(IsADirectoryError, match="is a directory"):
         fileio.atomic_write_bytes(tmp_path, b"x")
+
+
+def _npz_bytes(compressed: bool) -> bytes:
+    import io
+    import json
+
+    import numpy as np
+
+    buf = io.BytesIO()
+    save = np.savez_compressed if compressed else np.savez
+    save(buf, a=np.arange(3000, dtype=np.float32).reshape(30, 100),
+         meta=np.frombuffer(json.dumps({"format": "x"}).encode(), np.uint8))
+    return buf.getvalue()
+
+
+def _read_like_a_loader(path):
+    import json
+
+    import numpy as np
+
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    json.loads(bytes(arrays.pop("meta")).decode())
+    return arrays["a"]
+
+
+def _deflate_start(data: bytes, member: str) -> int:
+    """Offset of `member`'s compressed bytes in the zip `data` (after its local header)."""
+    import io
+    import struct
+    import zipfile
+
+    info = zipfile.ZipFile(io.BytesIO(data)).getinfo(member)
+    name_len, extra_len = struct.unpack("<HH", data[info.header_offset + 26:
+                                                   info.header_offset + 30])
+    return info.header_offset + 30 + name_len + extra_len
+
+
+# NumPy evaluates a damaged .npy header as a Python literal, which may warn about its escapes.
+@pytest.mark.filterwarnings("ignore::DeprecationWarning", "ignore::SyntaxWarning")
+@pytest.mark.parametrize("compressed", [False, True])
+def test_every_damaged_npz_raises_one_of_the_read_errors(tmp_path, compressed):
+    """Cut short anywhere, or one byte flipped in either end (the first member's zip and .npy
+    headers; the central directory): reading fails only with `NPZ_READ_ERRORS` (an error
+    outside it fails this test), or reads (flips in unused fields)."""
+    data = _npz_bytes(compressed)
+    path = tmp_path / "f.npz"
+    path.write_bytes(data)
+    assert _read_like_a_loader(path).shape == (30, 100)  # the intact file reads
+    damaged = [data[:cut] for cut in range(0, len(data), 97)]  # also the empty file
+    for pos in [*range(200), *range(len(data) - 200, len(data))]:
+        for bits in (0xFF, 0x01):
+            b = bytearray(data)
+            b[pos] ^= bits
+            damaged.append(bytes(b))
+    raised = set()
+    for d in damaged:
+        path.write_bytes(d)
+        try:
+            _read_like_a_loader(path)
+        except fileio.NPZ_READ_ERRORS as e:
+            raised.add(type(e).__name__)
+    # The sweep reaches the exotic ones (zipfile's encrypted-flag and method errors, NumPy's
+    # header parsing), not only BadZipFile.
+    assert {"BadZipFile", "RuntimeError", "NotImplementedError", "TokenError"} <= raised, raised
+    for missing in (tmp_path / "none.npz", tmp_path):  # no file; a folder
+        with pytest.raises(fileio.NPZ_READ_ERRORS):
+            _read_like_a_loader(missing)
+
+
+def test_a_damaged_compressed_member_raises_zlib_error_which_is_a_read_error(tmp_path):
+    import zlib
+
+    data = bytearray(_npz_bytes(True))
+    start = _deflate_start(bytes(data), "a.npy")
+    data[start] = 0xFF  # deflate block type 3: reserved, invalid
+    path = tmp_path / "f.npz"
+    path.write_bytes(bytes(data))
+    with pytest.raises(zlib.error):
+        _read_like_a_loader(path)
+    assert issubclass(zlib.error, fileio.NPZ_READ_ERRORS)
+
+
+def test_model_files_with_a_damaged_member_are_reported_as_unreadable(tmp_path):
+    """modelfile.write stores compressed members (enhancer files): a damaged member is the
+    reader's error naming the file, not a zlib.error from inside NumPy."""
+    import numpy as np
+
+    from wrinkle_jax import modelfile
+
+    class Unreadable(Exception):
+        pass
+
+    path = tmp_path / "m.npz"
+    w = np.arange(4000, dtype=np.float32)
+    modelfile.write(path, {"w": w}, {"c": 1}, {"m": 2}, "test-format/1")
+    arrays, config, meta = modelfile.read(path, "test", "test-format/1", Unreadable)
+    np.testing.assert_array_equal(arrays["w"], w)
+    assert config == {"c": 1} and meta["m"] == 2
+    data = bytearray(path.read_bytes())
+    data[_deflate_start(bytes(data), "w.npy")] = 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(Unreadable, match="m.npz: not a readable test file"):
+        modelfile.read(path, "test", "test-format/1", Unreadable)

@@ -1,5 +1,6 @@
-"""Where files go and how they are written: the user cache folder, and atomic file writes
-(readers never see a partial output file, and a failed write leaves nothing behind)."""
+"""Where files go and how they are written: the user cache folder, atomic file writes
+(readers never see a partial output file, and a failed write leaves nothing behind), and the
+errors a damaged `.npz` raises when it is read."""
 
 from __future__ import annotations
 
@@ -7,9 +8,26 @@ import contextlib
 import os
 import subprocess
 import tempfile
+import tokenize
+import zipfile
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import BinaryIO
+
+# What reading a damaged or foreign `.npz` raises (np.load, its members, decoding their
+# bytes), seen in a sweep of single-byte flips over both ends of plain and compressed files
+# (tests/test_fileio.py): OSError (missing, a folder, no permission; a bad zip header),
+# EOFError (empty or cut short), zipfile.BadZipFile (cut short, a bad CRC), zlib.error (a
+# damaged compressed member: np.savez_compressed files such as model files and sequences),
+# KeyError (a missing member), ValueError (object arrays without pickle, bad .npy headers, bad
+# JSON or UTF-8), TypeError (a member of another type than the reader expects), SyntaxError and
+# tokenize.TokenError (NumPy parses a damaged .npy header dict), RuntimeError and
+# NotImplementedError (zipfile: a damaged flag or method field reads as encrypted or as an
+# unknown compression). Loaders catch these and raise their own error naming the file.
+NPZ_READ_ERRORS = (OSError, EOFError, zipfile.BadZipFile, zlib.error, KeyError, ValueError,
+                   TypeError, SyntaxError, tokenize.TokenError, RuntimeError,
+                   NotImplementedError)
 
 # Read once at import: os.umask can only be read by setting it, which races with threads.
 _UMASK = os.umask(0o022)

@@ -14,14 +14,13 @@ from __future__ import annotations
 import io
 import json
 import os
-import zipfile
 from pathlib import Path
 from typing import Any
 
 import jax
 import numpy as np
 
-from wrinkle_jax.fileio import atomic_write_bytes
+from wrinkle_jax.fileio import NPZ_READ_ERRORS, atomic_write_bytes
 
 
 def flatten(tree, leaf_fn=np.asarray) -> dict[str, Any]:
@@ -85,7 +84,7 @@ def read(path: Path, kind: str, fmt: str, error_cls) -> tuple[dict, dict, dict]:
             files = {k: z[k] for k in z.files}
         config = json.loads(bytes(files.pop("config.json")).decode())
         meta = json.loads(bytes(files.pop("meta.json")).decode())
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, UnicodeDecodeError) as e:
+    except NPZ_READ_ERRORS as e:
         raise error_cls(f"{path}: not a readable {kind} file ({e})") from None
     if meta.get("format") != fmt:
         raise error_cls(f"{path}: unknown format {meta.get('format')!r}")
@@ -136,7 +135,7 @@ def read_headed(path: str | os.PathLike, fmt: str, what: str, error_cls, build):
             raise ValueError(f"format {got!r}, expected {fmt!r}")
         del head["format"]
         return build(head, arrays)
-    except (OSError, EOFError, KeyError, ValueError, TypeError, zipfile.BadZipFile) as e:
+    except NPZ_READ_ERRORS as e:
         raise error_cls(f"{path}: not a readable {what} ({e})") from None
 
 

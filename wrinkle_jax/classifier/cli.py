@@ -123,18 +123,17 @@ def _kind(args) -> str:
     if not args.model:
         return default_kind()
     if Path(args.model).is_file():
-        import zipfile
-
         import numpy as np
 
         from wrinkle_jax.classifier import synthesis_model
+        from wrinkle_jax.fileio import NPZ_READ_ERRORS
 
         try:
             with np.load(args.model, allow_pickle=False) as z:
                 if "head" not in z.files:
                     return "patches"
                 head = z["head"]
-        except (OSError, EOFError, ValueError, TypeError, zipfile.BadZipFile):
+        except NPZ_READ_ERRORS:
             return "motion"  # unreadable: the motion loader reports it
         return "synthesis" if synthesis_model.is_synthesis_head(head) else "motion"
     return "motion"

@@ -33,7 +33,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -43,6 +42,7 @@ from wrinkle_jax import MATERIALS, modelfile
 from wrinkle_jax.classifier import calibrated, drape, motion
 from wrinkle_jax.classifier import synthesis as syn
 from wrinkle_jax.classifier.config import ClassifierError
+from wrinkle_jax.fileio import NPZ_READ_ERRORS
 
 FORMAT = "wrinkle-jax-synthesis-classifier/1"
 # The shipped classifier, when one ships (only once issue 25's targets hold on held-out data):
@@ -213,7 +213,7 @@ def is_synthesis_file(path: str | os.PathLike) -> bool:
     try:
         with np.load(path, allow_pickle=False) as z:
             return is_synthesis_head(z[modelfile.HEAD]) if modelfile.HEAD in z.files else False
-    except (OSError, EOFError, ValueError, TypeError, zipfile.BadZipFile):
+    except NPZ_READ_ERRORS:
         return False
 
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from wrinkle_jax import meshio
 from wrinkle_jax.evaluation.suite import SEQUENCES, TABLE1_SEQUENCES, eta_text
+from wrinkle_jax.fileio import NPZ_READ_ERRORS
 from wrinkle_jax.sim import scenes
 
 __all__ = ["GARMENTS", "GARMENT_BASE_SCENE", "GARMENT_SHORT", "MOTIONS", "SEEN_GARMENT",
@@ -76,7 +77,7 @@ def stored_matches(path: Path, config: scenes.SceneConfig, material: str, seed: 
             return False
         with np.load(path, allow_pickle=False) as z:
             meta = json.loads(str(z["metadata"]))
-    except (OSError, KeyError, ValueError, zipfile.BadZipFile):
+    except NPZ_READ_ERRORS:
         return False
     same = (meta.get("scene_config") == config.to_json() and meta.get("material") == material
             and int(meta.get("seed", -1)) == seed)

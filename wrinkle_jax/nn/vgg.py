@@ -44,14 +44,13 @@ import hashlib
 import importlib.util
 import io
 import warnings
-import zipfile
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax.fileio import atomic_write_bytes, user_cache_dir
+from wrinkle_jax.fileio import NPZ_READ_ERRORS, atomic_write_bytes, user_cache_dir
 from wrinkle_jax.io import torch_pickle
 from wrinkle_jax.nn import winograd
 from wrinkle_jax.numerics import to_device
@@ -365,7 +364,7 @@ def _from_flat_npz(path):
     try:
         with np.load(path, allow_pickle=False) as data:
             flat = {k: data[k] for k in data.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+    except NPZ_READ_ERRORS as err:
         raise ValueError(f"{path}: unreadable VGG .npz ({err})") from None
     try:
         spec = VGGSpec(str(flat.pop("spec/preprocess")), str(flat.pop("spec/padding")))

@@ -19,12 +19,11 @@ from __future__ import annotations
 import os
 import time
 import warnings
-import zipfile
 from pathlib import Path
 
 import numpy as np
 
-from wrinkle_jax.fileio import atomic_open
+from wrinkle_jax.fileio import NPZ_READ_ERRORS, atomic_open
 from wrinkle_jax.sim.cloth_model import ClothState
 
 
@@ -48,7 +47,7 @@ def load(path: str | os.PathLike, key: str):
             over = z["self_overflow"] if "self_overflow" in z.files else None
             state = ClothState(x=z["x"], v=z["v"], self_overflow=over)
             return int(z["done"]), state, z["frames"], float(z["wall_s"])
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+    except NPZ_READ_ERRORS as e:
         # e.g. a disk that filled up: starting over beats failing on it at every rerun
         warnings.warn(f"{path}: unreadable checkpoint ({type(e).__name__}: {e}); starting "
                       f"from frame 0", stacklevel=2)

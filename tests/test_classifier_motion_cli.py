@@ -155,3 +155,24 @@ def test_kind_of_a_model_file_reads_it_once(tmp_path, monkeypatch):
     assert kind(text) == "motion" and kind(truncated) == "motion"  # the loader reports it
     assert kind(tmp_path / "missing.npz") == "motion"
     assert kind(motion_file, kind="synthesis") == "synthesis" and kind(None, vgg="v") == "patches"
+
+
+def test_a_damaged_compressed_sequence_is_a_classifier_error(tmp_path, model_path):
+    """Sequences are written compressed (meshio): a damaged member is reported naming the
+    file, not as a zlib.error from inside NumPy."""
+    from test_fileio import _deflate_start  # tests/ is on sys.path
+
+    from wrinkle_jax.classifier import cli as classifier_cli
+    from wrinkle_jax.classifier.config import ClassifierError
+
+    plain = _sequence(tmp_path / "plain.npz")
+    with np.load(plain) as z:
+        arrays = {k: z[k] for k in z.files}
+    path = tmp_path / "seq.npz"
+    np.savez_compressed(path, **arrays)
+    assert classifier_cli.classify_motion_input(path, model_path).material == MATERIALS[2]
+    data = bytearray(path.read_bytes())
+    data[_deflate_start(bytes(data), "frames.npy")] = 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(ClassifierError, match="seq.npz: cannot read the sequence"):
+        classifier_cli.classify_motion_input(path, model_path)

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 from wrinkle_jax.classifier.config import ClassifierError
+from wrinkle_jax.fileio import NPZ_READ_ERRORS
 from wrinkle_jax.sim.command import positive_int
 
 
@@ -87,7 +88,7 @@ def classify_motion_input(path, model_path=None):
 
                 plan = drape.make_plan(z["faces"], z["uvs"], z.get("uv_faces", z["faces"]),
                                        frames[0])
-    except (OSError, KeyError, ValueError) as e:
+    except NPZ_READ_ERRORS as e:
         raise ClassifierError(f"{path}: cannot read the sequence ({e})") from None
     if len(frames) < cfg.window:
         return abstain(f"{path}: {len(frames)} frames, fewer than one window ({cfg.window})")
@@ -126,7 +127,6 @@ def _kind(args) -> str:
         import numpy as np
 
         from wrinkle_jax.classifier import synthesis_model
-        from wrinkle_jax.fileio import NPZ_READ_ERRORS
 
         try:
             with np.load(args.model, allow_pickle=False) as z:
@@ -165,7 +165,7 @@ def classify_synthesis_input(path, model_path):
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as e:
+    except NPZ_READ_ERRORS as e:
         raise ClassifierError(f"{path}: cannot read the sequence ({e})") from None
     return synthesis_model.classify(arrays, clf)
 

@@ -26,7 +26,7 @@ from wrinkle_jax import enhancer as enhancer_lib
 from wrinkle_jax.evaluation import cells as cell_lib
 from wrinkle_jax.evaluation import gram, patchsets, suite
 from wrinkle_jax.evaluation import methods as method_lib
-from wrinkle_jax.fileio import atomic_write_bytes
+from wrinkle_jax.fileio import NPZ_READ_ERRORS, atomic_write_bytes
 
 __all__ = ["CELL_KEYS", "MODEL", "WRONG", "Sampling", "Setup", "add_cell_args", "cell_part",
            "cell_path", "cell_scores", "evaluate_cell", "frames_text", "legacy_sources",
@@ -230,7 +230,7 @@ def load_cell(path: Path, fingerprint: dict) -> dict | None:
                     "loss": dict(zip(names, z["losses"], strict=True)),
                     "n_candidates": meta["n_candidates"], "timings": meta["timings"],
                     "sources": sources, "legacy": legacy}
-    except (OSError, KeyError, ValueError):
+    except NPZ_READ_ERRORS:
         return None
 
 

@@ -24,7 +24,7 @@ from wrinkle_jax.evaluation import cells as cell_lib
 from wrinkle_jax.evaluation import patchscores
 from wrinkle_jax.evaluation import sets as set_lib
 from wrinkle_jax.evaluation.patchscores import MODEL
-from wrinkle_jax.fileio import atomic_write_bytes
+from wrinkle_jax.fileio import NPZ_READ_ERRORS, atomic_write_bytes
 
 __all__ = ["CELL_KEYS", "GROUPS", "SPACES", "c_frame_indices", "cell_path", "cell_record",
            "group_of", "load_cell", "mean_scores", "merge_records", "save_cell",
@@ -133,7 +133,7 @@ def load_cell(path: Path, fingerprint: dict) -> dict | None:
                     "methods": methods, "legacy": legacy,
                     "sources": (patchscores.legacy_sources(meta["fingerprint"], names) if legacy
                                 else meta["sources"])}
-    except (OSError, KeyError, ValueError):
+    except NPZ_READ_ERRORS:
         return None
 
 

@@ -123,3 +123,17 @@ def test_bank_flags_and_run_config_round_trip():
     old = {k: v for k, v in train.RECIPE.to_json().items() if k not in ("bank_weight",
                                                                          "bank_size")}
     assert train.TrainConfig.from_json(old).bank_weight == 0.0
+
+
+def test_a_damaged_or_foreign_bank_file_is_a_value_error_naming_it(tmp_path, tiny_vgg):
+    img, mask = _images(2, 3)
+    bank = gram_bank.build_bank(tiny_vgg, img, mask, np.array([0, 1, 1]), LAYERS)
+    path = tmp_path / "b.npz"
+    gram_bank.save_bank(path, bank)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])  # cut short
+    with pytest.raises(ValueError, match="b.npz: not a readable Gram bank"):
+        gram_bank.load_bank(path)
+    np.savez(path, vectors=bank.vectors)  # another file: no materials
+    with pytest.raises(ValueError, match="b.npz: not a readable Gram bank.*KeyError"):
+        gram_bank.load_bank(path)

@@ -21,6 +21,7 @@ that is 447 MB.
 from __future__ import annotations
 
 import dataclasses
+import io
 from pathlib import Path
 
 import jax
@@ -28,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax.evaluation import sets as set_lib
+from wrinkle_jax.fileio import NPZ_READ_ERRORS, atomic_write_bytes
 from wrinkle_jax.nn import losses, vgg
 
 __all__ = ["GramBank", "build_bank", "feature_vectors", "load_bank", "nearest_distance",
@@ -128,11 +130,23 @@ def build_bank(vgg_params, images, mask, material, layers, batch_size: int = 8,
 
 
 def save_bank(path: str | Path, bank: GramBank) -> None:
-    np.savez(path, vectors=bank.vectors, material=bank.material,
+    """Write `bank` to `path` (.npz) atomically: a training run killed while saving leaves no
+    partial bank for its resumed run to load."""
+    buf = io.BytesIO()
+    np.savez(buf, vectors=bank.vectors, material=bank.material,
              layers=np.array(bank.layers), scales=bank.scales)
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def load_bank(path: str | Path) -> GramBank:
-    with np.load(path) as z:
-        return GramBank(z["vectors"], z["material"], tuple(str(s) for s in z["layers"]),
-                        z["scales"])
+    """The bank `save_bank` wrote to `path`.
+
+    Raises:
+      ValueError: naming the file, if it is unreadable or not a bank.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return GramBank(z["vectors"], z["material"], tuple(str(s) for s in z["layers"]),
+                            z["scales"])
+    except NPZ_READ_ERRORS as e:
+        raise ValueError(f"{path}: not a readable Gram bank ({type(e).__name__}: {e})") from None

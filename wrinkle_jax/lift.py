@@ -18,8 +18,9 @@ Differentiability: `lift` is a `jax.custom_vjp`. The backward pass solves the ad
 H lambda = g (H the exact Hessian at the solution, Hessian-vector products by `jax.jvp` of the
 closed-form gradient) with CG and returns -(d grad E / d theta)^T lambda for
 theta = (vertices0, target_normals): the implicit function theorem; the iterations are never
-unrolled. The result is exact at a stationary point: tighten `tol` / `cg_tol` when gradients
-must be accurate (the default settings favour speed per frame).
+unrolled. The result is exact at a stationary point with a converged adjoint solve: tighten
+`tol` / `cg_tol` and raise `adjoint_max_iters` when gradients must be accurate (the default
+settings favour speed per frame; `solvers.SolverConfig` gives measured errors).
 
 Interpenetration (`resolve_penetration`): see its docstring. Without a body nothing is traced.
 

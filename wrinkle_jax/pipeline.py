@@ -319,7 +319,8 @@ def frame_fn(pipe: Pipeline, body=None) -> Callable[..., FrameResult]:
     Differentiable end to end in reverse mode (`jax.grad`, `jax.vjp`) with respect to params
     and coarse_vertices: through the bake, the U-Net, the merge and the lift (implicit
     function theorem, exact at a converged solve: build the pipeline with a tighter
-    `PipelineConfig.solver` when gradients must be accurate). f is jitted (one compile per
+    `PipelineConfig.solver`, and a larger `adjoint_max_iters`, when gradients must be
+    accurate; `solvers.SolverConfig` gives the measured errors). f is jitted (one compile per
     pipeline shape, shared by pipelines of the same shapes and settings) and can be traced
     inside a caller's jit or grad.
 

@@ -130,12 +130,17 @@ def read_headed(path: str | os.PathLike, fmt: str, what: str, error_cls, build):
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
         head = json.loads(bytes(arrays.pop(HEAD)).decode())
+    except NPZ_READ_ERRORS as e:
+        raise error_cls(f"{path}: not a readable {what} ({e})") from None
+    # Only what a foreign or damaged file's contents cause: an error of build's own code
+    # (RuntimeError, ...) stays itself.
+    try:
         got = head.get("format") if isinstance(head, dict) else None
         if got != fmt:
             raise ValueError(f"format {got!r}, expected {fmt!r}")
         del head["format"]
         return build(head, arrays)
-    except NPZ_READ_ERRORS as e:
+    except (KeyError, ValueError, TypeError) as e:
         raise error_cls(f"{path}: not a readable {what} ({e})") from None
 
 

@@ -234,3 +234,26 @@ def test_batch_iterator_origins_are_seeded_by_position(built):
     b = data.BatchIterator(ds, 4, seed=3, origins=True, state=data.IteratorState(0, 4))
     np.testing.assert_array_equal(next(b)["origins"], got[1])
     assert "origins" not in next(data.BatchIterator(ds, 4, seed=3))
+
+
+def test_a_damaged_shard_or_index_is_a_value_error_naming_the_file(built, tmp_path):
+    import shutil
+
+    root, _ = built
+    copy = tmp_path / "copy"
+    shutil.copytree(root, copy)
+    assert len(data.PatchDataset(copy, "train")) == len(data.PatchDataset(root, "train"))
+    train = data.PatchDataset(copy, "train").entries[0]
+    shard = copy / "shards" / train["shards"][0]["file"]
+    shard.write_bytes(shard.read_bytes()[:200])  # cut short: header only
+    with pytest.raises(ValueError, match=f"{shard.name}: unreadable patch shard"):
+        data.PatchDataset(copy, "train")
+    shutil.rmtree(copy)
+    shutil.copytree(root, copy)
+    index = copy / "index" / f"{train['sequence']}.json"
+    index.write_text(index.read_text()[:40])  # cut short: not JSON
+    with pytest.raises(ValueError, match=f"{index.name}: unreadable patch-set index"):
+        data.PatchDataset(copy, "train")
+    index.write_text('{"split": "train"}')  # JSON, but not an index entry
+    with pytest.raises(ValueError, match=f"{index.name}: not a patch-set index"):
+        data.PatchDataset(copy, "train")

@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax import MATERIALS, material_index, normalmap, patches
-from wrinkle_jax.fileio import atomic_write_bytes, atomic_write_text
+from wrinkle_jax.fileio import NPZ_READ_ERRORS, atomic_write_bytes, atomic_write_text
 from wrinkle_jax.meshio import GarmentSequence, load_sequence
 
 CHANNELS = 7  # input RGB, target RGB, mask
@@ -345,6 +345,26 @@ def build_pair_sequence(fine: GarmentSequence, coarse: GarmentSequence, name: st
 # --------------------------------------------------------------------------------------------
 
 
+_INDEX_KEYS = {"split", "scene", "shards", "material_id"}  # what PatchDataset reads
+
+
+def _read_index(path: Path) -> dict:
+    """One sequence's index entry (JSON written by `build_dataset`).
+
+    Raises:
+      ValueError: naming the file, if it is not readable JSON with the entry's keys.
+    """
+    try:
+        entry = json.loads(path.read_text())
+    except (OSError, ValueError) as e:  # ValueError: bad JSON or UTF-8
+        raise ValueError(f"{path}: unreadable patch-set index ({type(e).__name__}: {e})") from None
+    missing = (sorted(_INDEX_KEYS - set(entry)) if isinstance(entry, dict)
+               else sorted(_INDEX_KEYS))
+    if missing:
+        raise ValueError(f"{path}: not a patch-set index (no {', '.join(missing)})")
+    return entry
+
+
 class PatchDataset:
     """Memory-mapped patches of one split.
 
@@ -365,7 +385,7 @@ class PatchDataset:
         index_dir = self.root / "index"
         if not index_dir.is_dir():
             raise FileNotFoundError(f"{self.root}: not a patch data set (no index/ folder)")
-        entries = [json.loads(p.read_text()) for p in sorted(index_dir.glob("*.json"))]
+        entries = [_read_index(p) for p in sorted(index_dir.glob("*.json"))]
         if self.scenes is not None:
             known = {e["scene"] for e in entries}
             unknown = sorted(set(self.scenes) - known)
@@ -377,9 +397,14 @@ class PatchDataset:
         self._shards, shard_ids, rows, mats, frames, seqs = [], [], [], [], [], []
         for j, e in enumerate(self.entries):
             for s in e["shards"]:
-                arr = np.load(self.root / "shards" / s["file"], mmap_mode="r")
+                path = self.root / "shards" / s["file"]
+                try:
+                    arr = np.load(path, mmap_mode="r")
+                except NPZ_READ_ERRORS as err:
+                    raise ValueError(f"{path}: unreadable patch shard "
+                                     f"({type(err).__name__}: {err})") from None
                 if arr.ndim != 4 or arr.shape[-1] != CHANNELS:
-                    raise ValueError(f"{s['file']}: expected (n, S, S, {CHANNELS}) patches")
+                    raise ValueError(f"{path}: expected (n, S, S, {CHANNELS}) patches")
                 k = len(self._shards)
                 self._shards.append(arr)
                 shard_ids.append(np.full(len(arr), k, np.int32))

@@ -176,3 +176,30 @@ def test_a_damaged_compressed_sequence_is_a_classifier_error(tmp_path, model_pat
     path.write_bytes(bytes(data))
     with pytest.raises(ClassifierError, match="seq.npz: cannot read the sequence"):
         classifier_cli.classify_motion_input(path, model_path)
+
+
+def test_sequence_read_errors_are_reported_and_errors_of_our_own_code_are_not(
+        tmp_path, model_path, monkeypatch):
+    """Only reading the file is under the damaged-file errors: a sequence without frames is
+    unreadable, one whose faces do not fit is malformed, and a bug in the feature code
+    propagates instead of being reported as an unreadable sequence."""
+    from wrinkle_jax.classifier import cli as classifier_cli
+    from wrinkle_jax.classifier import motion
+    from wrinkle_jax.classifier.config import ClassifierError
+
+    path = _sequence(tmp_path / "seq.npz")
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    np.savez(tmp_path / "noframes.npz", **{k: v for k, v in arrays.items() if k != "frames"})
+    with pytest.raises(ClassifierError, match="noframes.npz: cannot read the sequence"):
+        classifier_cli.classify_motion_input(tmp_path / "noframes.npz", model_path)
+    np.savez(tmp_path / "nofaces.npz", **{k: v for k, v in arrays.items() if k != "faces"})
+    with pytest.raises(ClassifierError, match="nofaces.npz: malformed sequence"):
+        classifier_cli.classify_motion_input(tmp_path / "nofaces.npz", model_path)
+
+    def broken(*a, **k):
+        raise RuntimeError("bug in make_topology")
+
+    monkeypatch.setattr(motion, "make_topology", broken)
+    with pytest.raises(RuntimeError, match="bug in make_topology"):
+        classifier_cli.classify_motion_input(path, model_path)

@@ -65,3 +65,33 @@ def test_merge_cell_adds_methods_on_the_same_patches_only():
         patchscores.merge_cell(base, {**new, "loss_input": np.array([1.0, 2.5])}, ["a", "b"])
     with pytest.raises(ValueError):
         patchscores.merge_cell(base, {**new, "origin": np.array([[0, 0], [4, 8]])}, ["a", "b"])
+
+
+def test_cell_files_round_trip_and_only_unreadable_or_foreign_files_are_recomputed(
+        tmp_path, monkeypatch):
+    res = {"frame": np.array([0, 2]), "origin": np.array([[0, 0], [8, 4]]),
+           "coverage": np.array([1.0, 0.75]), "loss_input": np.array([1.0, 2.0]),
+           "loss": {"identity": np.array([1.0, 2.0]), "model": np.array([0.5, 1.5])},
+           "n_candidates": 7, "timings": {"score_s": 0.25}}
+    fp = {"sampling": {"frames": 3}, "sequences": ["a"], "metric": "v1"}
+    path = tmp_path / "cell.npz"
+    patchscores.save_cell(path, res, fp, {"identity": "identity", "model": "m1"})
+    got = patchscores.load_cell(path, fp)
+    np.testing.assert_array_equal(got["loss"]["model"], [0.5, 1.5])
+    assert got["n_candidates"] == 7 and got["sources"]["model"] == "m1" and not got["legacy"]
+    assert patchscores.load_cell(path, {**fp, "metric": "v2"}) is not None  # same patches
+    assert patchscores.load_cell(path, {**fp, "sequences": ["b"]}) is None  # other patches
+    assert patchscores.load_cell(tmp_path / "missing.npz", fp) is None
+    whole = path.read_bytes()
+    path.write_bytes(whole[: len(whole) // 2])  # cut short: recomputed
+    assert patchscores.load_cell(path, fp) is None
+    np.savez(path, meta=np.str_("{}"))  # another layout: recomputed
+    assert patchscores.load_cell(path, fp) is None
+    path.write_bytes(whole)
+
+    def broken(*a, **k):  # an error in our own code is not an unreadable file
+        raise RuntimeError("bug")
+
+    monkeypatch.setattr(patchscores, "cell_part", broken)
+    with pytest.raises(RuntimeError, match="bug"):
+        patchscores.load_cell(path, fp)

@@ -99,6 +99,10 @@ def _record(dr_model, n_a=3, n_c=2):
             "methods": {"identity": m(0.0), patchscores.MODEL: m(dr_model)}}
 
 
+def _raise_runtime_error(*args, **kwargs):
+    raise RuntimeError("bug")
+
+
 def test_means_skip_nan_cells_and_the_table_and_cell_files_keep_the_numbers(tmp_path):
     recs = [_record(10.0), _record(30.0), _record(float("nan"))]
     means = setscores.mean_scores(recs)
@@ -128,3 +132,11 @@ def test_means_skip_nan_cells_and_the_table_and_cell_files_keep_the_numbers(tmp_
         "relu1_2": 1.5}
     assert setscores.load_cell(path, {**fp, "metric": "v2"}) is None
     assert json.loads(json.dumps(got["timings"])) == {"compare_s": 0.1}
+    whole = path.read_bytes()
+    path.write_bytes(whole[:-40])  # a damaged file is recomputed
+    assert setscores.load_cell(path, fp) is None
+    path.write_bytes(whole)
+    with pytest.MonkeyPatch.context() as mp:  # an error in our own code is not a damaged file
+        mp.setattr(patchscores, "cell_part", _raise_runtime_error)
+        with pytest.raises(RuntimeError, match="bug"):
+            setscores.load_cell(path, fp)

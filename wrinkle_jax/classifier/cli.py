@@ -71,25 +71,33 @@ def classify_motion_input(path, model_path=None):
     if path.suffix != ".npz":
         return abstain(f"{path}: the motion classifier reads .npz sequences with the body's "
                        f"capsules (capsule_ends); this input has no body track")
+    # Read the members under the damaged-file errors; build from them under a narrow list, so
+    # that an error in our own code is not reported as an unreadable file.
+    wanted = ("frames", "faces", "uvs", "uv_faces", "fps", "capsule_ends", "pins")
     try:
         with np.load(path, allow_pickle=False) as z:
-            ref = motion.reference_track(z)
-            if ref is None:
-                return abstain(f"{path}: no body track (capsule_ends or pins); the motion "
-                               f"classifier measures the cloth's motion against the body")
-            frames = np.asarray(z["frames"], np.float64)
-            topo = motion.make_topology(z["faces"], z["uvs"] if "uvs" in z.files else None,
-                                        z["uv_faces"] if "uv_faces" in z.files else None)
-            fps = float(z["fps"]) if "fps" in z.files else 30.0
-            caps = np.asarray(z["capsule_ends"]) if "capsule_ends" in z.files else None
-            plan = None
-            if "drape" in cfg.families and "uvs" in z.files:
-                from wrinkle_jax.classifier import drape
-
-                plan = drape.make_plan(z["faces"], z["uvs"], z.get("uv_faces", z["faces"]),
-                                       frames[0])
+            arrays = {k: z[k] for k in wanted if k in z.files}
+        frames = np.asarray(arrays["frames"], np.float64)
     except NPZ_READ_ERRORS as e:
         raise ClassifierError(f"{path}: cannot read the sequence ({e})") from None
+    try:
+        ref = motion.reference_track(arrays)
+        if ref is None:
+            return abstain(f"{path}: no body track (capsule_ends or pins); the motion "
+                           f"classifier measures the cloth's motion against the body")
+        faces, uvs = arrays["faces"], arrays.get("uvs")
+        uv_faces = arrays.get("uv_faces")
+        topo = motion.make_topology(faces, uvs, uv_faces)
+        fps = float(arrays["fps"]) if "fps" in arrays else 30.0
+        caps = arrays.get("capsule_ends")
+        plan = None
+        if "drape" in cfg.families and uvs is not None:
+            from wrinkle_jax.classifier import drape
+
+            plan = drape.make_plan(faces, uvs, faces if uv_faces is None else uv_faces,
+                                   frames[0])
+    except (KeyError, ValueError, TypeError, IndexError) as e:
+        raise ClassifierError(f"{path}: malformed sequence ({e})") from None
     if len(frames) < cfg.window:
         return abstain(f"{path}: {len(frames)} frames, fewer than one window ({cfg.window})")
     if ref.shape[0] != frames.shape[0]:

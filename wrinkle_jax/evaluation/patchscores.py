@@ -216,20 +216,32 @@ def load_cell(path: Path, fingerprint: dict) -> dict | None:
     file written before sources were stored)."""
     if not path.exists():
         return None
+    z = read_cell_file(path)
+    if z is None:
+        return None
+    # A file of another layout (missing keys, lengths that disagree) is recomputed.
+    try:
+        meta = json.loads(str(z["meta"]))
+        if cell_part(meta["fingerprint"]) != cell_part(fingerprint):
+            return None
+        names = z["methods"].tolist()
+        legacy = "sources" not in meta
+        sources = legacy_sources(meta["fingerprint"], names) if legacy else meta["sources"]
+        return {"frame": z["frame"], "origin": z["origin"], "coverage": z["coverage"],
+                "loss_input": z["loss_input"],
+                "loss": dict(zip(names, z["losses"], strict=True)),
+                "n_candidates": meta["n_candidates"], "timings": meta["timings"],
+                "sources": sources, "legacy": legacy}
+    except (KeyError, ValueError, TypeError):
+        return None
+
+
+def read_cell_file(path: Path) -> dict[str, np.ndarray] | None:
+    """Every member of a stored cell file (name -> array), or None if it is missing or damaged
+    (`fileio.NPZ_READ_ERRORS`: the cell is then recomputed)."""
     try:
         with np.load(path, allow_pickle=False) as z:
-            meta = json.loads(str(z["meta"]))
-            if cell_part(meta["fingerprint"]) != cell_part(fingerprint):
-                return None
-            names = z["methods"].tolist()
-            legacy = "sources" not in meta
-            sources = (legacy_sources(meta["fingerprint"], names) if legacy
-                       else meta["sources"])
-            return {"frame": z["frame"], "origin": z["origin"], "coverage": z["coverage"],
-                    "loss_input": z["loss_input"],
-                    "loss": dict(zip(names, z["losses"], strict=True)),
-                    "n_candidates": meta["n_candidates"], "timings": meta["timings"],
-                    "sources": sources, "legacy": legacy}
+            return {k: z[k] for k in z.files}
     except NPZ_READ_ERRORS:
         return None
 

@@ -24,7 +24,7 @@ from wrinkle_jax.evaluation import cells as cell_lib
 from wrinkle_jax.evaluation import patchscores
 from wrinkle_jax.evaluation import sets as set_lib
 from wrinkle_jax.evaluation.patchscores import MODEL
-from wrinkle_jax.fileio import NPZ_READ_ERRORS, atomic_write_bytes
+from wrinkle_jax.fileio import atomic_write_bytes
 
 __all__ = ["CELL_KEYS", "GROUPS", "SPACES", "c_frame_indices", "cell_path", "cell_record",
            "group_of", "load_cell", "mean_scores", "merge_records", "save_cell",
@@ -117,23 +117,26 @@ def load_cell(path: Path, fingerprint: dict) -> dict | None:
     (with "sources" and "legacy" as `evaluation.patchscores.load_cell`)."""
     if not path.exists():
         return None
+    z = patchscores.read_cell_file(path)
+    if z is None:
+        return None
+    # A file of another layout (missing keys, lengths that disagree) is recomputed.
     try:
-        with np.load(path, allow_pickle=False) as z:
-            meta = json.loads(str(z["meta"]))
-            if (patchscores.cell_part(meta["fingerprint"], CELL_KEYS)
-                    != patchscores.cell_part(fingerprint, CELL_KEYS)):
-                return None
-            names = z["methods"].tolist()
-            legacy = "sources" not in meta
-            methods = {name: {**meta["numbers"][name], "embedding": emb}
-                       for name, emb in zip(names, z["embeddings"], strict=True)}
-            return {"frame": z["frame"], "origin": z["origin"], "frame_c": z["frame_c"],
-                    "origin_c": z["origin_c"], "scales": meta["scales"],
-                    "n_candidates": meta["n_candidates"], "timings": meta["timings"],
-                    "methods": methods, "legacy": legacy,
-                    "sources": (patchscores.legacy_sources(meta["fingerprint"], names) if legacy
-                                else meta["sources"])}
-    except NPZ_READ_ERRORS:
+        meta = json.loads(str(z["meta"]))
+        if (patchscores.cell_part(meta["fingerprint"], CELL_KEYS)
+                != patchscores.cell_part(fingerprint, CELL_KEYS)):
+            return None
+        names = z["methods"].tolist()
+        legacy = "sources" not in meta
+        methods = {name: {**meta["numbers"][name], "embedding": emb}
+                   for name, emb in zip(names, z["embeddings"], strict=True)}
+        return {"frame": z["frame"], "origin": z["origin"], "frame_c": z["frame_c"],
+                "origin_c": z["origin_c"], "scales": meta["scales"],
+                "n_candidates": meta["n_candidates"], "timings": meta["timings"],
+                "methods": methods, "legacy": legacy,
+                "sources": (patchscores.legacy_sources(meta["fingerprint"], names) if legacy
+                            else meta["sources"])}
+    except (KeyError, ValueError, TypeError):
         return None
 
 

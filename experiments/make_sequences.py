@@ -9,8 +9,9 @@ Writes `<out>/<scene>/<material>_<resolution>_s<seed>.npz` (`scenes.save_simulat
 (T, V, 3) m, UVs in meters, metadata with material / PD / scene config JSON, pin and collider
 tracks) for:
 
-  * training scenes (sheet_balls_wind, skirt_dance, pleated_skirt_dance2, shawl_dance2,
-    apron_dance): all five materials, fine (PD 10 mm), seed 0 (the same motion for every
+  * training scenes (`scenes.TRAINING_SCENES`: sheet_balls_wind, skirt_dance,
+    pleated_skirt_dance2, shawl_dance2, apron_dance, circle_skirt_dance2, long_shawl_dance,
+    skirt_dance2, apron_dance2): all five materials, fine (PD 10 mm), seed 0 (the same motion for every
     material, as in the paper);
   * validation-only scenes (tabard_dance2): all five materials, fine AND coarse, seed 0;
   * test-only scenes (dress_dance, cape_walk, skirt_walk): all five materials, fine AND coarse
@@ -30,8 +31,10 @@ same interval in time (`scenes.self_collision_config`). Fine jobs always use the
 Recorded in the manifest; a folder that already holds coarse files refuses another value (fine
 files do not depend on it, so a folder of fine files can take any).
 
-Files already present are skipped (also those another run writes while this one runs),
-each file is written atomically (temporary file + rename), the file being simulated is
+Several runs may share one folder, e.g. one per core: each job is claimed first (an flock on
+`<out>/.partial/<scene>/<file>.lock`, dropped by the kernel if its process dies), so a run
+skips the job another is simulating. Files already present are skipped (also those another
+run writes while this one runs), each file is written atomically (temporary file + rename), the file being simulated is
 checkpointed every `--checkpoint-every` seconds under
 `<out>/.partial/` (`scenes.simulate(checkpoint=...)`; the next run resumes it bit-identically,
 so a killed session loses minutes, not hours), and progress goes to `<out>/make_sequences.log`
@@ -55,7 +58,7 @@ import time
 from pathlib import Path
 
 from wrinkle_jax import MATERIALS
-from wrinkle_jax.fileio import atomic_write_text, git_commit
+from wrinkle_jax.fileio import atomic_write_text, claim, git_commit
 from wrinkle_jax.sim import scenes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -207,6 +210,33 @@ def make_previews(out: Path, data: Path, frame: int = 90, material: str = "silk_
     return paths
 
 
+def run_job(job: dict, out: Path, setup, args, log) -> tuple:
+    """Simulate one job (resuming its checkpoint under `<out>/.partial/`) and write its file;
+    returns (sequence, wall seconds)."""
+    last = [time.perf_counter()]
+
+    def progress(done, total):
+        now = time.perf_counter()
+        if now - last[0] > 60 or done == total:
+            last[0] = now
+            log(f"  {job['scene']} {job['material']} {job['resolution']}: "
+                f"frame {done}/{total}")
+
+    t0 = time.perf_counter()
+    substeps = substeps_for(job["resolution"], args.coarse_substeps)
+    partial = partial_path(out, job)
+    if partial.exists():
+        log(f"  {job['scene']} {job['material']} {job['resolution']}: "
+            f"resuming from {partial.relative_to(out)}")
+    seq = scenes.simulate(job["scene"], job["material"], job["resolution"], job["frames"],
+                          job["seed"], progress=progress, setup=setup, substeps=substeps,
+                          self_collision=self_collision_for(
+                              job["resolution"], args.self_collision, substeps, job["scene"]),
+                          checkpoint=partial, checkpoint_every_s=args.checkpoint_every)
+    scenes.save_simulation(job_path(out, job), seq)
+    return seq, time.perf_counter() - t0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=str(ROOT / "data" / "sequences"))
@@ -286,44 +316,28 @@ def main(argv=None) -> int:
     failures = 0
     for k, job in enumerate(todo):
         path = job_path(out, job)
-        if path.exists():  # written meanwhile by another run (e.g. a parallel --only)
-            log(f"  {job['scene']} {job['material']} {job['resolution']}: written by another "
-                f"run, skipped")
-            continue
-        key = (job["scene"], job["resolution"], job["frames"], job["seed"])
-        try:
-            if key != setup_key:
-                setup = scenes.setup_scene(job["scene"], job["resolution"], job["frames"],
-                                           job["seed"])
-                setup_key = key
-            last = [time.perf_counter()]
-
-            def progress(done, total, job=job, last=last):
-                now = time.perf_counter()
-                if now - last[0] > 60 or done == total:
-                    last[0] = now
-                    log(f"  {job['scene']} {job['material']} {job['resolution']}: "
-                        f"frame {done}/{total}")
-
-            t0 = time.perf_counter()
-            substeps = substeps_for(job["resolution"], args.coarse_substeps)
-            partial = partial_path(out, job)
-            if partial.exists():
-                log(f"  {job['scene']} {job['material']} {job['resolution']}: "
-                    f"resuming from {partial.relative_to(out)}")
-            seq = scenes.simulate(job["scene"], job["material"], job["resolution"],
-                                  job["frames"], job["seed"], progress=progress, setup=setup,
-                                  substeps=substeps,
-                                  self_collision=self_collision_for(
-                                      job["resolution"], args.self_collision, substeps,
-                                      job["scene"]),
-                                  checkpoint=partial, checkpoint_every_s=args.checkpoint_every)
-            scenes.save_simulation(path, seq)
-            wall = time.perf_counter() - t0
-        except Exception as e:  # log and go on with the next job; rerun to retry
-            failures += 1
-            log(f"FAILED {path.name} ({job['scene']}): {type(e).__name__}: {e}")
-            continue
+        # A claim per job: several runs may share the plan (e.g. a second one with --only,
+        # or two full runs), and none starts a file another is simulating.
+        with claim(partial_path(out, job).with_suffix(".lock")) as mine:
+            if not mine:
+                log(f"  {job['scene']} {job['material']} {job['resolution']}: running in "
+                    f"another process, skipped")
+                continue
+            if path.exists():  # written meanwhile by another run
+                log(f"  {job['scene']} {job['material']} {job['resolution']}: written by "
+                    f"another run, skipped")
+                continue
+            key = (job["scene"], job["resolution"], job["frames"], job["seed"])
+            try:
+                if key != setup_key:
+                    setup = scenes.setup_scene(job["scene"], job["resolution"], job["frames"],
+                                               job["seed"])
+                    setup_key = key
+                seq, wall = run_job(job, out, setup, args, log)
+            except Exception as e:  # log and go on with the next job; rerun to retry
+                failures += 1
+                log(f"FAILED {path.name} ({job['scene']}): {type(e).__name__}: {e}")
+                continue
         done_est += estimate_s(job)
         elapsed = time.perf_counter() - t_start
         eta = elapsed / max(done_est, 1e-9) * (total_est - done_est)

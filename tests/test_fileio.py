@@ -145,3 +145,38 @@ def test_model_files_with_a_damaged_member_are_reported_as_unreadable(tmp_path):
     path.write_bytes(bytes(data))
     with pytest.raises(Unreadable, match="m.npz: not a readable test file"):
         modelfile.read(path, "test", "test-format/1", Unreadable)
+
+
+def test_a_claim_excludes_other_holders_and_dies_with_its_process(tmp_path):
+    """`claim` is an flock: a second claim (another open file, here or in another process)
+    is refused while one is held, the file goes when the block ends, and a killed holder
+    leaves nothing stale behind."""
+    import subprocess
+    import sys
+
+    from wrinkle_jax.fileio import claim
+
+    path = tmp_path / "sub" / "job.lock"
+    with claim(path) as first:
+        assert first and path.exists()
+        with claim(path) as second:
+            assert not second
+        assert path.exists()  # the refused claim leaves the holder's file
+    assert not path.exists()
+    with claim(path) as again:
+        assert again
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time\nfrom wrinkle_jax.fileio import claim\n"
+         f"with claim({str(path)!r}) as ok:\n    print(ok, flush=True)\n    time.sleep(60)"],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "True"
+        with claim(path) as mine:
+            assert not mine
+    finally:
+        holder.kill()
+        holder.wait()
+    assert path.exists()  # killed inside its block: the file stays, the lock does not
+    with claim(path) as mine:
+        assert mine
+    assert not path.exists()

@@ -151,7 +151,7 @@ def test_each_job_checkpoints_under_partial_and_a_rerun_says_it_resumes(tmp_path
     job = dict(job, frames=3, resolution="coarse")
     assert path == make_sequences.partial_path(tmp_path, job) and every == 60
     assert path.parent == tmp_path / ".partial" / "apron_dance" and path.suffix == ".partial"
-    path.parent.mkdir(parents=True)
+    path.parent.mkdir(parents=True, exist_ok=True)  # (its job's claim made it)
     path.write_bytes(b"")  # a checkpoint left by a killed run
     assert make_sequences.main(args) == 1
     assert "resuming from .partial/apron_dance/" in (tmp_path / "make_sequences.log").read_text()
@@ -177,3 +177,30 @@ def test_a_file_written_meanwhile_by_another_run_is_not_simulated_again(tmp_path
     assert make_sequences.main(args) == 1
     assert len(calls) == 1  # the first job only; the second's file appeared meanwhile
     assert "written by another run, skipped" in (tmp_path / "make_sequences.log").read_text()
+
+
+def test_a_job_another_process_is_simulating_is_skipped(tmp_path, monkeypatch):
+    """Two runs share the plan: a job whose claim another process holds is not started, and
+    the claim is released when a job ends (here: fails), so a rerun takes it."""
+    from wrinkle_jax.fileio import claim
+
+    calls = []
+
+    def fake_simulate(scene, material, resolution, frames, seed, checkpoint=None, **kw):
+        calls.append(scene)
+        assert checkpoint.with_suffix(".lock").exists()  # held while it runs
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(make_sequences.scenes, "setup_scene", lambda *a, **k: None)
+    monkeypatch.setattr(make_sequences.scenes, "simulate", fake_simulate)
+    job = next(j for j in make_sequences.plan(3, 3) if j["scene"] == "apron_dance")
+    lock = make_sequences.partial_path(tmp_path, dict(job, frames=3, resolution="coarse"))
+    args = ["--out", str(tmp_path), "--tiny", "--only", "apron_dance,skirt_dance"]
+    with claim(lock.with_suffix(".lock")) as mine:
+        assert mine
+        assert make_sequences.main(args) == 1
+    assert calls == ["skirt_dance"]
+    log = (tmp_path / "make_sequences.log").read_text()
+    assert "apron_dance silk_charmeuse coarse: running in another process, skipped" in log
+    assert make_sequences.main(args) == 1 and calls[1:] == ["skirt_dance", "apron_dance"]
+    assert not list((tmp_path / ".partial").rglob("*.lock"))

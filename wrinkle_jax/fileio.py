@@ -5,6 +5,7 @@ errors a damaged `.npz` raises when it is read."""
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import os
 import subprocess
 import tempfile
@@ -96,3 +97,39 @@ def git_commit(root: str | os.PathLike) -> str | None:
                               text=True, check=True, cwd=root).stdout.strip() or None
     except (OSError, subprocess.CalledProcessError):
         return None
+
+
+
+@contextlib.contextmanager
+def claim(path: str | os.PathLike) -> Iterator[bool]:
+    """Claim a piece of work among processes sharing a folder: yields True if this process
+    holds the claim on `path` for the block, False if another process holds it.
+
+    An exclusive `flock` on the file `path` (created if needed, removed when the block
+    ends): the kernel drops it when its process dies, so a killed run leaves no stale claim.
+    Local file systems only (flock is advisory and per host).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            yield False
+            return
+        try:
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        # The holder removed the file between our open and lock: that inode is gone, retry.
+        os.close(fd)
+    try:
+        yield True
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()  # still under the lock, so no one holds the removed inode
+        os.close(fd)

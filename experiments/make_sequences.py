@@ -11,8 +11,8 @@ tracks) for:
 
   * training scenes (`scenes.TRAINING_SCENES`: sheet_balls_wind, skirt_dance,
     pleated_skirt_dance2, shawl_dance2, apron_dance, circle_skirt_dance2, long_shawl_dance,
-    skirt_dance2, apron_dance2): all five materials, fine (PD 10 mm), seed 0 (the same motion for every
-    material, as in the paper);
+    skirt_dance2, apron_dance2): all five materials, fine (PD 10 mm), seed 0 (the same
+    motion for every material, as in the paper);
   * validation-only scenes (tabard_dance2): all five materials, fine AND coarse, seed 0;
   * test-only scenes (dress_dance, cape_walk, skirt_walk): all five materials, fine AND coarse
     (PD 30 mm), seed 1.
@@ -34,8 +34,8 @@ files do not depend on it, so a folder of fine files can take any).
 Several runs may share one folder, e.g. one per core: each job is claimed first (an flock on
 `<out>/.partial/<scene>/<file>.lock`, dropped by the kernel if its process dies), so a run
 skips the job another is simulating. Files already present are skipped (also those another
-run writes while this one runs), each file is written atomically (temporary file + rename), the file being simulated is
-checkpointed every `--checkpoint-every` seconds under
+run writes while this one runs), each file is written atomically (temporary file +
+rename), the file being simulated is checkpointed every `--checkpoint-every` seconds under
 `<out>/.partial/` (`scenes.simulate(checkpoint=...)`; the next run resumes it bit-identically,
 so a killed session loses minutes, not hours), and progress goes to `<out>/make_sequences.log`
 (one line per chunk of frames and per file, with ms/frame and an ETA) and `<out>/manifest.json`

@@ -3,6 +3,7 @@
     nohup nice -n 10 python -m experiments.make_sequences [--out data/sequences] \
         [--train-frames 600] [--test-frames 300] [--tiny] [--only SCENE,...] \
         [--self-collision on|off] [--coarse-substeps N] > /dev/null 2>&1 &
+    python -m experiments.make_sequences --status      # written / checkpointed / left, hours
     python -m experiments.make_sequences --previews experiments/results/sim
 
 Writes `<out>/<scene>/<material>_<resolution>_s<seed>.npz` (`scenes.save_simulation`: frames
@@ -58,7 +59,7 @@ import time
 from pathlib import Path
 
 from wrinkle_jax import MATERIALS
-from wrinkle_jax.fileio import atomic_write_text, claim, git_commit
+from wrinkle_jax.fileio import NPZ_READ_ERRORS, atomic_write_text, claim, git_commit
 from wrinkle_jax.sim import scenes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -142,6 +143,86 @@ def estimate_s(job: dict) -> float:
     sc = scenes.get_scene(job["scene"])
     ms = EST_MS.get(job["scene"], (200, 15))[0 if job["resolution"] == "fine" else 1]
     return ms * (job["frames"] + sc.preroll_s * 30) / 1e3
+
+
+def job_status(out: Path, jobs: list[dict]) -> list[dict]:
+    """Where each job stands, and what the rest costs at the rates of the files written.
+
+    Per job: "state" ("done", "partial" with a checkpoint, or "todo"), "frames_left" (pre-roll
+    included) and "ms_per_frame": the file's own rate when done (its metadata), else the
+    fastest written file's of the same scene and resolution, else `EST_MS` times the median
+    over scenes of that resolution of (fastest written rate / `EST_MS`) (the estimates predate
+    self-collision and the coarse substeps), and "source" saying which. Rates are wall time as
+    the files were written; the fastest is the one least slowed by other work on the machine,
+    so the hours are closer to an idle machine's than to a busy one's."""
+    import numpy as np
+
+    measured: dict[tuple, list[float]] = {}
+    rows = []
+    for job in jobs:
+        sc = scenes.get_scene(job["scene"])
+        total = job["frames"] + int(round(sc.preroll_s * 30)) - 1
+        row = dict(job, state="todo", frames_left=total, ms_per_frame=None, source=None)
+        path, partial = job_path(out, job), partial_path(out, job)
+        try:
+            if path.exists():
+                with np.load(path, allow_pickle=False) as z:
+                    ms = float(json.loads(str(z["metadata"]))["ms_per_frame"])
+                row.update(state="done", frames_left=0, ms_per_frame=ms, source="file")
+                measured.setdefault((job["scene"], job["resolution"]), []).append(ms)
+            elif partial.exists():
+                with np.load(partial, allow_pickle=False) as z:
+                    done = int(z["done"])
+                row.update(state="partial", frames_left=max(total - done, 0))
+        except NPZ_READ_ERRORS:  # being replaced right now, or damaged: counted as not done
+            pass
+        rows.append(row)
+    scale = {}
+    for res, i in (("fine", 0), ("coarse", 1)):
+        ratios = [min(v) / EST_MS[sc][i] for (sc, r), v in measured.items()
+                  if r == res and sc in EST_MS]
+        if ratios:
+            scale[res] = float(np.median(ratios))
+    for row in rows:
+        if row["state"] == "done":
+            continue
+        key, res = (row["scene"], row["resolution"]), row["resolution"]
+        if key in measured:
+            row.update(ms_per_frame=min(measured[key]), source="scene")
+        elif res in scale and row["scene"] in EST_MS:
+            est = EST_MS[row["scene"]][0 if res == "fine" else 1]
+            row.update(ms_per_frame=est * scale[res], source=f"estimate x {scale[res]:.1f}")
+    return rows
+
+
+def status_summary(rows: list[dict]) -> str:
+    """One line: files written, and hours of simulation left at `job_status`'s rates."""
+    left = [r for r in rows if r["state"] != "done"]
+    hours = sum(r["frames_left"] * (r["ms_per_frame"] or 0.0) for r in left) / 3.6e6
+    unknown = sum(r["ms_per_frame"] is None for r in left)
+    return (f"{len(rows) - len(left)} of {len(rows)} files written; {hours:.1f} hours of "
+            f"simulation left at the fastest written rates (one process; two on two cores "
+            f"take about half){f', {unknown} jobs without a rate' if unknown else ''}")
+
+
+def status_text(rows: list[dict]) -> str:
+    """A table per scene and resolution (files done / partial / to do, hours left) and the
+    total, for `--status`."""
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["scene"], r["resolution"]), []).append(r)
+    lines = ["| scene | resolution | done | partial | to do | ms/frame (source) | hours left |",
+             "|---|---|---|---|---|---|---|"]
+    for (scene, res), rs in groups.items():
+        left = [r for r in rs if r["state"] != "done"]
+        rate = next((r for r in left if r["ms_per_frame"] is not None), None)
+        hours = sum(r["frames_left"] * (r["ms_per_frame"] or 0.0) for r in left) / 3.6e6
+        counts = [sum(r["state"] == s for r in rs) for s in ("done", "partial", "todo")]
+        rate_text = f"{rate['ms_per_frame']:.0f} ({rate['source']})" if rate else "-"
+        lines.append(f"| {scene} | {res} | {counts[0]} | {counts[1]} | {counts[2]} | "
+                     f"{rate_text} | {hours:.2f} |")
+    lines.append(f"\n{status_summary(rows)}")
+    return "\n".join(lines)
 
 
 def make_previews(out: Path, data: Path, frame: int = 90, material: str = "silk_charmeuse",
@@ -255,6 +336,9 @@ def main(argv=None) -> int:
     ap.add_argument("--checkpoint-every", type=float, default=300.0, metavar="S",
                     help="seconds between checkpoints of the running file (resumed by the "
                          "next run; default 300)")
+    ap.add_argument("--status", action="store_true",
+                    help="print what is written, checkpointed and left (with hours left at the "
+                         "written files' rates), and exit")
     ap.add_argument("--previews", default=None, metavar="DIR",
                     help="only write fine-vs-coarse preview PNGs into DIR (from --out data)")
     args = ap.parse_args(argv)
@@ -263,6 +347,13 @@ def main(argv=None) -> int:
             print(p)
         return 0
     out = Path(args.out)
+    if args.status:
+        try:
+            print(status_text(job_status(out, select(plan(args.train_frames, args.test_frames,
+                                                          args.val_frames), args.only))))
+        except ValueError as e:
+            ap.error(str(e))
+        return 0
     out.mkdir(parents=True, exist_ok=True)
     log_path = out / "make_sequences.log"
     jobs = plan(args.train_frames, args.test_frames, args.val_frames)
@@ -307,8 +398,7 @@ def main(argv=None) -> int:
             log(f"note: resuming files written at commit {old['commit']} at {version['commit']}")
     todo = [j for j in selected if not job_path(out, j).exists()]
     log(f"start ({version}): {len(selected)} jobs, {len(selected) - len(todo)} already done, "
-        f"estimated {sum(estimate_s(j) for j in todo) / 60:.0f} min on an idle machine "
-        f"(without self-collision)")
+        f"{status_summary(job_status(out, selected))}")
     t_start = time.perf_counter()
     done_est = 0.0
     total_est = sum(estimate_s(j) for j in todo)

@@ -4,6 +4,7 @@ simulated with one setting is never topped up with the other)."""
 import dataclasses
 import json
 
+import numpy as np
 import pytest
 
 from experiments import make_sequences
@@ -204,3 +205,41 @@ def test_a_job_another_process_is_simulating_is_skipped(tmp_path, monkeypatch):
     assert "apron_dance silk_charmeuse coarse: running in another process, skipped" in log
     assert make_sequences.main(args) == 1 and calls[1:] == ["skirt_dance", "apron_dance"]
     assert not list((tmp_path / ".partial").rglob("*.lock"))
+
+
+def test_status_counts_files_checkpoints_and_hours_left_at_the_written_rates(tmp_path):
+    """--status: a written file's rate (its metadata) prices the rest of its scene; a scene
+    with no file is priced by EST_MS times the written files' ratio to EST_MS; a checkpoint
+    counts its frames as done; a damaged file counts as not written."""
+    import json
+
+    jobs = [j for j in make_sequences.plan(600, 300)
+            if j["scene"] in ("apron_dance", "shawl_dance2")]
+    apron = [j for j in jobs if j["scene"] == "apron_dance"]
+    est = make_sequences.EST_MS["apron_dance"][0]
+    for job, ms in zip(apron[:2], (3 * est, 4 * est), strict=True):
+        path = make_sequences.job_path(tmp_path, job)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(path, metadata=np.str_(json.dumps({"ms_per_frame": ms})))
+    partial = make_sequences.partial_path(tmp_path, apron[2])
+    partial.parent.mkdir(parents=True, exist_ok=True)
+    with open(partial, "wb") as fh:  # (np.savez would append .npz to the name)
+        np.savez(fh, done=np.int64(100))
+    make_sequences.job_path(tmp_path, apron[3]).write_bytes(b"cut short")
+    rows = make_sequences.job_status(tmp_path, jobs)
+    by = {(r["scene"], r["material"]): r for r in rows}
+    total = 600 + int(round(scenes.get_scene("apron_dance").preroll_s * 30)) - 1
+    first, third, fourth = (by[("apron_dance", j["material"])] for j in apron[:3:2] + [apron[3]])
+    assert first["state"] == "done" and first["frames_left"] == 0
+    assert first["ms_per_frame"] == 3 * est and first["source"] == "file"
+    assert third["state"] == "partial" and third["frames_left"] == total - 100
+    assert third["ms_per_frame"] == 3 * est and third["source"] == "scene"  # the fastest
+    assert fourth["state"] == "todo" and fourth["frames_left"] == total
+    shawl = by[("shawl_dance2", "silk_charmeuse")]
+    assert shawl["ms_per_frame"] == pytest.approx(3 * make_sequences.EST_MS["shawl_dance2"][0])
+    assert shawl["source"] == "estimate x 3.0"
+    text = make_sequences.status_text(rows)
+    hours = ((total - 100) + 2 * total) * 3 * est / 3.6e6 + 5 * (
+        total * 3 * make_sequences.EST_MS["shawl_dance2"][0]) / 3.6e6
+    assert "| apron_dance | fine | 2 | 1 | 2 |" in text
+    assert f"2 of 10 files written; {hours:.1f} hours of simulation left" in text

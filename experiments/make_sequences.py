@@ -45,10 +45,12 @@ all five materials. A run that resumes another must use the same code: the log's
 the manifest record the git commit and the self-collision setting, and a start refuses a folder
 whose manifest names other settings (use a new --out for a new simulator version).
 
-Sizing (measured on the 2-core shared CPU, 20 substeps, 2 stretch sweeps; see
-benchmarks/bench_sim.py): fine 120-235 ms/frame (11.5k-20k vertices), coarse 7-15 ms/frame.
-With 600 training and 300 test frames (20 s and 10 s at 30 fps, plus 1-2 s pre-roll each) the
-set is ~45 sequences, ~1 h of simulation on an idle machine (up to ~2 h under load), ~2.5 GB.
+Sizing: 85 files (the nine training scenes fine, the validation scene and the three test
+scenes fine and coarse), roughly 5 GB. With self-collision the fine files cost 0.45-3 s per
+frame on the 2-core CPU (the 11.5k-vertex scenes ~0.9 s, the fine skirts 1.6-2.9 s; sessions
+26-29) and the coarse ones at 80 substeps ~0.11 s, about 8 hours of one core in all; two runs
+side by side (one per core, sharing the folder through the job claims) take about half.
+`--status` prices what is left from the files already written.
 """
 
 from __future__ import annotations

@@ -6,9 +6,12 @@
 The classifier sees coarse normal maps at test time; `experiments.make_sequences` only
 simulates the training scenes at fine resolution. This writes
 `<out>/<scene>/<material>_coarse_s0.npz` for every training scene and material (seed 0: the
-same motion as the fine training sequences), one at a time, skipping files that exist; each
-file is written atomically. Coarse simulation costs ~10-15 ms/frame, so 15 sequences of 600
-frames take a few minutes. The test scenes are never touched here.
+same motion as the fine training sequences), one at a time, skipping files that exist and
+files another run is simulating (each is claimed first, as in `experiments.make_sequences`, so
+two runs can share the list); each file is written atomically. At the data set's coarse
+settings (80 substeps, self-collision) a coarse frame costs ~0.11-0.16 s (the test scenes'
+coarse files, session 28), so the 45 sequences of 600 frames take about an hour of one core.
+The test scenes are never touched here.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import time
 from pathlib import Path
 
 from wrinkle_jax import MATERIALS
+from wrinkle_jax.fileio import claim
 from wrinkle_jax.sim import scenes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,16 +45,22 @@ def main(argv: list[str] | None = None) -> int:
         setup = None
         for mat in MATERIALS:
             path = out / name / f"{mat}_coarse_s{args.seed}.npz"
-            if path.exists():
-                print(f"skip {path} (exists)", flush=True)
-                continue
-            t0 = time.perf_counter()
-            if setup is None:  # one mesh, model and compiled solver per scene
-                setup = scenes.setup_scene(name, "coarse", args.frames, args.seed)
-            seq = scenes.simulate(setup.scene, mat, "coarse", args.frames, args.seed,
-                                  setup=setup, substeps=args.substeps, self_collision=contacts)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            scenes.save_simulation(path, seq)
+            # Claimed as make_sequences claims its jobs: two runs (one per core) share the list.
+            with claim(out / ".partial" / name / (path.name + ".lock")) as mine:
+                if not mine:
+                    print(f"skip {path} (another process is simulating it)", flush=True)
+                    continue
+                if path.exists():
+                    print(f"skip {path} (exists)", flush=True)
+                    continue
+                t0 = time.perf_counter()
+                if setup is None:  # one mesh, model and compiled solver per scene
+                    setup = scenes.setup_scene(name, "coarse", args.frames, args.seed)
+                seq = scenes.simulate(setup.scene, mat, "coarse", args.frames, args.seed,
+                                      setup=setup, substeps=args.substeps,
+                                      self_collision=contacts)
+                path.parent.mkdir(parents=True, exist_ok=True)
+                scenes.save_simulation(path, seq)
             print(f"wrote {path} ({seq.garment.num_vertices} vertices, {len(seq)} frames) in "
                   f"{time.perf_counter() - t0:.1f} s", flush=True)
     return 0

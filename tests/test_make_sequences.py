@@ -243,3 +243,26 @@ def test_status_counts_files_checkpoints_and_hours_left_at_the_written_rates(tmp
         total * 3 * make_sequences.EST_MS["shawl_dance2"][0]) / 3.6e6
     assert "| apron_dance | fine | 2 | 1 | 2 |" in text
     assert f"2 of 10 files written; {hours:.1f} hours of simulation left" in text
+
+
+def test_coarse_training_runs_skip_a_file_another_run_is_simulating(tmp_path, monkeypatch):
+    from experiments import make_coarse_training_sequences as coarse_runs
+    from wrinkle_jax import MATERIALS
+    from wrinkle_jax.fileio import claim
+
+    calls = []
+
+    def fake_simulate(scene, material, *a, **k):
+        calls.append(material)
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(coarse_runs.scenes, "setup_scene",
+                        lambda name, *a, **k: dataclasses.make_dataclass("S", ["scene"])(name))
+    monkeypatch.setattr(coarse_runs.scenes, "simulate", fake_simulate)
+    lock = tmp_path / ".partial" / "apron_dance" / f"{MATERIALS[0]}_coarse_s0.npz.lock"
+    args = ["--out", str(tmp_path), "--scenes", "apron_dance", "--frames", "3"]
+    with claim(lock) as mine, pytest.raises(RuntimeError, match="stop here"):
+        assert mine
+        coarse_runs.main(args)
+    assert calls == [MATERIALS[1]]  # the first fabric's file is another run's
+    assert not lock.exists()

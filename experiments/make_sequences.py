@@ -232,7 +232,8 @@ def make_previews(out: Path, data: Path, frame: int = 90, material: str = "silk_
     """Fine-vs-coarse preview PNGs per scene (3D views and baked normal maps at frame `frame`).
 
     Uses the generated fine/coarse files when present (same seed and frame), otherwise runs a
-    short simulation of `frame + 1` frames. `only`: comma-separated scene names (default all).
+    short simulation of `frame + 1` frames with the data set's solver (`scenes.dataset_solver`).
+    `only`: comma-separated scene names (default all).
     """
     import jax.numpy as jnp
     import numpy as np
@@ -251,7 +252,10 @@ def make_previews(out: Path, data: Path, frame: int = 90, material: str = "silk_
             p = data / name / f"{material}_{res}_s{seed}.npz"
             seq = meshio.load_sequence(p) if p.exists() else None
             if seq is None or len(seq) <= frame:
-                seq = scenes.simulate(name, material, res, frames=frame + 1, seed=seed)
+                # The data set's solver, so the preview shows what its file would hold.
+                substeps, contacts = scenes.dataset_solver(name, res)
+                seq = scenes.simulate(name, material, res, frames=frame + 1, seed=seed,
+                                      substeps=substeps, self_collision=contacts)
                 tracks = seq.tracks
             else:
                 with np.load(p) as z:

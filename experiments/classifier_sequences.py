@@ -9,9 +9,11 @@ material of every cell: PD 30 mm, simulated as the data set's coarse sequences a
 (`scenes.DATASET_COARSE_SUBSTEPS` substeps, `scenes.self_collision_config`; the settings are in
 each file's metadata, and `experiments.classifier_motion` refuses a mix). `dress_walk` and
 `cape_dance` are the dress and cape with the motion replaced (`evaluation.cells.scene_for`).
-Existing files are skipped; one mesh and solver model per scene serve all five materials. These
-garments and motions are never used to choose features or models (the classifier is selected by
-leave-one-training-scene-out cross-validation); they only score the final choice.
+Existing files are skipped, and so are files another run is simulating (each is claimed
+first, as in `experiments.make_sequences`); one mesh and solver model per scene serve all five
+materials. These garments and motions are never used to choose features or models (the
+classifier is selected by leave-one-training-scene-out cross-validation); they only score the
+final choice.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from pathlib import Path
 
 from wrinkle_jax import MATERIALS
 from wrinkle_jax.evaluation import cells
+from wrinkle_jax.fileio import claim
 from wrinkle_jax.sim import scenes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -57,12 +60,19 @@ def main(argv=None) -> int:
             continue
         setup = scenes.setup_scene(sc, "coarse", args.frames, args.seed)
         for mat in todo:
-            t0 = time.perf_counter()
-            seq = scenes.simulate(sc, mat, "coarse", frames=args.frames, seed=args.seed,
-                                  setup=setup, substeps=args.substeps, self_collision=contacts)
             path = out / sc.name / f"{mat}_coarse_s{args.seed}.npz"
-            path.parent.mkdir(parents=True, exist_ok=True)
-            scenes.save_simulation(path, seq)
+            # Claimed as make_sequences claims its jobs: two runs (one per core) share the list.
+            with claim(out / ".partial" / sc.name / (path.name + ".lock")) as mine:
+                if not mine or path.exists():
+                    print(f"skip {path} ({'exists' if mine else 'another run has it'})",
+                          flush=True)
+                    continue
+                t0 = time.perf_counter()
+                seq = scenes.simulate(sc, mat, "coarse", frames=args.frames, seed=args.seed,
+                                      setup=setup, substeps=args.substeps,
+                                      self_collision=contacts)
+                path.parent.mkdir(parents=True, exist_ok=True)
+                scenes.save_simulation(path, seq)
             print(f"{path} {time.perf_counter() - t0:.1f} s", flush=True)
     return 0
 

@@ -266,3 +266,24 @@ def test_coarse_training_runs_skip_a_file_another_run_is_simulating(tmp_path, mo
         coarse_runs.main(args)
     assert calls == [MATERIALS[1]]  # the first fabric's file is another run's
     assert not lock.exists()
+
+
+def test_classifier_sequence_runs_skip_a_file_another_run_is_simulating(tmp_path, monkeypatch):
+    from experiments import classifier_sequences as cls_runs
+    from wrinkle_jax import MATERIALS
+    from wrinkle_jax.fileio import claim
+
+    calls = []
+
+    def fake_simulate(scene, material, *a, **k):
+        calls.append(material)
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(cls_runs.scenes, "setup_scene", lambda *a, **k: None)
+    monkeypatch.setattr(cls_runs.scenes, "simulate", fake_simulate)
+    lock = tmp_path / ".partial" / "dress_dance" / f"{MATERIALS[0]}_coarse_s1.npz.lock"
+    args = ["--out", str(tmp_path), "--cells", "dress_dance", "--frames", "3"]
+    with claim(lock) as mine, pytest.raises(RuntimeError, match="stop here"):
+        assert mine
+        cls_runs.main(args)
+    assert calls == [MATERIALS[1]]  # the first fabric's file is another run's

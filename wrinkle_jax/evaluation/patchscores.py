@@ -214,8 +214,6 @@ def load_cell(path: Path, fingerprint: dict) -> dict | None:
 
     The result also holds "sources" (name -> source of its losses) and "legacy" (True for a
     file written before sources were stored)."""
-    if not path.exists():
-        return None
     z = read_cell_file(path)
     if z is None:
         return None

@@ -115,8 +115,6 @@ def save_cell(path: Path, record: dict, fingerprint: dict, sources: dict[str, st
 def load_cell(path: Path, fingerprint: dict) -> dict | None:
     """A stored cell record if it exists and its sets a and c are this fingerprint's, else None
     (with "sources" and "legacy" as `evaluation.patchscores.load_cell`)."""
-    if not path.exists():
-        return None
     z = patchscores.read_cell_file(path)
     if z is None:
         return None

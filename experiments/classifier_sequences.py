@@ -24,7 +24,7 @@ from pathlib import Path
 
 from wrinkle_jax import MATERIALS
 from wrinkle_jax.evaluation import cells
-from wrinkle_jax.fileio import claim
+from wrinkle_jax.fileio import claim_output
 from wrinkle_jax.sim import scenes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -61,8 +61,8 @@ def main(argv=None) -> int:
         setup = scenes.setup_scene(sc, "coarse", args.frames, args.seed)
         for mat in todo:
             path = out / sc.name / f"{mat}_coarse_s{args.seed}.npz"
-            # Claimed as make_sequences claims its jobs: two runs (one per core) share the list.
-            with claim(out / ".partial" / sc.name / (path.name + ".lock")) as mine:
+            # Claimed, so two runs (one per core) can share the list.
+            with claim_output(out, path) as mine:
                 if not mine or path.exists():
                     print(f"skip {path} ({'exists' if mine else 'another run has it'})",
                           flush=True)

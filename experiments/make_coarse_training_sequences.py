@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from wrinkle_jax import MATERIALS
-from wrinkle_jax.fileio import claim
+from wrinkle_jax.fileio import claim_output
 from wrinkle_jax.sim import scenes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,8 +45,8 @@ def main(argv: list[str] | None = None) -> int:
         setup = None
         for mat in MATERIALS:
             path = out / name / f"{mat}_coarse_s{args.seed}.npz"
-            # Claimed as make_sequences claims its jobs: two runs (one per core) share the list.
-            with claim(out / ".partial" / name / (path.name + ".lock")) as mine:
+            # Claimed, so two runs (one per core) can share the list.
+            with claim_output(out, path) as mine:
                 if not mine:
                     print(f"skip {path} (another process is simulating it)", flush=True)
                     continue

@@ -61,7 +61,7 @@ import time
 from pathlib import Path
 
 from wrinkle_jax import MATERIALS
-from wrinkle_jax.fileio import NPZ_READ_ERRORS, atomic_write_text, claim, git_commit
+from wrinkle_jax.fileio import NPZ_READ_ERRORS, atomic_write_text, claim_output, git_commit
 from wrinkle_jax.sim import scenes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -197,10 +197,15 @@ def job_status(out: Path, jobs: list[dict]) -> list[dict]:
     return rows
 
 
+def _hours_left(rows: list[dict]) -> float:
+    """Hours of simulation the rows' frames left cost at their rates (no rate: not counted)."""
+    return sum(r["frames_left"] * (r["ms_per_frame"] or 0.0) for r in rows) / 3.6e6
+
+
 def status_summary(rows: list[dict]) -> str:
     """One line: files written, and hours of simulation left at `job_status`'s rates."""
     left = [r for r in rows if r["state"] != "done"]
-    hours = sum(r["frames_left"] * (r["ms_per_frame"] or 0.0) for r in left) / 3.6e6
+    hours = _hours_left(left)
     unknown = sum(r["ms_per_frame"] is None for r in left)
     return (f"{len(rows) - len(left)} of {len(rows)} files written; {hours:.1f} hours of "
             f"simulation left at the fastest written rates (one process; two on two cores "
@@ -218,7 +223,7 @@ def status_text(rows: list[dict]) -> str:
     for (scene, res), rs in groups.items():
         left = [r for r in rs if r["state"] != "done"]
         rate = next((r for r in left if r["ms_per_frame"] is not None), None)
-        hours = sum(r["frames_left"] * (r["ms_per_frame"] or 0.0) for r in left) / 3.6e6
+        hours = _hours_left(left)
         counts = [sum(r["state"] == s for r in rs) for s in ("done", "partial", "todo")]
         rate_text = f"{rate['ms_per_frame']:.0f} ({rate['source']})" if rate else "-"
         lines.append(f"| {scene} | {res} | {counts[0]} | {counts[1]} | {counts[2]} | "
@@ -414,7 +419,7 @@ def main(argv=None) -> int:
         path = job_path(out, job)
         # A claim per job: several runs may share the plan (e.g. a second one with --only,
         # or two full runs), and none starts a file another is simulating.
-        with claim(partial_path(out, job).with_suffix(".lock")) as mine:
+        with claim_output(out, path) as mine:
             if not mine:
                 log(f"  {job['scene']} {job['material']} {job['resolution']}: running in "
                     f"another process, skipped")

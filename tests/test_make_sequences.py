@@ -245,45 +245,33 @@ def test_status_counts_files_checkpoints_and_hours_left_at_the_written_rates(tmp
     assert f"2 of 10 files written; {hours:.1f} hours of simulation left" in text
 
 
-def test_coarse_training_runs_skip_a_file_another_run_is_simulating(tmp_path, monkeypatch):
-    from experiments import make_coarse_training_sequences as coarse_runs
+@pytest.mark.parametrize("module, args, lock", [
+    ("make_coarse_training_sequences", ["--scenes", "apron_dance"],
+     "apron_dance/{}_coarse_s0.npz.lock"),
+    ("classifier_sequences", ["--cells", "dress_dance"], "dress_dance/{}_coarse_s1.npz.lock"),
+])
+def test_coarse_runs_skip_a_file_another_run_is_simulating(tmp_path, monkeypatch, module, args,
+                                                           lock):
+    """The coarse training and classifier sequence runs claim each file, as make_sequences
+    does: a file whose claim another process holds is not simulated."""
+    import importlib
+
     from wrinkle_jax import MATERIALS
     from wrinkle_jax.fileio import claim
 
+    runs = importlib.import_module(f"experiments.{module}")
     calls = []
 
     def fake_simulate(scene, material, *a, **k):
         calls.append(material)
         raise RuntimeError("stop here")
 
-    monkeypatch.setattr(coarse_runs.scenes, "setup_scene",
+    monkeypatch.setattr(runs.scenes, "setup_scene",
                         lambda name, *a, **k: dataclasses.make_dataclass("S", ["scene"])(name))
-    monkeypatch.setattr(coarse_runs.scenes, "simulate", fake_simulate)
-    lock = tmp_path / ".partial" / "apron_dance" / f"{MATERIALS[0]}_coarse_s0.npz.lock"
-    args = ["--out", str(tmp_path), "--scenes", "apron_dance", "--frames", "3"]
+    monkeypatch.setattr(runs.scenes, "simulate", fake_simulate)
+    lock = tmp_path / ".partial" / lock.format(MATERIALS[0])
     with claim(lock) as mine, pytest.raises(RuntimeError, match="stop here"):
         assert mine
-        coarse_runs.main(args)
+        runs.main(["--out", str(tmp_path), "--frames", "3", *args])
     assert calls == [MATERIALS[1]]  # the first fabric's file is another run's
     assert not lock.exists()
-
-
-def test_classifier_sequence_runs_skip_a_file_another_run_is_simulating(tmp_path, monkeypatch):
-    from experiments import classifier_sequences as cls_runs
-    from wrinkle_jax import MATERIALS
-    from wrinkle_jax.fileio import claim
-
-    calls = []
-
-    def fake_simulate(scene, material, *a, **k):
-        calls.append(material)
-        raise RuntimeError("stop here")
-
-    monkeypatch.setattr(cls_runs.scenes, "setup_scene", lambda *a, **k: None)
-    monkeypatch.setattr(cls_runs.scenes, "simulate", fake_simulate)
-    lock = tmp_path / ".partial" / "dress_dance" / f"{MATERIALS[0]}_coarse_s1.npz.lock"
-    args = ["--out", str(tmp_path), "--cells", "dress_dance", "--frames", "3"]
-    with claim(lock) as mine, pytest.raises(RuntimeError, match="stop here"):
-        assert mine
-        cls_runs.main(args)
-    assert calls == [MATERIALS[1]]  # the first fabric's file is another run's

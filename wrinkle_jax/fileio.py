@@ -99,7 +99,6 @@ def git_commit(root: str | os.PathLike) -> str | None:
         return None
 
 
-
 @contextlib.contextmanager
 def claim(path: str | os.PathLike) -> Iterator[bool]:
     """Claim a piece of work among processes sharing a folder: yields True if this process
@@ -133,3 +132,12 @@ def claim(path: str | os.PathLike) -> Iterator[bool]:
         with contextlib.suppress(FileNotFoundError):
             path.unlink()  # still under the lock, so no one holds the removed inode
         os.close(fd)
+
+
+def claim_output(out: str | os.PathLike, path: str | os.PathLike):
+    """`claim` the writing of `path`, a file under the folder `out`, among runs sharing that
+    folder: the claim file is `<out>/.partial/<path relative to out>.lock`, beside the runs'
+    checkpoints and out of the way of globs over the outputs."""
+    out, path = Path(out), Path(path)
+    rel = path.relative_to(out)
+    return claim(out / ".partial" / rel.parent / (rel.name + ".lock"))

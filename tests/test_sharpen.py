@@ -258,8 +258,19 @@ def test_shared_moment_blur_gradient_matches_the_reference(enable_x64):
     np.testing.assert_allclose(float(jnp.sum(gn_new * d)), float(fd), rtol=1e-6)
 
 
+@pytest.fixture
+def fresh_jit_caches():
+    """Jitted callers of `masked_blur` (`unsharp_rgb`) keep the trace of the blur they first
+    saw: a test that patches it clears the caches before (so its patch is traced) and after
+    (so no later test in the worker runs the patched trace, with its closed-over tracer)."""
+    jax.clear_caches()
+    yield
+    jax.clear_caches()
+
+
 @pytest.mark.parametrize("highpass,unsharp_sigma", [(2.0, 4.0), (4.0, 4.0)])
-def test_unet_blurs_match_the_reference_formula(monkeypatch, highpass, unsharp_sigma):
+def test_unet_blurs_match_the_reference_formula(monkeypatch, fresh_jit_caches, highpass,
+                                                unsharp_sigma):
     """The U-Net forward (high-passed residual on an unsharp base; equal radii share one blur
     call, different ones do not) and its parameter gradient equal those of the original blur
     formula to float32 rounding, on random masked inputs and random weights."""
@@ -283,10 +294,10 @@ def test_unet_blurs_match_the_reference_formula(monkeypatch, highpass, unsharp_s
     blur = sharpen.masked_blur
     flag = []
 
-    def either(n, mask_, sigma, order=1):
+    def either(n, mask_, sigma, order=1, weights=None):
         return jax.lax.cond(flag[0], lambda a, b: sharpen.masked_blur_reference(a, b, sigma,
                                                                                  order),
-                            lambda a, b: blur(a, b, sigma, order), n, mask_)
+                            lambda a, b: blur(a, b, sigma, order, weights), n, mask_)
 
     monkeypatch.setattr(sharpen, "masked_blur", either)
 
@@ -309,3 +320,20 @@ def test_unet_blurs_match_the_reference_formula(monkeypatch, highpass, unsharp_s
     scale = max(float(jnp.abs(b).max()) for b in jax.tree.leaves(g_want))
     for a, b in zip(jax.tree.leaves(g_got), jax.tree.leaves(g_want), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-4 * scale)
+
+
+@pytest.mark.parametrize("order", [0, 1])
+def test_blur_weights_computed_once_serve_every_field_on_the_mask(order):
+    """`blur_weights` of a mask, passed to several blurs of different fields on it, give each
+    field's own blur; weights of the other order are refused."""
+    n, mask = _random_masked((3, 40, 36, 4), seed=9 + order)
+    weights = sharpen.blur_weights(mask, 5.0, order)
+    assert weights.shape == ((3 if order else 1), 40, 3, 36)
+    for field in (n[..., :1], n[..., 1:], 2.0 * n + 1.0):
+        want = np.asarray(sharpen.masked_blur_reference(field, mask, 5.0, order))
+        got = np.asarray(sharpen.masked_blur(field, mask, 5.0, order, weights=weights))
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
+        inside = np.asarray(sharpen.masked_blur(field, mask, 5.0, order))
+        np.testing.assert_allclose(got, inside, rtol=1e-6, atol=1e-7 * np.abs(inside).max())
+    with pytest.raises(ValueError, match="do not fit order"):
+        sharpen.masked_blur(n, mask, 5.0, 1 - order, weights=weights)

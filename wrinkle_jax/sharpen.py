@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["gaussian_kernel", "mask_from_rgb", "masked_blur", "unsharp_rgb"]
+__all__ = ["blur_weights", "gaussian_kernel", "mask_from_rgb", "masked_blur", "unsharp_rgb"]
 
 
 def gaussian_kernel(sigma: float) -> np.ndarray:
@@ -86,7 +86,54 @@ _SLOPE_RIDGE = 1e-3
 
 
 @functools.partial(jax.jit, static_argnames=("sigma", "order"))
-def masked_blur(n, mask, sigma: float, order: int = 1):
+def blur_weights(mask, sigma: float, order: int = 1):
+    """The mask's part of `masked_blur`: per-texel weights of the values' Gaussian moments.
+
+    The order-1 blur is linear in the values: with m0, my, mx the Gaussian moments of the
+    masked values (sums of g(dy) g(dx) mask v, times 1, dy, dx) it is a0 m0 + ay my + ax mx,
+    where a0, ay, ax depend on the mask alone (its weight, centroid and offset covariance).
+    Several fields blurred on one mask, or one patch layout blurred every frame (the pipeline's
+    patches sit at fixed texels, so their masks never change), share these weights; computing
+    them once saves the mask's 9 of the 5 C + 9 passes (order 1, C value channels).
+
+    Args:
+      mask: (N, H, W, 1) weights in [0, 1]; sigma: radius in texels; order: 0 or 1.
+    Returns:
+      (K, H, N, W) planes (the mask's float dtype) in `masked_blur`'s layout: K = 3 (a0,
+      ay, ax) for order 1, K = 1 (a0 = 1 / the mask's blur) for order 0.
+    """
+    if order not in (0, 1):
+        raise ValueError(f"masked_blur order must be 0 or 1, got {order!r}")
+    g = gaussian_kernel(sigma)
+    mk = jnp.transpose(jnp.asarray(mask)[..., 0], (1, 0, 2))  # (H, N, W)
+    if order == 0:
+        m0 = _cols(_rows(mk, g)[0], g)[..., 0, :]
+        return (1.0 / jnp.maximum(m0, 1e-8))[None]
+    d = np.arange(len(g), dtype=np.float32) - (len(g) - 1) // 2  # offset q - p (texels)
+    g1, g2 = g * d, g * d * d
+    rows = _rows(mk, g, g1, g2)                      # (3, H, N, W): taps g, g1, g2 along H
+    both = _cols(rows[0], g, g1, g2)                 # (H, N, 3, W): then g, g1, g2 along W
+    m0, mx, mxx = both[..., 0, :], both[..., 1, :], both[..., 2, :]
+    dy = _cols(rows[1], g, g1)
+    my, mxy = dy[..., 0, :], dy[..., 1, :]
+    myy = _cols(rows[2], g)[..., 0, :]
+    # Weighted means and (co)variances of the window's offsets; the least-squares plane through
+    # the weighted mean, evaluated at offset 0, is v - p sy - q sx with v, sy, sx the values'
+    # weighted mean and covariances with the offsets, which regroups into the three weights.
+    w = jnp.maximum(m0, 1e-8)
+    uy, ux = my / w, mx / w
+    cyy = myy / w - uy * uy + _SLOPE_RIDGE * sigma**2
+    cxx = mxx / w - ux * ux + _SLOPE_RIDGE * sigma**2
+    cxy = mxy / w - uy * ux
+    det = cyy * cxx - cxy * cxy
+    p = (uy * cxx - ux * cxy) / det
+    q = (ux * cyy - uy * cxy) / det
+    s = (mk > 0) / w
+    return jnp.stack([s * (1.0 + p * uy + q * ux), -s * p, -s * q])
+
+
+@functools.partial(jax.jit, static_argnames=("sigma", "order"))
+def masked_blur(n, mask, sigma: float, order: int = 1, weights=None):
     """Masked Gaussian blur: normalized convolution of order 0 (local mean) or 1 (local plane).
 
     Args:
@@ -94,55 +141,37 @@ def masked_blur(n, mask, sigma: float, order: int = 1):
       order: 0 for blur(mask * n) / blur(mask); 1 for the value at the centre of the weighted
         least-squares plane through the window (weights Gaussian * mask), which leaves linear
         fields unchanged up to the mask's border.
+      weights: None, or ``blur_weights(mask, sigma, order)`` computed once for this mask
+        (then `mask` only masks the values).
     Returns:
       (N, H, W, C) blurred values (order 0: 0 where no masked texel is in reach; order 1: 0
       outside the mask).
 
     Several fields on the same mask and sigma (e.g. a network's input and its residual) should
-    be blurred in one call, stacked along C: the mask's moments are then computed once.
+    be blurred in one call, stacked along C, or share `weights`.
 
     The Gaussian moments are separable sums of dense banded matmuls on the planes laid out as
-    (H, C + 1, N, W), where both the row and the column pass are plain matrix products (no
+    (H, C, N, W), where both the row and the column pass are plain matrix products (no
     transposes between them), and each row pass is shared by the column passes that need it:
-    order 1 costs 2 (C + 1) + 1 row and 3 (C + 1) + 3 column passes (one pass: one plane's
-    (H, H) matmul).
+    order 1 costs 2 C row and 3 C column passes on the values (one pass: one plane's (H, H)
+    matmul), plus the mask's 3 + 6 in `blur_weights` when `weights` is None.
     """
-    if order not in (0, 1):
-        raise ValueError(f"masked_blur order must be 0 or 1, got {order!r}")
+    if weights is None:
+        weights = blur_weights(mask, sigma, order)
+    elif weights.shape[0] != (3 if order == 1 else 1):
+        raise ValueError(f"weights of {weights.shape[0]} planes do not fit order {order!r} "
+                         "(blur_weights gives 3 for order 1, 1 for order 0)")
     g = gaussian_kernel(sigma)
-    # Planes (H, C + 1, N, W): the masked values, then the mask.
-    planes = jnp.transpose(jnp.concatenate([n * mask, mask], axis=-1), (1, 3, 0, 2))
+    planes = jnp.transpose(n * mask, (1, 3, 0, 2))   # (H, C, N, W)
+    a = weights[:, :, None]                          # (K, H, 1, N, W), over the C planes
     if order == 0:
-        m0 = _cols(_rows(planes, g)[0], g)[..., 0, :]
-        out = m0[:, :-1] / jnp.maximum(m0[:, -1:], 1e-8)
+        out = _cols(_rows(planes, g)[0], g)[..., 0, :] * a[0]
         return jnp.transpose(out, (2, 0, 3, 1))
-    d = np.arange(len(g), dtype=np.float32) - (len(g) - 1) // 2  # offset q - p (texels)
-    g1, g2 = g * d, g * d * d
-    rows = _rows(planes, g, g1)                      # (2, H, C+1, N, W): taps g, g1 along H
-    # Only the column passes that a moment uses: (g1, g1) is the mask's alone.
-    both = _cols(rows[0], g, g1)                     # (H, C+1, N, 2, W): then g, g1 along W
-    m0, mx = both[..., 0, :], both[..., 1, :]        # moments 1, x of (values, mask)
+    d = np.arange(len(g), dtype=np.float32) - (len(g) - 1) // 2
+    rows = _rows(planes, g, g * d)                   # (2, H, C, N, W)
+    both = _cols(rows[0], g, g * d)                  # (H, C, N, 2, W)
     my = _cols(rows[1], g)[..., 0, :]
-    mxy = _cols(rows[1, :, -1], g1)[..., 0, :]       # (H, N, W)
-    mk = planes[:, -1]                               # (H, N, W)
-    myy = _cols(_rows(mk, g2)[0], g)[..., 0, :]
-    mxx = _cols(rows[0, :, -1], g2)[..., 0, :]
-    # Weighted means of the offsets and of the values, and their (co)variances; the mask's
-    # moments are (H, N, W), broadcast over the C value planes as (H, 1, N, W).
-    w = jnp.maximum(m0[:, -1], 1e-8)
-    uy, ux = my[:, -1] / w, mx[:, -1] / w
-    cyy = myy / w - uy * uy + _SLOPE_RIDGE * sigma**2
-    cxx = mxx / w - ux * ux + _SLOPE_RIDGE * sigma**2
-    cxy = mxy / w - uy * ux
-    det = cyy * cxx - cxy * cxy
-    w, uy, ux, cyy, cxx, cxy, det = (a[:, None] for a in (w, uy, ux, cyy, cxx, cxy, det))
-    v = m0[:, :-1] / w
-    sy = my[:, :-1] / w - uy * v
-    sx = mx[:, :-1] / w - ux * v
-    by = (cxx * sy - cxy * sx) / det
-    bx = (cyy * sx - cxy * sy) / det
-    # The plane through the weighted mean, evaluated at offset 0 (the centre texel).
-    out = (v - by * uy - bx * ux) * (mk[:, None] > 0)
+    out = a[0] * both[..., 0, :] + a[1] * my + a[2] * both[..., 1, :]
     return jnp.transpose(out, (2, 0, 3, 1))
 
 

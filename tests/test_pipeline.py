@@ -328,3 +328,36 @@ def test_frames_per_batch_shares_network_calls_and_keeps_the_maps(result, seq, m
     assert shared.patches["network"] == one.patches["network"] == 4 * per_frame
     with pytest.raises(ValueError, match="frames_per_batch"):
         pipeline.PipelineConfig(frames_per_batch=0)
+
+
+def test_blur_weights_computed_once_give_the_in_network_blurs_maps(seq):
+    """A model with the shipped blur layout (unsharp base and high-passed residual, two radii):
+    the pipeline computes the blurs' mask-only weights once per garment, and its maps equal
+    those of the in-network blurs, one frame or two per network call and through `frame_fn`."""
+    from wrinkle_jax import enhancer
+    from wrinkle_jax.nn import unet
+
+    cfg = enhancer.EnhancerConfig(
+        unet.UNetConfig(width=4, residual=True, residual_base="unsharp", unsharp_sigma=4.0,
+                        residual_highpass=2.0), patch_size=32, texel_size=0.004)
+    enh = enhancer.init_enhancer(jax.random.key(1, impl="rbg"), cfg)
+    material = cfg.material_id("wool_melton")
+
+    def maps(pipe):
+        return np.stack([f.normal_map for f in pipeline.iter_enhance(pipe, seq.frames,
+                                                                     material)])
+
+    for frames_per_batch in (1, 2):
+        config = pipeline.PipelineConfig(batch_size=3, chunk_size=4, lift=False,
+                                         frames_per_batch=frames_per_batch)
+        pipe = pipeline.make_pipeline(seq.garment, enh, config, compile=False)
+        assert set(pipe.blur_weights) == {"highpass", "unsharp"}
+        assert pipe.blur_weights["highpass"].shape[0] == pipe.batches_per_call
+        got = maps(pipe)
+        want = maps(dataclasses.replace(pipe, blur_weights=None))
+        np.testing.assert_allclose(got, want, atol=2e-6)
+        coarse = np.asarray(normalmap.bake_frames(pipe.plan, seq.frames))
+        assert np.abs(got - coarse).max() > 1e-2  # the blurs' output is in the maps
+        f = pipeline.frame_fn(pipe)
+        out = f(enh.params, jnp.asarray(seq.frames[1]), material)
+        np.testing.assert_allclose(out.normal_map, want[1], atol=2e-6)

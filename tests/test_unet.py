@@ -470,3 +470,35 @@ def test_converted_checkpoint_material_names(tmp_path):
     assert enh.config.material_id("leather") == 1
     with pytest.raises(enhancer.EnhancerError, match="2 material names"):
         enhancer.from_torch_checkpoint(path, ("cotton", "leather"))
+
+
+@pytest.mark.parametrize("overrides,keys", [
+    (dict(residual_base="unsharp", unsharp_sigma=4.0, residual_highpass=2.0),
+     {"highpass", "unsharp"}),                                    # the shipped layout
+    (dict(residual_base="unsharp", unsharp_sigma=3.0, residual_highpass=3.0), {"highpass"}),
+    (dict(residual_base="unsharp", unsharp_sigma=3.0, blur_order=0), {"unsharp"}),
+    (dict(residual_highpass=2.0), {"highpass"}),
+    (dict(residual=False), set()),
+])
+def test_precomputed_blur_weights_give_the_same_output(overrides, keys):
+    """`UNetConfig.blur_weights` of the inputs' masks, passed to the network, give the output
+    of its in-network blurs (which derive the mask from the input) for every blur layout;
+    an empty patch (a batch's zero padding) stays finite."""
+    cfg = unet.UNetConfig(width=4, input_norm="none", **{"residual": True, **overrides})
+    model = unet.CINUNet(cfg, num_materials=2)
+    params = unet.init_params(model, jax.random.key(4, impl="rbg"), patch_size=32)
+    rng = np.random.default_rng(5)
+    n = rng.normal(size=(3, 32, 32, 3))
+    y, x = np.mgrid[:32, :32]
+    inside = np.stack([(y - 16) ** 2 + (x - 20) ** 2 < 15**2, x > y, np.zeros((32, 32), bool)])
+    rgb = (0.5 + 0.5 * n / np.linalg.norm(n, axis=-1, keepdims=True)) * inside[..., None]
+    rgb = jnp.asarray(rgb, jnp.float32)
+    weights = cfg.blur_weights(jnp.asarray(inside[..., None], jnp.float32))
+    assert set(weights) == keys
+    run = jax.jit(lambda w: model.apply({"params": params}, rgb, jnp.array([0, 1, 1]), None, w))
+    got, want = np.asarray(run(weights)), np.asarray(run(None))
+    assert np.isfinite(got).all()
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    if keys:  # the weights do enter: those of another mask change the output
+        moved = cfg.blur_weights(jnp.asarray(np.roll(inside, 1, axis=0)[..., None], jnp.float32))
+        assert np.abs(np.asarray(run(moved)) - want)[:2].max() > 1e-3

@@ -227,8 +227,10 @@ def from_torch_checkpoint(path: str | os.PathLike, materials: tuple[str, ...] | 
 
 def make_apply(enhancer: Enhancer, clip: bool = True):
     """Jitted ``(params, x (N, H, W, 3) RGB-form patches, material (N,) int[, origins (N, 2)
-    int]) -> (N, H, W, 3)``; `origins` (the patches' texel positions in their UV layout) feed
-    the texel noise of models that have it, and are ignored otherwise.
+    int[, blur_weights]]) -> (N, H, W, 3)``; `origins` (the patches' texel positions in their
+    UV layout) feed the texel noise of models that have it, and are ignored otherwise;
+    `blur_weights` (``enhancer.config.unet.blur_weights(mask)``, optional) are the mask-only
+    part of the model's blurs, for patches whose masks repeat (the pipeline's).
 
     With `clip`, outputs are clipped to [0, 1] (the RGB form of unit normals); the parameters
     are an argument (not a closed-over constant), so one compile serves any weights of the same
@@ -237,8 +239,10 @@ def make_apply(enhancer: Enhancer, clip: bool = True):
     model = enhancer.model
 
     @jax.jit
-    def apply(params, x, material, origins=None):
-        out = model.apply({"params": params}, x, material, origins)
+    def apply(params, x, material, origins=None, blur_weights=None):
+        # Passed only when given: other modules (a user's, a test's) need not take them.
+        extra = () if blur_weights is None else (blur_weights,)
+        out = model.apply({"params": params}, x, material, origins, *extra)
         return jnp.clip(out, 0.0, 1.0) if clip else out
 
     return apply

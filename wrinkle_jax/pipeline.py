@@ -71,6 +71,7 @@ from wrinkle_jax.pipeline_setup import (  # noqa: F401
     _body_for,
     _compile,
     _lift_static,
+    _network_blur_weights,
     _no_offsets,
     _noise_origins,
     _padded_mask,
@@ -208,7 +209,7 @@ def _run_network(pipe: Pipeline, inputs, material_id: int, counts: dict,
     material = to_device(np.int32(material_id))
     origins = _noise_origins(pipe)
     outs = [_network_frame(apply, pipe.enhancer.params, group, material, batch_size=b,
-                           origins=origins)
+                           origins=origins, blur_weights=pipe.blur_weights)
             for group in _network_groups(inputs, frames=f, count=n)]
     calls = -(-n // f)
     counts["network"] += n * p
@@ -339,7 +340,12 @@ def frame_fn(pipe: Pipeline, body=None) -> Callable[..., FrameResult]:
                           size=pipe.enhancer.config.patch_size, batch_size=cfg.batch_size,
                           window=cfg.window, noise=bool(pipe.enhancer.config.unet.noise_channels),
                           lift=lift)
-    setup = dict(plan=pipe.plan, padded_mask=_padded_mask(pipe),
+    padded_mask = _padded_mask(pipe)
+    blur_weights = pipe.blur_weights
+    if pipe.frames_per_call > 1:  # those are for several frames' patches; f runs one frame's
+        blur_weights = _network_blur_weights(pipe.enhancer, padded_mask, pipe.origins,
+                                            cfg.batch_size)
+    setup = dict(plan=pipe.plan, padded_mask=padded_mask, blur_weights=blur_weights,
                  origins=to_device(pipe.origins), mask=to_device(pipe.mask),
                  subdivision=pipe.subdivision, fine_garment=pipe.fine_garment,
                  topology=pipe.topology, body=body, resolve_coarse=pipe.resolve_coarse)

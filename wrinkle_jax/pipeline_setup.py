@@ -23,6 +23,7 @@ from wrinkle_jax import enhancer as enhancer_lib
 from wrinkle_jax import lift as lift_lib
 from wrinkle_jax import normalmap, patches
 from wrinkle_jax.mesh import Garment
+from wrinkle_jax.nn import unet
 from wrinkle_jax.numerics import to_device
 from wrinkle_jax.stages import (
     _bake_chunk,
@@ -32,6 +33,7 @@ from wrinkle_jax.stages import (
     _merge_chunk,
     _network_apply,
     _network_frame,
+    batch_blur_weights,
 )
 
 # Per-stage timings recorded by the pipeline (seconds), in pipeline order.
@@ -154,6 +156,9 @@ class Pipeline:
       timings: seconds spent in setup and compilation.
       resolve_coarse: `lift.resolve_coarse` of the lifted mesh for `config.resolve` (the body
         push-out's coarse-grid preconditioner), or None.
+      blur_weights: the mask-only part of the model's blurs for one network call's patches
+        (`stages.batch_blur_weights`, `frames_per_call` frames), or None: the patches sit at
+        fixed texels, so their masks, and these, are the same every frame.
     """
 
     enhancer: enhancer_lib.Enhancer
@@ -169,6 +174,7 @@ class Pipeline:
     body: Any
     timings: dict
     resolve_coarse: Any = None
+    blur_weights: Any = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -262,9 +268,12 @@ def make_pipeline(garment: Garment, enhancer: enhancer_lib.Enhancer | None = Non
         top = lift_lib.lift_topology(fine.faces, fine.num_vertices)
         coarse_pc = lift_lib.resolve_coarse(sub, top, config.phi, config.resolve)
         fine = to_device(fine)  # device arrays: arguments, not constants
+    frames = min(config.frames_per_batch, config.chunk_size)  # Pipeline.frames_per_call
+    blur_w = _network_blur_weights(enh, padded, np.tile(origins, (frames, 1)), config.batch_size)
     timings["setup"] = time.perf_counter() - t0
     pipe = Pipeline(enh, dataclasses.replace(config, stride=stride), garment, plan, mask,
-                    origins, tuple(padded.shape[:2]), fine, sub, top, body, timings, coarse_pc)
+                    origins, tuple(padded.shape[:2]), fine, sub, top, body, timings, coarse_pc,
+                    blur_w)
     timings["compile"] = _compile(pipe) if compile else 0.0
     return pipe
 
@@ -284,7 +293,7 @@ def _compile(pipe: Pipeline) -> float:
     _network_frame.lower(_network_apply(enh), enh.params,
                          spec((pipe.frames_per_call * p, size, size, 3), f32),
                          spec((), jnp.int32), batch_size=cfg.batch_size,
-                         origins=_noise_origins(pipe)).compile()
+                         origins=_noise_origins(pipe), blur_weights=pipe.blur_weights).compile()
     _merge_chunk.lower(spec((c, p, size, size, 3), f32), pipe.origins, _padded_mask(pipe),
                        spec((c, hp, wp, 3), f32), window=cfg.window, shape=pipe.shape).compile()
     if cfg.lift:
@@ -306,6 +315,18 @@ def _noise_origins(pipe: Pipeline):
     if not pipe.enhancer.config.unet.noise_channels:
         return None
     return to_device(np.tile(pipe.origins, (pipe.frames_per_call, 1)))
+
+
+def _network_blur_weights(enh: enhancer_lib.Enhancer, padded_mask, origins, batch_size: int):
+    """`stages.batch_blur_weights` of the patches at `origins` ((P, 2)) of an (Hp, Wp, 1)
+    padded garment mask, for `network_stage` with `batch_size`; None for models without
+    blurs (or that are not a `CINUNet`: nothing is passed to them)."""
+    if not isinstance(enh.model, unet.CINUNet):
+        return None
+    tiles = patches.extract(jnp.asarray(padded_mask), jnp.asarray(origins, jnp.int32),
+                            int(enh.config.patch_size))
+    weights = batch_blur_weights(enh.model.config, tiles, batch_size=batch_size)
+    return weights or None
 
 
 def _padded_mask(pipe: Pipeline):

@@ -35,7 +35,8 @@ from wrinkle_jax import lift as lift_lib
 from wrinkle_jax import mesh, normalmap, patches
 from wrinkle_jax.numerics import normalize
 
-__all__ = ["FrameResult", "bake_stage", "lift_stage", "merge_stage", "network_stage", "tile_stage"]
+__all__ = ["FrameResult", "bake_stage", "batch_blur_weights", "lift_stage", "merge_stage",
+           "network_stage", "tile_stage"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -70,7 +71,8 @@ def tile_stage(image, origins, *, size: int):
     return patches.extract(image, origins, size)
 
 
-def network_stage(apply, params, tiles, material_id, *, batch_size: int, origins=None):
+def network_stage(apply, params, tiles, material_id, *, batch_size: int, origins=None,
+                  blur_weights=None):
     """Run the U-Net over one frame's patches in fixed-size batches.
 
     The P patches are zero-padded to whole batches of `batch_size` (each at a fixed position)
@@ -78,14 +80,16 @@ def network_stage(apply, params, tiles, material_id, *, batch_size: int, origins
     shape and a patch's result does not depend on the padding.
 
     Args:
-      apply: ``(params, x (B, S, S, 3), material (B,) int32[, origins (B, 2)]) -> (B, S, S, 3)``,
-        e.g. `enhancer.make_apply` (outputs clipped to [0, 1]).
+      apply: ``(params, x (B, S, S, 3), material (B,) int32[, origins (B, 2)[, blur_weights]])
+        -> (B, S, S, 3)``, e.g. `enhancer.make_apply` (outputs clipped to [0, 1]).
       params: its parameter pytree.
       tiles: (P, S, S, 3) RGB-form patches in [0, 1].
       material_id: int (or int32 scalar array): the material's row in the model's tables.
       batch_size: static patches per network call.
       origins: (P, 2) int32 texel origins of the patches, for models with texel noise; None
         for models without (the argument is then not passed to `apply`).
+      blur_weights: None, or `batch_blur_weights` of the patches' masks: the mask-only part
+        of the model's blurs, computed once for patches whose masks repeat every frame.
     Returns:
       (P, S, S, 3) enhanced patches, RGB form.
     """
@@ -94,12 +98,35 @@ def network_stage(apply, params, tiles, material_id, *, batch_size: int, origins
     nb = -(-p // b)
     x = jnp.pad(tiles, ((0, nb * b - p), (0, 0), (0, 0), (0, 0))).reshape(nb, b, *tiles.shape[1:])
     material = jnp.full((b,), material_id, jnp.int32)
-    if origins is None:
+    o = None
+    if origins is not None:
+        o = jnp.pad(jnp.asarray(origins, jnp.int32), ((0, nb * b - p), (0, 0))).reshape(nb, b, 2)
+    if o is None and blur_weights is None:
         out = jax.lax.map(lambda xb: apply(params, xb, material), x)
     else:
-        o = jnp.pad(jnp.asarray(origins, jnp.int32), ((0, nb * b - p), (0, 0))).reshape(nb, b, 2)
-        out = jax.lax.map(lambda xo: apply(params, xo[0], material, xo[1]), (x, o))
+        out = jax.lax.map(lambda a: apply(params, a[0], material, a[1], a[2]),
+                          (x, o, blur_weights))
     return out.reshape(nb * b, *tiles.shape[1:])[:p]
+
+
+def batch_blur_weights(unet_config, mask_tiles, *, batch_size: int):
+    """`network_stage`'s `blur_weights` for patches with these masks: the model's
+    `UNetConfig.blur_weights` of each batch, stacked along a leading batch-index axis.
+
+    Args:
+      unet_config: the model's `nn.unet.UNetConfig`.
+      mask_tiles: (P, S, S, 1) the patches' masks (nonzero inside the garment), cut like the
+        network's input patches (P may be a multiple of a frame's patches, for several frames
+        per call).
+      batch_size: the `network_stage` batch size.
+    Returns:
+      a dict of (P / B rounded up, K, S, B, S) planes; {} for models without blurs.
+    """
+    p, b = mask_tiles.shape[0], int(batch_size)
+    nb = -(-p // b)
+    m = (jnp.asarray(mask_tiles) > 0).astype(jnp.float32)  # as `sharpen.mask_from_rgb`
+    m = jnp.pad(m, ((0, nb * b - p), (0, 0), (0, 0), (0, 0))).reshape(nb, b, *m.shape[1:])
+    return jax.vmap(unet_config.blur_weights)(m)
 
 
 def merge_stage(outputs, origins, mask, coarse_map, *, window: str = "hann",
@@ -201,12 +228,14 @@ class _FrameStatic:
 @functools.partial(jax.jit, static_argnames=("static",))
 def _frame(setup: dict, params, coarse_vertices, material_id, static: _FrameStatic):
     """bake -> tile -> network -> merge (-> lift) of one frame; `setup` holds the arrays (plan,
-    padded_mask, origins, mask, subdivision, fine_garment, topology, body, resolve_coarse)."""
+    padded_mask, blur_weights, origins, mask, subdivision, fine_garment, topology, body,
+    resolve_coarse)."""
     coarse_map, rgb = bake_stage(setup["plan"], coarse_vertices, setup["padded_mask"],
                                  smooth=static.smooth, padded_shape=static.padded_shape)
     tiles = tile_stage(rgb, setup["origins"], size=static.size)
     out = network_stage(static.apply, params, tiles, material_id, batch_size=static.batch_size,
-                        origins=setup["origins"] if static.noise else None)
+                        origins=setup["origins"] if static.noise else None,
+                        blur_weights=setup["blur_weights"])
     normal_map = merge_stage(out, setup["origins"], setup["padded_mask"], coarse_map,
                              window=static.window, shape=static.shape)
     detailed = None

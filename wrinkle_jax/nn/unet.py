@@ -192,6 +192,35 @@ class UNetConfig:
         """The `CINUNet` with these settings for `num_materials` materials."""
         return CINUNet(config=self, num_materials=num_materials, conv_impl=conv_impl)
 
+    def shares_blur(self) -> bool:
+        """Whether the unsharp base and the high-pass blur on one radius (one blur serves both)."""
+        return self.residual_base == "unsharp" and 0 < self.residual_highpass == self.unsharp_sigma
+
+    def blur_weights(self, mask) -> dict:
+        """The mask-only part of the model's masked blurs, for masks known before the values.
+
+        The pipeline's patches sit at fixed texels of the garment's layout, so their masks are
+        the same every frame: it computes these once per garment and passes them to
+        `CINUNet.__call__`, which then skips the mask's passes (about a third of each blur).
+
+        Args:
+          mask: (N, H, W, 1) float, 1 inside the garment and 0 outside: the
+            `sharpen.mask_from_rgb` of the patches these weights will serve.
+        Returns:
+          {"highpass": w, "unsharp": w}, the blurs this config runs besides the detail space's
+          (`sharpen.blur_weights` planes); without a residual, {}.
+        """
+        out = {}
+        if not self.residual:
+            return out
+        if self.residual_highpass > 0:
+            out["highpass"] = sharpen.blur_weights(mask, float(self.residual_highpass),
+                                                   self.blur_order)
+        if self.residual_base == "unsharp" and not self.shares_blur():
+            out["unsharp"] = sharpen.blur_weights(mask, float(self.unsharp_sigma),
+                                                  self.blur_order)
+        return out
+
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
 
@@ -237,7 +266,7 @@ class CINUNet(nn.Module):
     conv_impl: str = "xla"
 
     @nn.compact
-    def __call__(self, x, material, origins=None):
+    def __call__(self, x, material, origins=None, blur_weights=None):
         """Enhance patches.
 
         Args:
@@ -246,6 +275,8 @@ class CINUNet(nn.Module):
           material: (N,) int material ids (see `wrinkle_jax.MATERIALS`).
           origins: (N, 2) int (row, col) texel position of each patch in its UV layout, for
             the texel noise (`noise_channels` > 0); None puts every patch at (0, 0).
+          blur_weights: None, or `config.blur_weights` of the patches' masks (computed once
+            when the masks repeat; the same result, without the blurs' mask passes).
         Returns:
           (N, H, W, 3) float32 enhanced patches in the same RGB form (not clipped).
         """
@@ -320,20 +351,25 @@ class CINUNet(nn.Module):
         if cfg.residual:
             base = x
             base_low = None  # the unsharp base's blur, when blurred with the high-pass's
+            bw = {} if blur_weights is None else blur_weights
             if cfg.residual_highpass > 0:
-                if cfg.residual_base == "unsharp" and cfg.residual_highpass == cfg.unsharp_sigma:
+                if cfg.shares_blur():
                     # Same mask and radius: one blur of both fields shares the mask's moments.
                     low = sharpen.masked_blur(jnp.concatenate([out, x * 2.0 - 1.0], axis=-1),
-                                              mask, cfg.residual_highpass, cfg.blur_order)
+                                              mask, cfg.residual_highpass, cfg.blur_order,
+                                              weights=bw.get("highpass"))
                     low, base_low = low[..., :3], low[..., 3:]
                 else:
                     low = sharpen.masked_blur(out, mask, cfg.residual_highpass,
-                                              cfg.blur_order)
+                                              cfg.blur_order, weights=bw.get("highpass"))
                 out = out - low
             if cfg.residual_base == "unsharp":
                 gain = self.param("unsharp_amount",
                                   nn.initializers.constant(cfg.unsharp_amount),
                                   (self.num_materials,), jnp.float32)
+                if base_low is None and "unsharp" in bw:
+                    base_low = sharpen.masked_blur(base * 2.0 - 1.0, mask, cfg.unsharp_sigma,
+                                                   cfg.blur_order, weights=bw["unsharp"])
                 base = sharpen.unsharp_rgb(base, cfg.unsharp_sigma, gain[material], mask,
                                           cfg.blur_order, blurred=base_low)
             elif cfg.residual_base != "input":

@@ -109,12 +109,13 @@ def network_stage(apply, params, tiles, material_id, *, batch_size: int, origins
     return out.reshape(nb * b, *tiles.shape[1:])[:p]
 
 
+@functools.partial(jax.jit, static_argnames=("unet_config", "batch_size"))
 def batch_blur_weights(unet_config, mask_tiles, *, batch_size: int):
     """`network_stage`'s `blur_weights` for patches with these masks: the model's
     `UNetConfig.blur_weights` of each batch, stacked along a leading batch-index axis.
 
     Args:
-      unet_config: the model's `nn.unet.UNetConfig`.
+      unet_config: the model's `nn.unet.UNetConfig` (static: one compile per config).
       mask_tiles: (P, S, S, 1) the patches' masks (nonzero inside the garment), cut like the
         network's input patches (P may be a multiple of a frame's patches, for several frames
         per call).

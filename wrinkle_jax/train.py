@@ -155,10 +155,10 @@ def make_train_step(config: TrainConfig, vgg_params, mesh: jax.sharding.Mesh | N
     mesh = data_mesh() if mesh is None else mesh
     tx = optimizer(config)
     replicated = NamedSharding(mesh, P())
-    vgg_params = jax.device_put(vgg_params, replicated)
+    vgg_params = place_state(vgg_params, mesh)  # replicated, like the state
     if bank is not None:
-        bank = dataclasses.replace(bank, vectors=jax.device_put(bank.vectors, replicated),
-                                   material=jax.device_put(bank.material, replicated))
+        bank = dataclasses.replace(bank, vectors=place_state(bank.vectors, mesh),
+                                   material=place_state(bank.material, mesh))
 
     def step(state: TrainState, batch: dict):
         (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(

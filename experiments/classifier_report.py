@@ -13,10 +13,12 @@ Stages (each resumable: the feature cache is reused):
      ("fine_ds"). Held-out = the coarse simulations of the test scenes (dress_dance and
      cape_walk: unseen garments; cape_walk and skirt_walk: unseen motion); they are never
      trained on.
-  2. Selection by leave-one-training-scene-out cross-validation (no held-out data involved):
-     for every candidate feature and training variant set, train on two training scenes and
-     score the third; the held-out accuracies of every candidate are reported alongside, for
-     transparency, but do not pick the winner.
+  2. Selection by leave-one-garment-out cross-validation (`cv_splits`; no held-out data
+     involved): for every candidate feature and training variant set, train on the scenes of
+     all training garments but one and score that garment's scenes (scene folds, used until
+     session 30, kept a garment that dances in two scenes on both sides); the held-out
+     accuracies of every candidate are reported alongside, for transparency, but do not pick
+     the winner.
   3. Final model: the best candidate trained on all training scenes; per-patch and
      per-sequence held-out accuracy, confusion matrices (PNG), accuracy against the number of
      voted patches (PNG + JSON), VGG cost per patch for each depth.
@@ -38,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax import MATERIALS, classifier
+from wrinkle_jax.classifier import folds
 from wrinkle_jax.classifier import training as classify_train
 from wrinkle_jax.fileio import atomic_write_text
 from wrinkle_jax.nn import vgg
@@ -65,6 +68,7 @@ class ReportConfig:
     seed: int = 0
     normal_frame: str = "object"
     features: tuple[str, ...] = classify_train.CANDIDATE_FEATURES
+    folds: str = "garment"  # CV folds: "garment" (leave one garment out) or "scene"
 
 
 TINY = ReportConfig(train_frames=2, heldout_frames=2, patches_per_frame=2, cv_steps=20,
@@ -151,28 +155,52 @@ def _public(d: dict) -> dict:
     return {k: v for k, v in d.items() if not k.startswith("_")}
 
 
+def cv_splits(entries: list[dict], variants, by: str = "garment"
+              ) -> list[tuple[str, list[dict], list[dict]]]:
+    """Leave-one-garment-out CV splits (`classifier.folds`, as the shipped classifier's study:
+    a garment that dances in two scenes is never on both sides of a fold).
+
+    Args:
+      entries: the cache's sequence entries (dicts with "scene" and "variant").
+      variants: the training variants of the candidate ("coarse", "fine_ds").
+      by: "garment", or "scene" (one scene out: the folds of the stored results before
+        session 30).
+    Returns:
+      (left-out group, train entries, validate entries) per fold that has both: train on the
+      other garments' (scenes') sequences in `variants`; validate on the left-out scenes as
+      the test sees them (each scene's coarse simulation when cached, else its downsampled
+      fine maps).
+    """
+    scenes_ = sorted({e["scene"] for e in entries})
+    if by not in ("garment", "scene"):
+        raise ValueError(f"folds by 'garment' or 'scene', got {by!r}")
+    make = folds.leave_one_garment_out if by == "garment" else folds.leave_one_scene_out
+    out = []
+    for fold in make(scenes_):
+        tr = [e for e in entries if e["scene"] not in fold.validate and e["variant"] in variants]
+        va = []
+        for scene in fold.validate:
+            own = [e for e in entries if e["scene"] == scene]
+            view = "coarse" if any(e["variant"] == "coarse" for e in own) else "fine_ds"
+            va += [e for e in own if e["variant"] == view]
+        if tr and va:
+            out.append((fold.group, tr, va))
+    return out
+
+
 def select(cache: Path, rc: ReportConfig, vgg_params, log) -> list[dict]:
-    """Leave-one-training-scene-out CV (and, for the record, held-out scores) per candidate."""
+    """Leave-one-garment-out CV (and, for the record, held-out scores) per candidate."""
     rows = []
     for feature in rc.features:
         all_f, all_y, all_e = classify_train.load_cache(cache, feature, split="train")
         held = _load_heldout(cache, feature)
         cfg = config_for(feature, rc, vgg_params)
-        scenes_ = sorted({e["scene"] for e in all_e})
         for variants in VARIANT_SETS:
             if not all(any(e["variant"] == v for e in all_e) for v in variants):
                 continue  # e.g. no coarse simulations of the training scenes
             t0 = time.perf_counter()
             fold_patch, fold_seq = [], []
-            for held_scene in scenes_:
-                tr = [e for e in all_e if e["scene"] != held_scene and e["variant"] in variants]
-                # Validate on the held scene's coarse-looking inputs as the test sees them:
-                # coarse sims when present, else the downsampled fine maps.
-                va_variant = "coarse" if any(e["scene"] == held_scene and e["variant"] ==
-                                             "coarse" for e in all_e) else "fine_ds"
-                va = [e for e in all_e if e["scene"] == held_scene and e["variant"] == va_variant]
-                if not tr or not va:
-                    continue
+            for _, tr, va in cv_splits(all_e, variants, rc.folds):
                 xtr, ytr = _rows(all_f, all_y, tr)
                 xva, yva = _rows(all_f, all_y, va)
                 model = _fit(xtr, ytr, cfg, rc, vgg_params, rc.cv_steps, rc.seed)
@@ -382,11 +410,14 @@ def main(argv: list[str] | None = None) -> int:
                     help="candidate features (default: all of "
                     f"{', '.join(classify_train.CANDIDATE_FEATURES)}); the VGG pass stops at "
                     "the deepest one")
+    ap.add_argument("--folds", choices=("garment", "scene"), default="garment",
+                    help="CV folds: leave one garment out (default) or one scene out (the "
+                    "stored results before session 30)")
     ap.add_argument("--no-fine-ds", action="store_true",
                     help="train on the coarse simulations only (no downsampled fine ones)")
     args = ap.parse_args(argv)
     rc = dataclasses.replace(TINY if args.tiny else ReportConfig(),
-                             normal_frame=args.normal_frame)
+                             normal_frame=args.normal_frame, folds=args.folds)
     if args.features:
         rc = dataclasses.replace(rc, features=tuple(args.features))
     out, cache = Path(args.out), Path(args.cache)

@@ -101,3 +101,33 @@ def test_per_fold_accuracy_groups_sequences_by_left_out_garment():
     cv = {"mean_lp": lp, "labels": np.array([0, 0, 0, 1]),
           "names": ["skirt_dance/a", "skirt_dance2/a", "apron_dance/a", "skirt_dance/b"]}
     assert classifier_motion.per_fold_accuracy(cv, fs) == {"flared_skirt": 2 / 3, "apron": 1.0}
+
+
+def test_classifier_report_cv_leaves_out_every_scene_of_a_garment():
+    """The patch-classifier study's CV (`classifier_report.cv_splits`) validates each garment
+    on all its scenes, with no scene of it in training; each validated scene is seen as the
+    test sees it (its coarse simulation when cached, else its downsampled fine maps), and
+    training takes only the candidate's variants. `by="scene"` gives the older folds."""
+    from experiments import classifier_report
+
+    entries = [{"scene": s, "variant": v, "id": f"{s}/{v}"}
+               for s in ("skirt_dance", "skirt_dance2", "apron_dance", "sheet_balls_wind")
+               for v in ("coarse", "fine_ds") if not (s == "skirt_dance2" and v == "coarse")]
+    splits = classifier_report.cv_splits(entries, ("coarse",))
+    garments = folds.scene_garments(e["scene"] for e in entries)
+    assert sorted(g for g, _, _ in splits) == sorted(set(garments.values()))
+    for group, tr, va in splits:
+        held = {e["scene"] for e in va}
+        assert held == {s for s, g in garments.items() if g == group}
+        assert not held & {e["scene"] for e in tr}
+        assert {e["variant"] for e in tr} == {"coarse"}
+        for e in va:  # skirt_dance2 has no coarse simulation cached
+            assert e["variant"] == ("fine_ds" if e["scene"] == "skirt_dance2" else "coarse")
+    skirt = next(s for s in splits if s[0] == garments["skirt_dance"])
+    assert {e["id"] for e in skirt[2]} == {"skirt_dance/coarse", "skirt_dance2/fine_ds"}
+    by_scene = classifier_report.cv_splits(entries, ("coarse", "fine_ds"), by="scene")
+    assert [g for g, _, _ in by_scene] == sorted({e["scene"] for e in entries})
+    assert any("skirt_dance2" in {e["scene"] for e in tr} for g, tr, _ in by_scene
+               if g == "skirt_dance")  # a scene fold keeps the garment in training
+    with pytest.raises(ValueError, match="garment"):
+        classifier_report.cv_splits(entries, ("coarse",), by="sequence")

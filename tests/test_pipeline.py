@@ -333,7 +333,7 @@ def test_frames_per_batch_shares_network_calls_and_keeps_the_maps(result, seq, m
 def test_blur_weights_computed_once_give_the_in_network_blurs_maps(seq):
     """A model with the shipped blur layout (unsharp base and high-passed residual, two radii):
     the pipeline computes the blurs' mask-only weights once per garment, and its maps equal
-    those of the in-network blurs, one frame or two per network call and through `frame_fn`."""
+    those of the in-network blurs, two frames per network call and through `frame_fn`."""
     from wrinkle_jax import enhancer
     from wrinkle_jax.nn import unet
 
@@ -347,17 +347,16 @@ def test_blur_weights_computed_once_give_the_in_network_blurs_maps(seq):
         return np.stack([f.normal_map for f in pipeline.iter_enhance(pipe, seq.frames,
                                                                      material)])
 
-    for frames_per_batch in (1, 2):
-        config = pipeline.PipelineConfig(batch_size=3, chunk_size=4, lift=False,
-                                         frames_per_batch=frames_per_batch)
-        pipe = pipeline.make_pipeline(seq.garment, enh, config, compile=False)
-        assert set(pipe.blur_weights) == {"highpass", "unsharp"}
-        assert pipe.blur_weights["highpass"].shape[0] == pipe.batches_per_call
-        got = maps(pipe)
-        want = maps(dataclasses.replace(pipe, blur_weights=None))
-        np.testing.assert_allclose(got, want, atol=2e-6)
-        coarse = np.asarray(normalmap.bake_frames(pipe.plan, seq.frames))
-        assert np.abs(got - coarse).max() > 1e-2  # the blurs' output is in the maps
-        f = pipeline.frame_fn(pipe)
-        out = f(enh.params, jnp.asarray(seq.frames[1]), material)
-        np.testing.assert_allclose(out.normal_map, want[1], atol=2e-6)
+    # Two frames per network call (weights tiled over both frames' patches); frame_fn runs
+    # one frame's patches (weights for one frame).
+    config = pipeline.PipelineConfig(batch_size=3, chunk_size=4, lift=False, frames_per_batch=2)
+    pipe = pipeline.make_pipeline(seq.garment, enh, config, compile=False)
+    assert set(pipe.blur_weights) == {"highpass", "unsharp"}
+    assert pipe.blur_weights["highpass"].shape[0] == pipe.batches_per_call
+    got = maps(pipe)
+    want = maps(dataclasses.replace(pipe, blur_weights=None))
+    np.testing.assert_allclose(got, want, atol=2e-6)
+    coarse = np.asarray(normalmap.bake_frames(pipe.plan, seq.frames))
+    assert np.abs(got - coarse).max() > 1e-2  # the blurs' output is in the maps
+    out = pipeline.frame_fn(pipe)(enh.params, jnp.asarray(seq.frames[1]), material)
+    np.testing.assert_allclose(out.normal_map, want[1], atol=2e-6)

@@ -157,8 +157,9 @@ class Pipeline:
       resolve_coarse: `lift.resolve_coarse` of the lifted mesh for `config.resolve` (the body
         push-out's coarse-grid preconditioner), or None.
       blur_weights: the mask-only part of the model's blurs for one network call's patches
-        (`stages.batch_blur_weights`, `frames_per_call` frames), or None: the patches sit at
-        fixed texels, so their masks, and these, are the same every frame.
+        (`stages.batch_blur_weights`, `frames_per_call` frames; 0.4 MB per patch for the
+        shipped model), or None: the patches sit at fixed texels, so their masks, and these,
+        are the same every frame.
     """
 
     enhancer: enhancer_lib.Enhancer

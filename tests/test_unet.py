@@ -479,6 +479,8 @@ def test_converted_checkpoint_material_names(tmp_path):
     (dict(residual_base="unsharp", unsharp_sigma=3.0, blur_order=0), {"unsharp"}),
     (dict(residual_highpass=2.0), {"highpass"}),
     (dict(residual=False), set()),
+    (dict(detail_sigma=3.0, residual_highpass=4.0), {"detail", "highpass"}),  # issue 21's
+    (dict(detail_sigma=3.0, residual=False), {"detail"}),
 ])
 def test_precomputed_blur_weights_give_the_same_output(overrides, keys):
     """`UNetConfig.blur_weights` of the inputs' masks, passed to the network, give the output

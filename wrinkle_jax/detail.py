@@ -65,9 +65,10 @@ _POLE_GUARD = 1e-3
 
 
 @functools.partial(jax.jit, static_argnames=("sigma",))
-def large_scale(n, mask, sigma: float = DEFAULT_SIGMA):
-    """(N, H, W, 3) normals -> (N, H, W, 3) unit large-scale normals (0 outside the mask)."""
-    low = sharpen.masked_blur(n, mask, sigma, order=1)
+def large_scale(n, mask, sigma: float = DEFAULT_SIGMA, weights=None):
+    """(N, H, W, 3) normals -> (N, H, W, 3) unit large-scale normals (0 outside the mask);
+    `weights`: optional ``sharpen.blur_weights(mask, sigma, 1)``, computed once per mask."""
+    low = sharpen.masked_blur(n, mask, sigma, order=1, weights=weights)
     norm = jnp.sqrt(jnp.sum(low * low, axis=-1, keepdims=True) + 1e-12)
     return low / norm * (mask > 0)
 
@@ -116,9 +117,10 @@ def from_detail(d, large, branch):
 
 
 @functools.partial(jax.jit, static_argnames=("sigma",))
-def decompose(n, mask, sigma: float = DEFAULT_SIGMA, branch=None):
-    """Split normals into (detail d, large scale L, branch); `branch` None picks it from L."""
-    large = large_scale(n, mask, sigma)
+def decompose(n, mask, sigma: float = DEFAULT_SIGMA, branch=None, weights=None):
+    """Split normals into (detail d, large scale L, branch); `branch` None picks it from L;
+    `weights`: as `large_scale`'s."""
+    large = large_scale(n, mask, sigma, weights)
     branch = branch_of(large, mask) if branch is None else jnp.asarray(branch, jnp.float32)
     return to_detail(n, large, branch) * (mask > 0), large, branch
 

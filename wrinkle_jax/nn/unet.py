@@ -207,10 +207,12 @@ class UNetConfig:
           mask: (N, H, W, 1) float, 1 inside the garment and 0 outside: the
             `sharpen.mask_from_rgb` of the patches these weights will serve.
         Returns:
-          {"highpass": w, "unsharp": w}, the blurs this config runs besides the detail space's
-          (`sharpen.blur_weights` planes); without a residual, {}.
+          {"detail": w, "highpass": w, "unsharp": w}, the entries for the blurs this config
+          runs (`sharpen.blur_weights` planes); {} when it runs none.
         """
         out = {}
+        if self.detail_sigma > 0:
+            out["detail"] = sharpen.blur_weights(mask, float(self.detail_sigma), 1)
         if not self.residual:
             return out
         if self.residual_highpass > 0:
@@ -286,8 +288,10 @@ class CINUNet(nn.Module):
         material = jnp.asarray(material, jnp.int32).reshape(x.shape[0])
         x = x.astype(jnp.float32)
         mask = sharpen.mask_from_rgb(x)  # one mask for detail, high-pass and unsharp base
+        bw = {} if blur_weights is None else blur_weights
         if cfg.detail_sigma > 0:
-            d, large, branch = detail.decompose(x * 2.0 - 1.0, mask, cfg.detail_sigma)
+            d, large, branch = detail.decompose(x * 2.0 - 1.0, mask, cfg.detail_sigma,
+                                                weights=bw.get("detail"))
             x = (d + 1.0) * 0.5 * mask
         h = x
         if cfg.input_norm == "imagenet":
@@ -351,7 +355,6 @@ class CINUNet(nn.Module):
         if cfg.residual:
             base = x
             base_low = None  # the unsharp base's blur, when blurred with the high-pass's
-            bw = {} if blur_weights is None else blur_weights
             if cfg.residual_highpass > 0:
                 if cfg.shares_blur():
                     # Same mask and radius: one blur of both fields shares the mask's moments.

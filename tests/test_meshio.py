@@ -33,6 +33,32 @@ def test_obj_round_trip_with_replacement_vertices(skirt, tmp_path):
         meshio.save_obj(p, skirt, moved[:-1])
 
 
+def test_obj_writer_formats_the_topology_once_and_writes_each_frame(cube, tmp_path):
+    """One `ObjWriter` for many frames: each file round-trips to its frame with the garment's
+    UVs, seams and panels, and the frames' files differ only in their `v` lines (the writer's
+    topology text is reused, not re-derived from a frame)."""
+    write = meshio.ObjWriter(cube)
+    frames = [cube.vertices, cube.vertices * np.float32(1.5) + np.float32(0.1)]
+    for t, v in enumerate(frames):
+        write(tmp_path / f"f{t}.obj", v)
+        back = meshio.load_obj(tmp_path / f"f{t}.obj")
+        np.testing.assert_allclose(back.vertices, v, atol=1e-6)
+        np.testing.assert_array_equal(back.faces, cube.faces)
+        np.testing.assert_array_equal(back.uv_faces, cube.uv_faces)
+        np.testing.assert_array_equal(back.panels, cube.panels)
+    lines = [(tmp_path / f"f{t}.obj").read_text().splitlines() for t in (0, 1)]
+    differ = [a for a, b in zip(*lines, strict=True) if a != b]
+    assert differ and all(a.startswith("v ") for a in differ)
+    assert (tmp_path / "f0.obj").read_bytes() == _saved(tmp_path / "s.obj", cube, frames[0])
+    with pytest.raises(GarmentError, match="does not match"):
+        write(tmp_path / "bad.obj", frames[0][:-1])
+
+
+def _saved(path, garment, vertices) -> bytes:
+    meshio.save_obj(path, garment, vertices)
+    return path.read_bytes()
+
+
 def test_obj_parser_polygons_negative_indices_and_normals(tmp_path):
     p = tmp_path / "quad.obj"
     p.write_text(

@@ -268,6 +268,7 @@ def _enhance_into(folder: Path, seq, enh, model: Path | None, material: str, bod
                "enabled": previews, "seconds": 0.0,
                "camera_points": np.asarray(seq.frames[cam_frames])}
     bar = tqdm(total=len(sel), desc="enhance", unit="frame", disable=None)
+    write_obj = meshio.ObjWriter(fine) if fine is not None and fmt != "ply" else None
 
     def write(frame: pipeline.EnhancedFrame) -> None:
         t = frame.index
@@ -277,7 +278,7 @@ def _enhance_into(folder: Path, seq, enh, model: Path | None, material: str, bod
             if fmt == "ply":
                 meshio.save_ply(mesh_dir / f"frame_{t:05d}.ply", frame.detailed, fine.faces)
             else:
-                meshio.save_obj(mesh_dir / f"frame_{t:05d}.obj", fine, frame.detailed)
+                write_obj(mesh_dir / f"frame_{t:05d}.obj", frame.detailed)
             npz.write(position[t], frame.detailed)
         t0 = time.perf_counter()
         _write_previews(folder / "previews", frame, preview)

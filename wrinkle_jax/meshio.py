@@ -142,28 +142,51 @@ def save_obj(path: str | os.PathLike, garment: Garment, vertices=None) -> None:
       garment: topology and UVs.
       vertices: optional (V, 3) positions replacing `garment.vertices` (e.g. one frame).
     """
-    v = np.asarray(garment.vertices if vertices is None else vertices, dtype=np.float64)
-    f = np.asarray(garment.faces, dtype=np.int64) + 1
-    uv = np.asarray(garment.uvs, dtype=np.float64)
-    uf = np.asarray(garment.uv_faces, dtype=np.int64) + 1
-    if v.shape != (garment.num_vertices, 3):
-        raise GarmentError(f"{path}: vertices shape {v.shape} does not match the garment topology")
-    chunks = ["# wrinkle-jax garment\n", _format_rows("v ", v, "%.7g %.7g %.7g"),
-              _format_rows("vt ", uv, "%.7g %.7g")]
-    # Interleave (v, vt) per corner: "f v0/t0 v1/t1 v2/t2".
-    corners = np.stack([f, uf], axis=2).reshape(-1, 6)
-    face_fmt = "f %d/%d %d/%d %d/%d"
-    if garment.panels is None:
-        chunks.append(_format_rows("", corners, face_fmt))
-    else:
-        panels = np.asarray(garment.panels)
-        # A new group line wherever the panel id changes along the face order (order preserved).
-        starts = np.flatnonzero(np.r_[True, panels[1:] != panels[:-1]])
-        ends = np.r_[starts[1:], len(panels)]
-        for s, e in zip(starts, ends, strict=True):
-            chunks.append(f"g panel_{int(panels[s])}\n")
-            chunks.append(_format_rows("", corners[s:e], face_fmt))
-    atomic_write_text(path, "".join(chunks))
+    ObjWriter(garment)(path, vertices)
+
+
+class ObjWriter:
+    """`save_obj` for many frames of one garment: the `vt` and `f` lines, the same in every
+    frame, are formatted once (two thirds of the lines of a triangle mesh), so each frame only
+    formats its `v` lines. The files are byte-identical to `save_obj`'s.
+
+        write = ObjWriter(garment)
+        for t, v in enumerate(frames):
+            write(f"frame_{t:05d}.obj", v)
+    """
+
+    def __init__(self, garment: Garment):
+        self.garment = garment
+        f = np.asarray(garment.faces, dtype=np.int64) + 1
+        uv = np.asarray(garment.uvs, dtype=np.float64)
+        uf = np.asarray(garment.uv_faces, dtype=np.int64) + 1
+        chunks = [_format_rows("vt ", uv, "%.7g %.7g")]
+        # Interleave (v, vt) per corner: "f v0/t0 v1/t1 v2/t2".
+        corners = np.stack([f, uf], axis=2).reshape(-1, 6)
+        face_fmt = "f %d/%d %d/%d %d/%d"
+        if garment.panels is None:
+            chunks.append(_format_rows("", corners, face_fmt))
+        else:
+            panels = np.asarray(garment.panels)
+            # A new group line wherever the panel id changes along the face order (order kept).
+            starts = np.flatnonzero(np.r_[True, panels[1:] != panels[:-1]])
+            ends = np.r_[starts[1:], len(panels)]
+            for s, e in zip(starts, ends, strict=True):
+                chunks.append(f"g panel_{int(panels[s])}\n")
+                chunks.append(_format_rows("", corners[s:e], face_fmt))
+        self._topology = "".join(chunks)
+
+    def __call__(self, path: str | os.PathLike, vertices=None) -> None:
+        """Write one frame: (V, 3) `vertices` (default the garment's own) to `path`,
+        atomically."""
+        g = self.garment
+        v = np.asarray(g.vertices if vertices is None else vertices, dtype=np.float64)
+        if v.shape != (g.num_vertices, 3):
+            raise GarmentError(f"{path}: vertices shape {v.shape} does not match the garment "
+                               "topology")
+        atomic_write_text(path, "".join(["# wrinkle-jax garment\n",
+                                         _format_rows("v ", v, "%.7g %.7g %.7g"),
+                                         self._topology]))
 
 
 def _format_rows(prefix: str, a: np.ndarray, fmt: str) -> str:
@@ -330,9 +353,10 @@ def save_obj_sequence(folder: str | os.PathLike, seq: GarmentSequence,
     folder.mkdir(parents=True, exist_ok=True)
     digits = max(5, len(str(len(seq) - 1)))
     paths = []
+    write = ObjWriter(seq.garment)
     for t in range(len(seq)):
         p = folder / f"{prefix}{t:0{digits}d}.obj"
-        save_obj(p, seq.garment, seq.frames[t])
+        write(p, seq.frames[t])
         paths.append(p)
     return paths
 

@@ -360,3 +360,7 @@ def test_blur_weights_computed_once_give_the_in_network_blurs_maps(seq):
     assert np.abs(got - coarse).max() > 1e-2  # the blurs' output is in the maps
     out = pipeline.frame_fn(pipe)(enh.params, jnp.asarray(seq.frames[1]), material)
     np.testing.assert_allclose(out.normal_map, want[1], atol=2e-6)
+    # A copy with another batch size does not use weights laid out for the original's.
+    other = dataclasses.replace(pipe, config=dataclasses.replace(config, batch_size=2))
+    assert pipeline._call_blur_weights(pipe) is pipe.blur_weights
+    assert pipeline._call_blur_weights(other) is None

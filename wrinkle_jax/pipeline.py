@@ -69,6 +69,7 @@ from wrinkle_jax.pipeline_setup import (  # noqa: F401
     PipelineConfig,
     PipelineError,
     _body_for,
+    _call_blur_weights,
     _compile,
     _lift_static,
     _network_blur_weights,
@@ -209,7 +210,7 @@ def _run_network(pipe: Pipeline, inputs, material_id: int, counts: dict,
     material = to_device(np.int32(material_id))
     origins = _noise_origins(pipe)
     outs = [_network_frame(apply, pipe.enhancer.params, group, material, batch_size=b,
-                           origins=origins, blur_weights=pipe.blur_weights)
+                           origins=origins, blur_weights=_call_blur_weights(pipe))
             for group in _network_groups(inputs, frames=f, count=n)]
     calls = -(-n // f)
     counts["network"] += n * p
@@ -341,10 +342,8 @@ def frame_fn(pipe: Pipeline, body=None) -> Callable[..., FrameResult]:
                           window=cfg.window, noise=bool(pipe.enhancer.config.unet.noise_channels),
                           lift=lift)
     padded_mask = _padded_mask(pipe)
-    blur_weights = pipe.blur_weights
-    if pipe.frames_per_call > 1:  # those are for several frames' patches; f runs one frame's
-        blur_weights = _network_blur_weights(pipe.enhancer, padded_mask, pipe.origins,
-                                            cfg.batch_size)
+    # One frame's patches (`pipe.blur_weights` are for `frames_per_call` frames').
+    blur_weights = _network_blur_weights(pipe.enhancer, padded_mask, pipe.origins, cfg.batch_size)
     setup = dict(plan=pipe.plan, padded_mask=padded_mask, blur_weights=blur_weights,
                  origins=to_device(pipe.origins), mask=to_device(pipe.mask),
                  subdivision=pipe.subdivision, fine_garment=pipe.fine_garment,

@@ -294,7 +294,8 @@ def _compile(pipe: Pipeline) -> float:
     _network_frame.lower(_network_apply(enh), enh.params,
                          spec((pipe.frames_per_call * p, size, size, 3), f32),
                          spec((), jnp.int32), batch_size=cfg.batch_size,
-                         origins=_noise_origins(pipe), blur_weights=pipe.blur_weights).compile()
+                         origins=_noise_origins(pipe),
+                         blur_weights=_call_blur_weights(pipe)).compile()
     _merge_chunk.lower(spec((c, p, size, size, 3), f32), pipe.origins, _padded_mask(pipe),
                        spec((c, hp, wp, 3), f32), window=cfg.window, shape=pipe.shape).compile()
     if cfg.lift:
@@ -331,6 +332,19 @@ def _network_blur_weights(enh: enhancer_lib.Enhancer, padded_mask, origins, batc
     tiles = np.stack([m[r:r + size, c:c + size] for r, c in o])
     weights = batch_blur_weights(enh.model.config, tiles, batch_size=batch_size)
     return weights or None
+
+
+def _call_blur_weights(pipe: Pipeline):
+    """`pipe.blur_weights` when they fit its network calls (batches per call and batch size),
+    else None (the network then blurs the masks itself: the same maps). They do not fit a
+    pipeline copied with another batch size or frames per call (`dataclasses.replace`)."""
+    w = pipe.blur_weights
+    if not w:
+        return None
+    leaf = next(iter(w.values()))  # (batches, K, S, batch size, S)
+    if leaf.shape[0] != pipe.batches_per_call or leaf.shape[3] != pipe.config.batch_size:
+        return None
+    return w
 
 
 def _padded_mask(pipe: Pipeline):

@@ -337,3 +337,7 @@ def test_blur_weights_computed_once_serve_every_field_on_the_mask(order):
         np.testing.assert_allclose(got, inside, rtol=1e-6, atol=1e-7 * np.abs(inside).max())
     with pytest.raises(ValueError, match="do not fit order"):
         sharpen.masked_blur(n, mask, 5.0, 1 - order, weights=weights)
+    for bad in (lambda: sharpen.masked_blur(n, mask, 5.0, 2, weights=weights),
+                lambda: sharpen.blur_weights(mask, 5.0, 2)):
+        with pytest.raises(ValueError, match="order must be 0 or 1"):
+            bad()

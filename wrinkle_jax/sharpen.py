@@ -156,6 +156,8 @@ def masked_blur(n, mask, sigma: float, order: int = 1, weights=None):
     order 1 costs 2 C row and 3 C column passes on the values (one pass: one plane's (H, H)
     matmul), plus the mask's 3 + 6 in `blur_weights` when `weights` is None.
     """
+    if order not in (0, 1):
+        raise ValueError(f"masked_blur order must be 0 or 1, got {order!r}")
     if weights is None:
         weights = blur_weights(mask, sigma, order)
     elif weights.shape[0] != (3 if order == 1 else 1):

@@ -76,8 +76,9 @@ def network_flops(model) -> dict:
 
     Convolutions: enc{k} (3x3 at size S / 2^(k-1)), dec{k} (4x4 stride-2 transposed: input
     S / 2^(5-k); or a 3x3 conv after 2x up-sampling), out (3x3 at S): multiply-adds x 2.
-    Blurs: `sharpen.masked_blur`'s dense banded matmuls (order 1: 2 (C+1) + 1 row and
-    4 (C+1) + 2 column passes of C = 3 values; order 0: C + 1 of each), 2 S^3 FLOPs a pass.
+    Blurs: `sharpen.masked_blur`'s dense banded matmuls on the values only (the pipeline
+    computes the masks' passes once per garment, `UNetConfig.blur_weights`): order 1, 2 C row
+    and 3 C column passes for C value channels; order 0, C of each; 2 S^3 FLOPs a pass.
     """
     cfg, params = model.config, model.params
     s = cfg.patch_size
@@ -96,9 +97,11 @@ def network_flops(model) -> dict:
         elif name == "out":
             conv += fastconv.conv3x3_flops(s, s, k[2], k[3])
     net = cfg.unet
-    passes = (2 * 4 + 1) + (4 * 4 + 2) if net.blur_order == 1 else 2 * 4
-    blurs = (net.residual and net.residual_base == "unsharp") + (net.residual_highpass > 0)
-    blur = blurs * passes * 2 * s**3
+    channels = 3 * ((net.residual and net.residual_base == "unsharp")
+                    + (net.residual and net.residual_highpass > 0))
+    passes = (5 if net.blur_order == 1 else 2) * channels
+    passes += 5 * 3 if net.detail_sigma > 0 else 0  # the detail space's blur (order 1)
+    blur = passes * 2 * s**3
     return {"conv": conv, "blur": blur, "total": conv + blur}
 
 

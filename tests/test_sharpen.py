@@ -261,11 +261,12 @@ def test_shared_moment_blur_gradient_matches_the_reference(enable_x64):
 @pytest.fixture
 def fresh_jit_caches():
     """Jitted callers of `masked_blur` (`unsharp_rgb`) keep the trace of the blur they first
-    saw: a test that patches it clears the caches before (so its patch is traced) and after
-    (so no later test in the worker runs the patched trace, with its closed-over tracer)."""
-    jax.clear_caches()
+    saw: a test that patches it clears their caches before (so its patch is traced) and after
+    (so no later test in the worker runs the patched trace, with its closed-over tracer).
+    Only theirs: clearing every cache would make the worker's later tests compile again."""
+    sharpen.unsharp_rgb.clear_cache()
     yield
-    jax.clear_caches()
+    sharpen.unsharp_rgb.clear_cache()
 
 
 @pytest.mark.parametrize("highpass,unsharp_sigma", [(2.0, 4.0), (4.0, 4.0)])

@@ -43,7 +43,8 @@ def _reference(n, mask, sigma, order=1, weights=None):
 
 
 def demo_tiles(enh):
-    """One demo frame's network input patches (P, S, S, 3), as the pipeline cuts them."""
+    """One demo frame's network input patches (P, S, S, 3), as the pipeline cuts them, with
+    the padded garment mask (Hp, Wp, 1) and the patch origins (P, 2) they were cut at."""
     seq = meshio.load_sequence(_demo_sequence_path())
     size = enh.config.patch_size
     plan = normalmap.make_plan(seq.garment, texel_size=enh.config.texel_size)
@@ -51,7 +52,7 @@ def demo_tiles(enh):
     origins = patches.tile(padded, size=size, stride=size // 2)
     _, rgb = stages.bake_stage(plan, jnp.asarray(seq.frames[0]), jnp.asarray(padded),
                                padded_shape=tuple(padded.shape[:2]))
-    return stages.tile_stage(rgb, jnp.asarray(origins), size=size)
+    return stages.tile_stage(rgb, jnp.asarray(origins), size=size), padded, origins
 
 
 def compiled_stage(enh, blur, tiles, batch: int, weights=None):
@@ -80,11 +81,12 @@ def main() -> None:
     load_before = os.getloadavg()[0]
     enh = enhancer.load_enhancer()
     cfg = enh.config.unet  # the U-Net settings (UNetConfig)
-    tiles = demo_tiles(enh)
+    tiles, padded_mask, origins = demo_tiles(enh)
     p = int(tiles.shape[0])
     variants = {"shared": sharpen.masked_blur, "reference": _reference,
                 "no_blur": _no_blur}
-    weights = stages.batch_blur_weights(cfg, sharpen.mask_from_rgb(tiles), batch_size=args.batch)
+    weights = stages.batch_blur_weights(cfg, padded_mask, origins, size=int(tiles.shape[1]),
+                                        batch_size=args.batch)
     stage = {k: compiled_stage(enh, f, tiles, args.batch) for k, f in variants.items()}
     stage["precomputed"] = compiled_stage(enh, sharpen.masked_blur, tiles, args.batch, weights)
     params, mat = enh.params, jnp.int32(0)

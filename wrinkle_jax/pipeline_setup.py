@@ -325,12 +325,8 @@ def _network_blur_weights(enh: enhancer_lib.Enhancer, padded_mask, origins, batc
     blurs (or that are not a `CINUNet`: nothing is passed to them)."""
     if not isinstance(enh.model, unet.CINUNet):
         return None
-    size = int(enh.config.patch_size)
-    m = np.asarray(padded_mask, np.float32)
-    # NumPy slicing (as `patches.extract`, origins clamped the same way): no compile at setup.
-    o = np.clip(np.asarray(origins), 0, np.asarray(m.shape[:2]) - size)
-    tiles = np.stack([m[r:r + size, c:c + size] for r, c in o])
-    weights = batch_blur_weights(enh.model.config, tiles, batch_size=batch_size)
+    weights = batch_blur_weights(enh.model.config, padded_mask, np.asarray(origins, np.int32),
+                                 size=int(enh.config.patch_size), batch_size=batch_size)
     return weights or None
 
 

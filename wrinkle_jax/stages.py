@@ -95,39 +95,43 @@ def network_stage(apply, params, tiles, material_id, *, batch_size: int, origins
     """
     p = tiles.shape[0]
     b = int(batch_size)
-    nb = -(-p // b)
-    x = jnp.pad(tiles, ((0, nb * b - p), (0, 0), (0, 0), (0, 0))).reshape(nb, b, *tiles.shape[1:])
+    x = _batches(tiles, b)
     material = jnp.full((b,), material_id, jnp.int32)
-    o = None
-    if origins is not None:
-        o = jnp.pad(jnp.asarray(origins, jnp.int32), ((0, nb * b - p), (0, 0))).reshape(nb, b, 2)
+    o = None if origins is None else _batches(jnp.asarray(origins, jnp.int32), b)
     if o is None and blur_weights is None:
         out = jax.lax.map(lambda xb: apply(params, xb, material), x)
     else:
         out = jax.lax.map(lambda a: apply(params, a[0], material, a[1], a[2]),
                           (x, o, blur_weights))
-    return out.reshape(nb * b, *tiles.shape[1:])[:p]
+    return out.reshape(-1, *tiles.shape[1:])[:p]
 
 
-@functools.partial(jax.jit, static_argnames=("unet_config", "batch_size"))
-def batch_blur_weights(unet_config, mask_tiles, *, batch_size: int):
-    """`network_stage`'s `blur_weights` for patches with these masks: the model's
-    `UNetConfig.blur_weights` of each batch, stacked along a leading batch-index axis.
+def _batches(a, b: int):
+    """(P, ...) -> (ceil(P / b), b, ...): zero-padded to whole batches of `b`, each row of `a`
+    at a fixed position (`network_stage`'s batching)."""
+    nb = -(-a.shape[0] // b)
+    a = jnp.pad(a, ((0, nb * b - a.shape[0]),) + ((0, 0),) * (a.ndim - 1))
+    return a.reshape(nb, b, *a.shape[1:])
+
+
+@functools.partial(jax.jit, static_argnames=("unet_config", "size", "batch_size"))
+def batch_blur_weights(unet_config, mask, origins, *, size: int, batch_size: int):
+    """`network_stage`'s `blur_weights` for the patches at `origins`: the model's
+    `UNetConfig.blur_weights` of each batch of their masks, stacked along a leading
+    batch-index axis.
 
     Args:
       unet_config: the model's `nn.unet.UNetConfig` (static: one compile per config).
-      mask_tiles: (P, S, S, 1) the patches' masks (nonzero inside the garment), cut like the
-        network's input patches (P may be a multiple of a frame's patches, for several frames
-        per call).
-      batch_size: the `network_stage` batch size.
+      mask: (Hp, Wp, 1) the padded map's garment mask (nonzero inside the garment).
+      origins: (P, 2) int patch origins, as the network's input patches are cut (`tile_stage`;
+        P may be a multiple of a frame's patches, for several frames per call).
+      size: the patch size S; batch_size: the `network_stage` batch size B.
     Returns:
       a dict of (P / B rounded up, K, S, B, S) planes; {} for models without blurs.
     """
-    p, b = mask_tiles.shape[0], int(batch_size)
-    nb = -(-p // b)
-    m = (jnp.asarray(mask_tiles) > 0).astype(jnp.float32)  # as `sharpen.mask_from_rgb`
-    m = jnp.pad(m, ((0, nb * b - p), (0, 0), (0, 0), (0, 0))).reshape(nb, b, *m.shape[1:])
-    return jax.vmap(unet_config.blur_weights)(m)
+    m = (tile_stage(jnp.asarray(mask), origins, size=size) > 0).astype(jnp.float32)
+    # ^ as `sharpen.mask_from_rgb` of the baked patches
+    return jax.vmap(unet_config.blur_weights)(_batches(m, int(batch_size)))
 
 
 def merge_stage(outputs, origins, mask, coarse_map, *, window: str = "hann",

@@ -12,8 +12,8 @@ each file's metadata, and `experiments.classifier_motion` refuses a mix). `dress
 Existing files are skipped, and so are files another run is simulating (each is claimed
 first, as in `experiments.make_sequences`); one mesh and solver model per scene serve all five
 materials. These garments and motions are never used to choose features or models (the
-classifier is selected by leave-one-training-scene-out cross-validation); they only score the
-final choice.
+classifier is selected by leave-one-garment-out cross-validation on the training scenes);
+they only score the final choice.
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
-"""Coarse (PD 30 mm) simulations of the TRAINING scenes, for the material classifier.
+"""Coarse (PD 30 mm) simulations of the TRAINING scenes, for the material classifier and the
+real coarse/fine pair data set (`experiments.make_pair_dataset`).
 
     nice -n 10 python -m experiments.make_coarse_training_sequences [--out data/sequences] \
-        [--frames 600] [--scenes sheet_balls_wind ...] [--substeps 80] [--self-collision on|off]
+        [--frames 300] [--scenes sheet_balls_wind ...] [--substeps 80] [--self-collision on|off]
 
 The classifier sees coarse normal maps at test time; `experiments.make_sequences` only
 simulates the training scenes at fine resolution. This writes
@@ -10,7 +11,10 @@ same motion as the fine training sequences), one at a time, skipping files that 
 files another run is simulating (each is claimed first, as in `experiments.make_sequences`, so
 two runs can share the list); each file is written atomically. At the data set's coarse
 settings (80 substeps, self-collision) a coarse frame costs ~0.11-0.16 s (the test scenes'
-coarse files, session 28), so the 45 sequences of 600 frames take about an hour of one core.
+coarse files, session 28), so the 45 sequences of 300 frames take about half an hour of one
+core. 300 frames is what the earlier data sets had (sessions 21-27) and what the README's data
+commands run: the pair data set pairs the first min(coarse, fine) frames, so its size and the
+stored training runs stay comparable although the fine training files now hold 600 frames.
 The test scenes are never touched here.
 """
 
@@ -30,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default=str(ROOT / "data" / "sequences"))
-    ap.add_argument("--frames", type=int, default=600)
+    ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--scenes", nargs="+", default=list(scenes.TRAINING_SCENES))
     ap.add_argument("--substeps", type=int, default=scenes.DATASET_COARSE_SUBSTEPS)

@@ -64,8 +64,12 @@ def test_no_vertex_ends_inside_sphere_or_capsule():
         sd = [float(C.signed_distance(jnp.asarray(xs[t]), C.frame_colliders(only, t + 1)).min())
               for t in range(frames)]
         assert min(sd) >= -tol, (which, sd)
-    # The cloth was actually lifted by the colliders.
-    assert xs[-1][:, 2].max() > 0.55  # free fall would have taken it 2 m lower
+    # The cloth was actually lifted by the colliders: its top rose above where it started
+    # (z 0.6; it falls from there without them). The peak over the frames, not the last
+    # frame: the sheet slides off the rising bar late in the run, and when is a rounding
+    # matter (a different LLVM optimisation level ended it at z 0.48, peak 0.70; here 0.61,
+    # peak 0.72).
+    assert max(float(x[:, 2].max()) for x in xs) > 0.65
 
 
 def test_plane_contact_and_friction():

@@ -1,13 +1,16 @@
 """How often the simulated garments self-intersect.
 
     python -m experiments.self_intersections [--every 30] [--material silk_charmeuse]
-        [--resolution fine|coarse] [--out PATH]
+        [--resolution fine|coarse] [--scenes NAME ...] [--out PATH]
 
 For each scene's generated sequence of one material and resolution (`data/sequences`, from
 `experiments.make_sequences`; the training scenes' coarse ones from
-`experiments.make_coarse_training_sequences`), counts intersecting non-adjacent triangle pairs
+`experiments.make_coarse_training_sequences`; the validation scene's and the test scenes'
+from `make_sequences`), counts intersecting non-adjacent triangle pairs
 every `--every` frames (`sim.intersect.self_intersection_stats`), and records the solver
-settings from each file's metadata (substeps, self-collision). Writes
+settings from each file's metadata (substeps, self-collision). `--scenes` measures only those
+(e.g. the files a regeneration has just written; default: every training, validation and test
+scene). Writes
 `experiments/results/sim/self_intersections.json` (fine; `--out` for another) and prints a table.
 """
 
@@ -23,6 +26,7 @@ from wrinkle_jax import meshio
 from wrinkle_jax.sim import intersect, scenes
 
 ROOT = Path(__file__).resolve().parents[1]
+ALL_SCENES = scenes.TRAINING_SCENES + scenes.VAL_SCENES + scenes.TEST_SCENES
 
 
 def main(argv=None) -> None:
@@ -31,12 +35,13 @@ def main(argv=None) -> None:
     ap.add_argument("--material", default="silk_charmeuse")
     ap.add_argument("--every", type=int, default=30)
     ap.add_argument("--resolution", choices=("fine", "coarse"), default="fine")
+    ap.add_argument("--scenes", nargs="+", choices=ALL_SCENES, default=list(ALL_SCENES))
     ap.add_argument("--out", default=str(ROOT / "experiments" / "results" / "sim"
                                          / "self_intersections.json"))
     args = ap.parse_args(argv)
     rows = {}
-    for name in scenes.TRAINING_SCENES + scenes.TEST_SCENES:
-        seed = 0 if name in scenes.TRAINING_SCENES else 1
+    for name in args.scenes:
+        seed = 1 if name in scenes.TEST_SCENES else 0  # make_sequences' plan
         path = Path(args.sequences) / name / f"{args.material}_{args.resolution}_s{seed}.npz"
         if not path.exists():
             print(f"{name}: {path} missing, skipped")

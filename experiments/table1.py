@@ -131,10 +131,8 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
     st = patchscores.setup_from_args(ap, args, wrong_material=not args.no_wrong_material)
-    enh, sampling, cells, sequences, methods = (st.enh, st.sampling, st.cells, st.sequences,
-                                                 st.methods)
-    sources, unsharp, unsharp_src, net_timings = (st.sources, st.unsharp, st.unsharp_text,
-                                                  st.net_timings)
+    sampling, cells, sequences, methods = st.sampling, st.cells, st.sequences, st.methods
+    sources, unsharp_src, net_timings = st.sources, st.unsharp_text, st.net_timings
     sim_s = st.sim_s
     vgg_params = vgg.load_vgg19()
     n_patches_max = len(cells) * len(sampling.frame_indices) * sampling.patches_per_frame
@@ -181,11 +179,7 @@ def main(argv=None) -> int:
         f"mesh. Input: coarse simulation (PD 30 mm); target: fine simulation (PD 10 mm) of the "
         f"same frame. Unsharp: {unsharp_src}.")
     results = {
-        "model": suite.portable_path(args.model), "model_config": enh.config.to_json(),
-        "model_meta": {k: v for k, v in enh.meta.items() if not isinstance(v, dict | list)},
-        "methods": list(methods), "method_sources": sources,
-        "unsharp": {f"order {o}": {"sigma": u[0], "amount": u[1], "source": u[2]}
-                    for o, u in unsharp.items()},
+        **st.record(args.model),
         "score": "evaluation.score_patches equivalent on " + ", ".join(evaluation.EVAL_LAYERS),
         "sampling": dataclasses.asdict(sampling), "sampling_text": sampling_text,
         "config": {"garments": args.garments.split(","), "materials": args.materials.split(","),

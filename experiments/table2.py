@@ -336,10 +336,8 @@ def main(argv=None) -> int:
     except ValueError as e:
         ap.error(str(e))
     st = patchscores.setup_from_args(ap, args, min_frame_stride=2)
-    enh, sampling, cells, sequences, methods = (st.enh, st.sampling, st.cells, st.sequences,
-                                                 st.methods)
-    sources, unsharp, unsharp_src, net_timings = (st.sources, st.unsharp, st.unsharp_text,
-                                                  st.net_timings)
+    sampling, cells, sequences, methods = st.sampling, st.cells, st.sequences, st.methods
+    sources, unsharp_src, net_timings = st.sources, st.unsharp_text, st.net_timings
     sim_s = st.sim_s
     if args.oracles:
         oracles = method_lib.oracle_methods()
@@ -395,11 +393,7 @@ def main(argv=None) -> int:
         f"{', '.join(evaluation.EVAL_LAYERS)}, each layer divided by its median norm over a "
         f"and c. Unsharp: {unsharp_src}.")
     results = {
-        "model": suite.portable_path(args.model), "model_config": enh.config.to_json(),
-        "model_meta": {k: v for k, v in enh.meta.items() if not isinstance(v, dict | list)},
-        "methods": list(methods), "method_sources": sources,
-        "unsharp": {f"order {o}": {"sigma": u[0], "amount": u[1], "source": u[2]}
-                    for o, u in unsharp.items()},
+        **st.record(args.model),
         "sets": {"a": "coarse-map patches at Table 1's frames and origins",
                  "b": "a method's output on a (every method in turn)",
                  "c": "fine-map patches at frames t + stride // 2 (t - stride // 2 past the "

@@ -347,6 +347,17 @@ class Setup:
     def unsharp_text(self) -> str:
         return "; ".join(f"order {o}: {u[2]}" for o, u in self.unsharp.items())
 
+    def record(self, model_path) -> dict:
+        """The results' header both tables write: the model (portable path, config, flat meta),
+        the methods, their output sources and the unsharp settings."""
+        return {
+            "model": suite.portable_path(model_path), "model_config": self.enh.config.to_json(),
+            "model_meta": {k: v for k, v in self.enh.meta.items()
+                           if not isinstance(v, dict | list)},
+            "methods": list(self.methods), "method_sources": self.sources,
+            "unsharp": {f"order {o}": {"sigma": u[0], "amount": u[1], "source": u[2]}
+                        for o, u in self.unsharp.items()}}
+
     def fingerprint_of(self, cell: cell_lib.Cell, **extra) -> dict:
         """What defines the cell's patches: sampling, sequence files (portable), `extra`."""
         return {"sampling": dataclasses.asdict(self.sampling), **extra,

@@ -6,33 +6,13 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from sim_fixtures import drives as _drives  # tests/ is on sys.path
+from sim_fixtures import run as _run
+from sim_fixtures import sheet as _sheet
 
 from wrinkle_jax.sim import colliders as C
 from wrinkle_jax.sim import materials as M
-from wrinkle_jax.sim import patterns as P
 from wrinkle_jax.sim import xpbd as X
-
-
-def _sheet(size=0.3, pd=0.03, z=1.0, horizontal=False, seed=0):
-    pat = P.sheet_pattern(size, size, top=z)
-    if horizontal:
-        pat = P.Pattern("table", pat.panels, (), lambda i, p: np.stack(
-            [p[:, 0] - size / 2, p[:, 1] - size / 2, np.full(len(p), z)], 1), {})
-    return pat, P.mesh_pattern(pat, pd, seed=seed)
-
-
-def _drives(frames, pins=None, colliders=None):
-    n = frames + 1
-    return X.Drive(time=jnp.arange(n, dtype=jnp.float32) / 30.0,
-                   pins=None if pins is None else jnp.asarray(pins),
-                   colliders=colliders or C.Colliders(),
-                   extra_damping=jnp.zeros(n, jnp.float32))
-
-
-def _run(model, params, x0, drives, config=None):
-    config = config or X.SimConfig()
-    init_fn, _ = X.cloth_simulator(config)
-    return X.simulate_frames(config, model, params, init_fn(model, x0), drives)
 
 
 def _sphere_tracks(frames, start, stop, radius):

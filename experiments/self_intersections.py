@@ -56,7 +56,8 @@ def main(argv=None) -> None:
                       "generator": meta.get("generator"), **st}
         print(f"{name:22s} faces {rows[name]['faces']:6d}  frames with any "
               f"{st['frames_with_intersections']:.0%}  mean pairs {st['mean_pairs']:.0f}  "
-              f"max {st['max_pairs']}  faces involved {100 * st['mean_face_fraction']:.2f}%",
+              f"max {st['max_pairs']}  faces involved {100 * st['mean_face_fraction']:.2f}% "
+              f"(worst frame {100 * st['max_face_fraction']:.2f}%)",
               flush=True)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps({"material": args.material, "every": args.every,

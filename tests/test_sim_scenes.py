@@ -129,6 +129,13 @@ def test_self_intersection_counter():
     assert pairs.tolist() == [[0, 1]]
     stats = intersect.self_intersection_stats(np.stack([v, v + 1]), f)
     assert stats["counts"] == [1, 1] and stats["frames_with_intersections"] == 1.0
+    assert stats["face_fractions"] == [0.5, 0.5] and stats["max_face_fraction"] == 0.5
+    # The worst frame, not the mean: a second frame with the piercing triangle moved away.
+    apart = v.copy()
+    apart[3:6, 2] += 2.0
+    stats = intersect.self_intersection_stats(np.stack([v, apart]), f)
+    assert stats["face_fractions"] == [0.5, 0.0]
+    assert stats["mean_face_fraction"] == 0.25 and stats["max_face_fraction"] == 0.5
     # A flat sheet does not intersect itself.
     from wrinkle_jax.primitives import grid_sheet
 

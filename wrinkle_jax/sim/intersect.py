@@ -90,7 +90,8 @@ def self_intersection_stats(frames, faces, every: int = 1) -> dict:
       frames: (T, V, 3) positions; faces: (F, 3); every: measure every n-th frame.
     Returns:
       dict with the measured frame indices, counts, the fraction of frames with any
-      intersection, the mean and max count, and the mean fraction of faces involved.
+      intersection, the mean and max count, and the fraction of faces involved: per frame,
+      their mean and the worst frame's (the issue's target is per frame).
     """
     idx = list(range(0, len(frames), max(every, 1)))
     counts, involved = [], []
@@ -106,4 +107,6 @@ def self_intersection_stats(frames, faces, every: int = 1) -> dict:
         "mean_pairs": float(counts_a.mean()) if len(idx) else 0.0,
         "max_pairs": int(counts_a.max()) if len(idx) else 0,
         "mean_face_fraction": float(np.mean(involved)) if len(idx) else 0.0,
+        "max_face_fraction": float(np.max(involved)) if len(idx) else 0.0,
+        "face_fractions": [float(a) for a in involved],
     }

@@ -12,7 +12,7 @@ from wrinkle_jax.sim import xpbd as X
 
 
 def sheet(size=0.3, pd=0.03, z=1.0, horizontal=False, seed=0):
-    """A size x size (m) sheet meshed at `pd` (m): hanging from its top edge at height `z`,
+    """A size x size (m) sheet meshed at `pd` (m): in the x-z plane, its top edge at height `z`,
     or lying flat at height `z` centred on the origin (`horizontal`). Returns (pattern, mesh)."""
     pat = P.sheet_pattern(size, size, top=z)
     if horizontal:

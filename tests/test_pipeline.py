@@ -330,7 +330,7 @@ def test_frames_per_batch_shares_network_calls_and_keeps_the_maps(result, seq, m
         pipeline.PipelineConfig(frames_per_batch=0)
 
 
-def test_blur_weights_computed_once_give_the_in_network_blurs_maps(seq):
+def test_blur_weights_computed_once_give_the_in_network_blurs_maps(seq, monkeypatch):
     """A model with the shipped blur layout (unsharp base and high-passed residual, two radii):
     the pipeline computes the blurs' mask-only weights once per garment, and its maps equal
     those of the in-network blurs, two frames per network call and through `frame_fn`."""
@@ -364,3 +364,9 @@ def test_blur_weights_computed_once_give_the_in_network_blurs_maps(seq):
     other = dataclasses.replace(pipe, config=dataclasses.replace(config, batch_size=2))
     assert pipeline._call_blur_weights(pipe) is pipe.blur_weights
     assert pipeline._call_blur_weights(other) is None
+    # One frame per call: frame_fn uses the pipeline's weights as they are (computed once).
+    one = pipeline.make_pipeline(seq.garment, enh, dataclasses.replace(config, frames_per_batch=1),
+                                 compile=False)
+    monkeypatch.setattr(pipeline, "_network_blur_weights", None)  # not computed again
+    out = pipeline.frame_fn(one)(enh.params, jnp.asarray(seq.frames[1]), material)
+    np.testing.assert_allclose(out.normal_map, want[1], atol=2e-6)

@@ -342,8 +342,12 @@ def frame_fn(pipe: Pipeline, body=None) -> Callable[..., FrameResult]:
                           window=cfg.window, noise=bool(pipe.enhancer.config.unet.noise_channels),
                           lift=lift)
     padded_mask = _padded_mask(pipe)
-    # One frame's patches (`pipe.blur_weights` are for `frames_per_call` frames').
-    blur_weights = _network_blur_weights(pipe.enhancer, padded_mask, pipe.origins, cfg.batch_size)
+    # f runs one frame's patches: `pipe.blur_weights` serve it when laid out for one frame;
+    # for several frames per call (or a copy with another batch size) they are recomputed.
+    blur_weights = _call_blur_weights(pipe) if pipe.frames_per_call == 1 else None
+    if blur_weights is None:
+        blur_weights = _network_blur_weights(pipe.enhancer, padded_mask, pipe.origins,
+                                             cfg.batch_size)
     setup = dict(plan=pipe.plan, padded_mask=padded_mask, blur_weights=blur_weights,
                  origins=to_device(pipe.origins), mask=to_device(pipe.mask),
                  subdivision=pipe.subdivision, fine_garment=pipe.fine_garment,

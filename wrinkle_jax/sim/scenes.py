@@ -523,3 +523,64 @@ def simulate(scene: str | SceneConfig, material: str, resolution: str | float = 
     if checkpoint is not None and os.path.exists(checkpoint):
         os.unlink(checkpoint)
     return SimulatedSequence(seq.frames, seq.garment, seq.fps, seq.metadata, tracks)
+
+
+def resimulate(seq: GarmentSequence, start: int, stop: int,
+               self_collision: SelfCollisionConfig | None | str = "recorded",
+               substeps: int | None = None, scene: SceneConfig | None = None,
+               setup: SceneSetup | None = None) -> np.ndarray:
+    """Simulate a stored sequence's frames start+1 .. stop again from its frame `start`,
+    with the recorded or other solver settings (to see what a setting changes where a
+    stored run went wrong, without simulating the frames before it).
+
+    The state at `start` is the stored positions and the velocity (x[start] - x[start - 1])
+    * fps: the solver's own velocity (the last substep's) is not stored, so even with the
+    recorded settings the continuation is close to the stored frames, not equal to them.
+    Compare a setting against a continuation with the recorded ones.
+
+    Args:
+      seq: a sequence written by `simulate` (its metadata: material, resolution or pd, seed,
+        substeps, self_collision, preroll_frames, scene_config).
+      start: 1 <= start < stop <= T - 1 (stored frame indices).
+      self_collision: "recorded" (the file's), None (off) or a `SelfCollisionConfig`.
+      substeps: solver substeps per frame (None: the recorded).
+      scene: the scene config, for scenes outside `SCENES` (default: by the recorded name;
+        its JSON must match the recorded one). setup: a prebuilt `setup_scene(...)` of the
+        recorded resolution, frame count and seed.
+    Returns:
+      (stop - start, V, 3) float32 positions of frames start+1 .. stop, m.
+    Raises:
+      SceneError: frames out of range, or a scene that no longer matches the file's.
+    """
+    meta = seq.metadata
+    total = int(np.asarray(seq.frames).shape[0])
+    if not 1 <= start < stop <= total - 1:
+        raise SceneError(f"need 1 <= start < stop <= {total - 1}, got start {start}, stop {stop}")
+    sc = get_scene(meta["scene"]) if scene is None else scene
+    if sc.to_json() != meta["scene_config"]:
+        raise SceneError(f"scene {sc.name!r} differs from the one this file was simulated with")
+    res = meta["resolution"] if meta["resolution"] in RESOLUTIONS else float(meta["pd"])
+    if setup is None:
+        setup = setup_scene(sc, res, total, int(meta["seed"]))
+    if setup.preroll_frames != int(meta["preroll_frames"]):
+        raise SceneError("the setup's pre-roll differs from the file's")
+    if isinstance(self_collision, str):
+        if self_collision != "recorded":
+            raise SceneError("self_collision: 'recorded', None or a config, "
+                             f"got {self_collision!r}")
+        rec = meta.get("self_collision")
+        self_collision = None if rec is None else SelfCollisionConfig(**rec)
+    config = xpbd.SimConfig(fps=float(seq.fps),
+                            substeps=int(meta["substeps"]) if substeps is None else substeps,
+                            iterations=int(meta.get("iterations", 1)),
+                            stretch_sweeps=sc.stretch_sweeps, self_collision=self_collision)
+    frames = np.asarray(seq.frames)
+    init_fn, _ = xpbd.cloth_simulator(config)
+    state = init_fn(setup.model, frames[start]).replace(
+        v=jnp.asarray((frames[start] - frames[start - 1]) * float(seq.fps)))
+    # Stored frame k is the state after preroll_frames + k simulated frames.
+    pre = setup.preroll_frames
+    drives = xpbd.slice_drives(setup.drives, 0, pre + stop + 1)
+    _, xs = xpbd.simulate_frames(config, setup.model, xpbd.fabric_params(fabric(meta["material"])),
+                                 state, drives, chunk=stop - start, start=pre + start)
+    return xs

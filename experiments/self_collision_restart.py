@@ -1,0 +1,98 @@
+"""Where a stored fine run self-intersects, would other solver settings have avoided it?
+
+    python -m experiments.self_collision_restart --scene skirt_walk --material denim_light \
+        --start 190 --stop 226 [--variants "recorded;post_passes=3;substeps=40"] [--every 2] \
+        [--out PATH]
+
+Continues a data-set file (`data/sequences/<scene>/<material>_<resolution>_s<seed>.npz`) from
+its frame `--start` to `--stop` once per variant (`sim.scenes.resimulate`: the stored positions
+and a finite-difference velocity, so "recorded", the file's own settings, is the reference the
+others are compared with, not the stored frames) and counts the intersecting faces every
+`--every` frames (`sim.intersect`). A variant is "recorded" or `name=value[,name=value]` over
+`SelfCollisionConfig` fields and `substeps` (a substep count keeps the rebuild interval in time,
+as `scenes.self_collision_config` does). Prints one JSON line per variant and writes them all to
+`--out` (default: none).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from wrinkle_jax import meshio
+from wrinkle_jax.sim import intersect, scenes
+from wrinkle_jax.sim.selfcollision import SelfCollisionConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def variant_settings(text: str, recorded: dict, substeps: int) -> tuple[SelfCollisionConfig, int]:
+    """("recorded" | "name=value,...") -> (self-collision config, substeps)."""
+    cfg = SelfCollisionConfig(**recorded)
+    if text == "recorded":
+        return cfg, substeps
+    fields = {f.name: f.type for f in dataclasses.fields(SelfCollisionConfig)}
+    changes = {}
+    for item in text.split(","):
+        name, _, value = item.partition("=")
+        if name == "substeps":
+            n = int(value)
+            # Keep the rebuild interval in time (as the data set's settings do).
+            every = max(d for d in range(1, cfg.rebuild_every * n // substeps + 1) if n % d == 0)
+            cfg, substeps = dataclasses.replace(cfg, rebuild_every=every), n
+        elif name in fields:
+            changes[name] = int(value) if fields[name] in (int, "int") else float(value)
+        else:
+            raise SystemExit(f"unknown setting {name!r} (substeps or {sorted(fields)})")
+    return dataclasses.replace(cfg, **changes), substeps
+
+
+def main(argv=None) -> list[dict]:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sequences", default=str(ROOT / "data" / "sequences"))
+    ap.add_argument("--scene", required=True, choices=sorted(scenes.SCENES))
+    ap.add_argument("--material", required=True)
+    ap.add_argument("--resolution", choices=("fine", "coarse"), default="fine")
+    ap.add_argument("--start", type=int, required=True)
+    ap.add_argument("--stop", type=int, required=True)
+    ap.add_argument("--variants", default="recorded;post_passes=3")
+    ap.add_argument("--every", type=int, default=2)
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args(argv)
+    seed = 1 if scenes.get_scene(args.scene).test_only else 0  # as make_sequences writes them
+    path = Path(args.sequences) / args.scene / f"{args.material}_{args.resolution}_s{seed}.npz"
+    seq = meshio.load_sequence(path)
+    meta = seq.metadata
+    if meta.get("self_collision") is None:
+        raise SystemExit(f"{path} was simulated without self-collision")
+    setup = scenes.setup_scene(args.scene, args.resolution, seq.frames.shape[0], seed)
+    faces = np.asarray(seq.garment.faces)
+    rows = []
+    for text in args.variants.split(";"):
+        cfg, substeps = variant_settings(text, meta["self_collision"], int(meta["substeps"]))
+        t0 = time.perf_counter()
+        xs = scenes.resimulate(seq, args.start, args.stop, cfg, substeps, setup=setup)
+        wall = time.perf_counter() - t0
+        frames = list(range(args.start + 1, args.stop + 1, args.every))
+        pct = [100.0 * len(np.unique(intersect.intersecting_pairs(xs[k - args.start - 1], faces)))
+               / len(faces) for k in frames]
+        row = {"file": str(path.relative_to(path.parents[2])), "variant": text,
+               "substeps": substeps, "self_collision": dataclasses.asdict(cfg),
+               "wall_s_with_compile": round(wall, 1), "frames": frames,
+               "face_pct": [round(p, 3) for p in pct],
+               "max_face_pct": round(max(pct), 3), "mean_face_pct": round(float(np.mean(pct)), 3)}
+        print(json.dumps(row), flush=True)
+        rows.append(row)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps({"command": vars(args), "rows": rows}, indent=1))
+    return rows
+
+
+if __name__ == "__main__":
+    main()

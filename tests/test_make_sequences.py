@@ -28,7 +28,7 @@ def test_a_scene_may_rebuild_its_fine_candidates_more_often():
     the scene JSON of scenes without the setting is what their stored files hold."""
     fine = scenes.SELF_COLLISION["fine"]
     walk = make_sequences.self_collision_for("fine", "on", None, "skirt_walk")
-    assert walk.rebuild_every == 2 and walk == dataclasses.replace(fine, rebuild_every=2)
+    assert walk == dataclasses.replace(fine, rebuild_every=2, post_passes=3)
     assert scenes.dataset_solver("skirt_walk", "fine") == (20, walk)
     assert make_sequences.self_collision_for("fine", "on", None, "skirt_dance2") == walk
     assert make_sequences.self_collision_for("fine", "on", None, "skirt_dance") is fine

@@ -32,6 +32,8 @@ def test_a_scene_may_rebuild_its_fine_candidates_more_often():
     assert scenes.dataset_solver("skirt_walk", "fine") == (20, walk)
     assert make_sequences.self_collision_for("fine", "on", None, "skirt_dance2") == walk
     assert make_sequences.self_collision_for("fine", "on", None, "skirt_dance") is fine
+    assert scenes.self_collision_config("fine", None, "pleated_skirt_dance2") == (
+        dataclasses.replace(fine, post_passes=3))
     coarse = make_sequences.self_collision_for("coarse", "on", 80, "skirt_walk")
     assert coarse == scenes.self_collision_config("coarse", 80)
     # Kept in time at more substeps, as the default is: every 2 of 20 -> every 8 of 80.

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from wrinkle_jax import meshio
+from wrinkle_jax.evaluation import cells
 from wrinkle_jax.sim import intersect, scenes
 from wrinkle_jax.sim.selfcollision import SelfCollisionConfig
 
@@ -41,9 +42,8 @@ def variant_settings(text: str, recorded: dict, substeps: int) -> tuple[SelfColl
     for item in text.split(","):
         name, _, value = item.partition("=")
         if name == "substeps":
-            n = int(value)
-            # Keep the rebuild interval in time (as the data set's settings do).
-            every = max(d for d in range(1, cfg.rebuild_every * n // substeps + 1) if n % d == 0)
+            n = int(value)  # the rebuild interval kept in time, as the data set's settings
+            every = scenes.rebuild_interval(cfg.rebuild_every, substeps, n)
             cfg, substeps = dataclasses.replace(cfg, rebuild_every=every), n
         elif name in fields:
             changes[name] = int(value) if fields[name] in (int, "int") else float(value)
@@ -64,8 +64,9 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--every", type=int, default=2)
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
-    seed = 1 if scenes.get_scene(args.scene).test_only else 0  # as make_sequences writes them
-    path = Path(args.sequences) / args.scene / f"{args.material}_{args.resolution}_s{seed}.npz"
+    # Seeds as make_sequences writes them: the test scenes' unseen performance, else 0.
+    seed = cells.TEST_SEED if scenes.get_scene(args.scene).test_only else 0
+    path = cells.sequence_file(args.sequences, args.scene, args.material, args.resolution, seed)
     seq = meshio.load_sequence(path)
     meta = seq.metadata
     if meta.get("self_collision") is None:

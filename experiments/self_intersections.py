@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from wrinkle_jax import meshio
+from wrinkle_jax.evaluation import cells
 from wrinkle_jax.sim import intersect, scenes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,8 +42,8 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     rows = {}
     for name in args.scenes:
-        seed = 1 if name in scenes.TEST_SCENES else 0  # make_sequences' plan
-        path = Path(args.sequences) / name / f"{args.material}_{args.resolution}_s{seed}.npz"
+        seed = cells.TEST_SEED if name in scenes.TEST_SCENES else 0  # make_sequences' plan
+        path = cells.sequence_file(args.sequences, name, args.material, args.resolution, seed)
         if not path.exists():
             print(f"{name}: {path} missing, skipped")
             continue

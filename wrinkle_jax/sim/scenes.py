@@ -145,9 +145,15 @@ def self_collision_config(resolution: str, substeps: int | None = None,
         return base
     if substeps < 1:
         raise SceneError(f"substeps must be >= 1, got {substeps}")
-    ideal = base.rebuild_every * substeps // SELF_COLLISION_SUBSTEPS
-    every = max([d for d in range(1, ideal + 1) if substeps % d == 0], default=1)
-    return dataclasses.replace(base, rebuild_every=every)
+    return dataclasses.replace(base, rebuild_every=rebuild_interval(
+        base.rebuild_every, SELF_COLLISION_SUBSTEPS, substeps))
+
+
+def rebuild_interval(rebuild_every: int, substeps: int, new_substeps: int) -> int:
+    """`rebuild_every` substeps at `substeps` per frame, kept in time at `new_substeps`: the
+    largest divisor of new_substeps (the solver needs one) not above that, at least 1."""
+    ideal = rebuild_every * new_substeps // substeps
+    return max([d for d in range(1, ideal + 1) if new_substeps % d == 0], default=1)
 
 
 class SceneError(ValueError):
@@ -563,7 +569,8 @@ def resimulate(seq: GarmentSequence, start: int, stop: int,
       SceneError: frames out of range, or a scene that no longer matches the file's.
     """
     meta = seq.metadata
-    total = int(np.asarray(seq.frames).shape[0])
+    frames = np.asarray(seq.frames)
+    total = frames.shape[0]
     if not 1 <= start < stop <= total - 1:
         raise SceneError(f"need 1 <= start < stop <= {total - 1}, got start {start}, stop {stop}")
     sc = get_scene(meta["scene"]) if scene is None else scene
@@ -584,7 +591,6 @@ def resimulate(seq: GarmentSequence, start: int, stop: int,
                             substeps=int(meta["substeps"]) if substeps is None else substeps,
                             iterations=int(meta.get("iterations", 1)),
                             stretch_sweeps=sc.stretch_sweeps, self_collision=self_collision)
-    frames = np.asarray(seq.frames)
     init_fn, _ = xpbd.cloth_simulator(config)
     state = init_fn(setup.model, frames[start]).replace(
         v=jnp.asarray((frames[start] - frames[start - 1]) * float(seq.fps)))

@@ -224,6 +224,36 @@ def test_pair_dataset_holds_real_coarse_inputs_and_a_val_split(tmp_path):
     assert len(data.PatchDataset(tmp_path / "v", "train")) == 0
 
 
+def test_a_pair_cell_is_stale_when_its_simulations_or_settings_change(tmp_path):
+    fine, coarse = _pair(frames=2)
+    seqs = tmp_path / "seqs" / "sheet_x"
+    seqs.mkdir(parents=True)
+    fine_p, coarse_p = seqs / "denim_light_fine_s0.npz", seqs / "denim_light_coarse_s0.npz"
+    save_sequence(fine_p, fine)
+    save_sequence(coarse_p, coarse)
+    cfg = dataclasses.replace(CONFIG, augment=False)
+    src = data.pair_sources(fine_p, coarse_p)
+    assert src["fine"]["file"] == "sheet_x/denim_light_fine_s0.npz"
+    names, root = ["c", "c__val"], tmp_path / "pairs"
+    assert data.pair_cell_stale(root, names, src, cfg, 0.5) == "no index entry c"
+    data.build_pair_sequence(fine, coarse, "c", root, cfg, val_fraction=0.5)
+    assert data.pair_cell_stale(root, names, src, cfg, 0.5) == "c records no sources"
+    data.build_pair_sequence(fine, coarse, "c", root, cfg, val_fraction=0.5, sources=src)
+    assert data.pair_cell_stale(root, names, src, cfg, 0.5) is None
+    assert data.pair_cell_stale(root, names, src, cfg, 0.4) == "c was cut with other settings"
+    other = dataclasses.replace(cfg, crops_per_frame=4)
+    assert data.pair_cell_stale(root, names, src, other, 0.5) == "c was cut with other settings"
+    # The fine simulation written again, with one vertex moved by a micrometre.
+    frames = np.array(fine.frames)
+    frames[1, 7, 2] += 1e-6
+    save_sequence(fine_p, dataclasses.replace(fine, frames=frames))
+    new = data.pair_sources(fine_p, coarse_p)
+    assert new["coarse"] == src["coarse"] and new["fine"] != src["fine"]
+    assert data.pair_cell_stale(root, names, new, cfg, 0.5) == "c was cut from another fine file"
+    (root / "index" / "c__val.json").unlink()
+    assert data.pair_cell_stale(root, names, src, cfg, 0.5) == "no index entry c__val"
+
+
 def test_batch_iterator_origins_are_seeded_by_position(built):
     root, _ = built
     ds = data.PatchDataset(root, "heldout")

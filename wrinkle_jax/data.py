@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax import MATERIALS, material_index, normalmap, patches
-from wrinkle_jax.fileio import NPZ_READ_ERRORS, atomic_write_bytes, atomic_write_text
+from wrinkle_jax.fileio import NPZ_READ_ERRORS, atomic_write_bytes, atomic_write_text, sha256_file
 from wrinkle_jax.meshio import GarmentSequence, load_sequence
 
 CHANNELS = 7  # input RGB, target RGB, mask
@@ -275,7 +275,8 @@ def _make_pair_crop_fn(config: PatchDataConfig):
 
 
 def build_pair_sequence(fine: GarmentSequence, coarse: GarmentSequence, name: str, root: Path,
-                        config: PatchDataConfig, val_fraction: float = 0.0) -> list[dict]:
+                        config: PatchDataConfig, val_fraction: float = 0.0,
+                        sources: dict | None = None) -> list[dict]:
     """Cut REAL coarse-input / fine-target pairs of one simulated frame range into shards.
 
     Unlike `build_sequence` (input = the fine map downsampled, pixel-aligned with its target),
@@ -295,6 +296,9 @@ def build_pair_sequence(fine: GarmentSequence, coarse: GarmentSequence, name: st
       val_fraction: the last fraction of the frames of a TRAIN-split sequence goes to a "val"
         split entry (`<name>__val`): data from training scenes set aside for recipe choices,
         so that held-out scenes never influence them. Held-out sequences ignore it.
+      sources: recorded in each entry as "sources" (`pair_sources` of the two files), with
+        `val_fraction`, so that `pair_cell_stale` can tell a cell cut from files that were
+        simulated again, or with other settings.
     Returns:
       the index entries written (one, or two with a val part).
     """
@@ -334,10 +338,46 @@ def build_pair_sequence(fine: GarmentSequence, coarse: GarmentSequence, name: st
                  "material_id": material_index(info["material"]), "input": "coarse_sim",
                  "patch_size": size, "texel_size": config.texel_size,
                  "config": dataclasses.asdict(config), "shards": writer.shards}
+        if sources is not None:
+            entry.update(sources=sources, val_fraction=val_fraction)
         (root / "index").mkdir(parents=True, exist_ok=True)
         atomic_write_text(root / "index" / f"{part_name}.json", json.dumps(entry))
         entries.append(entry)
     return entries
+
+
+def pair_sources(fine_path: str | os.PathLike, coarse_path: str | os.PathLike) -> dict:
+    """What a pair cell records of the two simulation files it is cut from: each file's
+    "<scene folder>/<name>" and the SHA-256 of its bytes."""
+    return {res: {"file": f"{Path(p).parent.name}/{Path(p).name}", "sha256": sha256_file(p)}
+            for res, p in (("fine", fine_path), ("coarse", coarse_path))}
+
+
+def pair_cell_stale(root: str | os.PathLike, names: Sequence[str], sources: dict,
+                    config: PatchDataConfig, val_fraction: float = 0.0) -> str | None:
+    """Why the pair cell whose index entries are `names` (e.g. `<cell>` and `<cell>__val`) under
+    `root` must be cut again, or None when every entry exists and was cut from `sources`
+    (`pair_sources`) with `config` and `val_fraction`.
+
+    A cell without a record of its sources (written before they were recorded) is stale too:
+    nothing says which simulation it was cut from.
+    """
+    want = json.loads(json.dumps(dataclasses.asdict(config)))  # as stored: tuples -> lists
+    for n in names:
+        p = Path(root) / "index" / f"{n}.json"
+        if not p.exists():
+            return f"no index entry {n}"
+        entry = json.loads(p.read_text())
+        recorded = entry.get("sources")
+        if recorded is None:
+            return f"{n} records no sources"
+        for res in sorted(set(sources) | set(recorded)):
+            if recorded.get(res) != sources.get(res):
+                return f"{n} was cut from another {res} file"
+        if (entry.get("config") != want
+                or entry.get("val_fraction") != val_fraction):
+            return f"{n} was cut with other settings"
+    return None
 
 
 # --------------------------------------------------------------------------------------------

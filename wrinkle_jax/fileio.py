@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import hashlib
 import os
 import subprocess
 import tempfile
@@ -88,6 +89,16 @@ def atomic_open(path: str | os.PathLike, *, fsync: bool = False) -> Iterator[Bin
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def sha256_file(path: str | os.PathLike) -> str:
+    """The SHA-256 of a file's bytes (hex), read in 4 MiB blocks (a 100 MB sequence file in
+    ~0.3 s): what a derived file records of its sources, to tell when they changed."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(1 << 22):
+            h.update(block)
+    return h.hexdigest()
 
 
 def git_commit(root: str | os.PathLike) -> str | None:

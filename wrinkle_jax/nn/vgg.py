@@ -40,7 +40,6 @@ implementation -- or ``"max"``) floors odd sizes; layer ``*{b}_*`` has spatial s
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import importlib.util
 import io
 import warnings
@@ -50,7 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax.fileio import NPZ_READ_ERRORS, atomic_write_bytes, user_cache_dir
+from wrinkle_jax.fileio import NPZ_READ_ERRORS, atomic_write_bytes, sha256_file, user_cache_dir
 from wrinkle_jax.io import torch_pickle
 from wrinkle_jax.nn import winograd
 from wrinkle_jax.numerics import to_device
@@ -393,14 +392,6 @@ def cache_dir() -> Path:
     return user_cache_dir()
 
 
-def _sha256(path, chunk=1 << 20):
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(chunk):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def _save_npz_atomic(flat, target: Path):
     """Write the flat arrays as ``.npz`` via :func:`~wrinkle_jax.fileio.atomic_write_bytes`,
     synced to disk before the rename (a crash never leaves a truncated cache entry)."""
@@ -459,7 +450,7 @@ def load_vgg19(source=None, *, cache=True):
         raise FileNotFoundError(f"{path}: VGG19 weights file does not exist")
     target = None
     if cache:
-        target = cache_dir() / f"vgg19-{_CACHE_VERSION}-{_sha256(path)}.npz"
+        target = cache_dir() / f"vgg19-{_CACHE_VERSION}-{sha256_file(path)}.npz"
         if target.is_file():
             try:
                 return _to_device(_from_flat_npz(target))

@@ -33,6 +33,19 @@ def test_obj_round_trip_with_replacement_vertices(skirt, tmp_path):
         meshio.save_obj(p, skirt, moved[:-1])
 
 
+def test_a_shape_error_is_raised_before_the_topology_is_formatted(skirt, tmp_path, monkeypatch):
+    def never(*a, **k):
+        raise AssertionError("formatted the topology for a write that fails its check")
+
+    write = meshio.ObjWriter(skirt)  # formats nothing yet
+    monkeypatch.setattr(meshio, "_format_rows", never)
+    with pytest.raises(GarmentError, match="does not match"):
+        write(tmp_path / "bad.obj", skirt.vertices[:-1])
+    with pytest.raises(GarmentError, match="does not match"):
+        meshio.save_obj(tmp_path / "bad.obj", skirt, skirt.vertices[:-1])
+    assert not (tmp_path / "bad.obj").exists()
+
+
 def test_obj_writer_formats_the_topology_once_and_writes_each_frame(cube, tmp_path):
     """One `ObjWriter` for many frames: each file round-trips to its frame with the garment's
     UVs, seams and panels, and the frames' files differ only in their `v` lines (the writer's

@@ -157,6 +157,10 @@ class ObjWriter:
 
     def __init__(self, garment: Garment):
         self.garment = garment
+        self._topology: str | None = None  # formatted at the first write, after its checks
+
+    def _format_topology(self) -> str:
+        garment = self.garment
         f = np.asarray(garment.faces, dtype=np.int64) + 1
         uv = np.asarray(garment.uvs, dtype=np.float64)
         uf = np.asarray(garment.uv_faces, dtype=np.int64) + 1
@@ -174,7 +178,7 @@ class ObjWriter:
             for s, e in zip(starts, ends, strict=True):
                 chunks.append(f"g panel_{int(panels[s])}\n")
                 chunks.append(_format_rows("", corners[s:e], face_fmt))
-        self._topology = "".join(chunks)
+        return "".join(chunks)
 
     def __call__(self, path: str | os.PathLike, vertices=None) -> None:
         """Write one frame: (V, 3) `vertices` (default the garment's own) to `path`,
@@ -184,6 +188,8 @@ class ObjWriter:
         if v.shape != (g.num_vertices, 3):
             raise GarmentError(f"{path}: vertices shape {v.shape} does not match the garment "
                                "topology")
+        if self._topology is None:
+            self._topology = self._format_topology()
         atomic_write_text(path, "".join(["# wrinkle-jax garment\n",
                                          _format_rows("v ", v, "%.7g %.7g %.7g"),
                                          self._topology]))

@@ -160,6 +160,17 @@ def test_train_enhancer_run_options_reach_the_run(tiny_patch_root, tmp_path, tin
         assert np.abs(np.asarray(a) - np.asarray(b)).max() <= 1.001 * lr
     np.testing.assert_allclose(np.asarray(p1.params["unsharp_amount"]),
                                [0.5, 1, 1.5, 2, 2.5], atol=1.001 * lr)
+    # An exported model file is a warm start too; another network is a usage error.
+    run2 = tmp_path / "run2"
+    assert cli.main(["train-enhancer", "--out", str(run2), "--steps", "1", *base,
+                     "--init-from", str(model)]) == 0
+    _, q1 = train.restore_run(run2, 1)
+    for a, b in zip(jax.tree.leaves(enh.params), jax.tree.leaves(q1.params), strict=True):
+        assert np.abs(np.asarray(a, np.float32) - np.asarray(b)).max() <= 1.001 * lr
+    capsys.readouterr()
+    assert cli.main(["train-enhancer", "--out", str(tmp_path / "bad2"), *base,
+                     "--unsharp-sigma", "3", "--init-from", str(model)]) == 2
+    assert "differs from the flags" in capsys.readouterr().err
     # A recipe contradiction is a usage error, before any training.
     assert cli.main(["train-enhancer", "--out", str(tmp_path / "bad"), "--data",
                      str(tiny_patch_root), "--residual-base", "input",

@@ -144,11 +144,11 @@ def test_init_from_a_narrower_run_widens_it_and_refuses_other_differences():
     old = train.create_train_state(base, jax.random.key(0, impl="rbg"), 16).params
     other = dataclasses.replace(wide, unet=dataclasses.replace(wide.unet, residual=False))
     with pytest.raises(recipe.RecipeError, match="more than"):
-        recipe._widened(old, base, other, 16, print)
+        recipe._widened(old, base.unet, other, 16, print)
     with pytest.raises(recipe.RecipeError, match="more than"):  # narrowing
-        recipe._widened(old, wide, base, 16, print)
+        recipe._widened(old, wide.unet, base, 16, print)
     logged = []
-    got = recipe._widened(old, base, wide, 16, logged.append)
+    got = recipe._widened(old, base.unet, wide, 16, logged.append)
     fresh = train.create_train_state(wide, jax.random.key(wide.seed, impl="rbg"), 16).params
     want = widen_params(old, fresh)
     for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want),

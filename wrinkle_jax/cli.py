@@ -12,7 +12,7 @@ Exit codes: 0 success, 1 failure (bad input file, runtime error), 2 bad usage, 1
     wrinkle-jax bake INPUT --out DIR [--texel-size M] [--frames A:B] [--flat] [--units U]
     wrinkle-jax assets fetch makehuman [--force]
     wrinkle-jax train-enhancer --data DIR --out DIR [recipe flags: wrinkle_jax.recipe]
-                               [--minutes M] [--init-from RUN] [--material-gains G|sweep]
+                               [--minutes M] [--init-from RUN|MODEL.npz] [--material-gains G|sweep]
                                [--eval-split S] [--train-scenes A,B] [--resume]
                                [--export PATH [--export-only] [--export-steps A,B]]
     wrinkle-jax simulate SCENE --material NAME --resolution fine|coarse --frames N --out PATH

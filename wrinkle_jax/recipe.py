@@ -176,7 +176,9 @@ def add_run_args(ap: argparse.ArgumentParser, minutes: float | None = None) -> N
     --material-gains, --minutes (default `minutes`; None: no wall-clock budget),
     --export-steps, --eval-split and --train-scenes; `train_from_args` reads them."""
     ap.add_argument("--init-from", default=None,
-                    help="start a fresh run from another run's last checkpoint (warm start)")
+                    help="start a fresh run from another run's last checkpoint, or from an "
+                         "enhancer file (.npz, e.g. an exported model; its weights as stored) "
+                         "(warm start)")
     ap.add_argument("--material-gains", default=None,
                     help="initial per-material unsharp gains of a fresh run (residual base "
                          "unsharp): 'sweep' = each material's best amount at --unsharp-sigma "
@@ -215,13 +217,17 @@ def initial_params(cfg: train.TrainConfig, run: Path, data_root: Path,
 
     Args:
       warm_start: start from the shipped model's weights (`enhancer.load_enhancer()`).
-      init_from: start from this run folder's last checkpoint (after `warm_start`, so it wins).
+      init_from: start from this run folder's last checkpoint, or from this enhancer file's
+        weights (`enhancer.load_enhancer`; e.g. a model exported by an earlier run); after
+        `warm_start`, so it wins. A narrower network is widened; any other architecture
+        difference is an error.
       gains: a `--material-gains` value: these per-material unsharp gains replace the
         starting parameters' ``unsharp_amount`` (needs residual base "unsharp"); the chosen
         gains are logged as one JSON line through `log`.
     Raises:
-      RecipeError: the shipped model's architecture differs from `cfg` (`warm_start`), or bad
-        `gains`.
+      RecipeError: the shipped model's architecture differs from `cfg` (`warm_start`), the
+        `init_from` network differs in more than a narrower width (or its file knows other
+        materials), or bad `gains`.
     """
     import jax
     import numpy as np
@@ -239,11 +245,21 @@ def initial_params(cfg: train.TrainConfig, run: Path, data_root: Path,
             raise RecipeError("--warm-start: the shipped model's width/residual/base/"
                               "unsharp sigma/blur order differ from the flags")
         init = shipped.params
-    if init_from:
+    if init_from and Path(init_from).is_file():
+        donor = enhancer.load_enhancer(init_from)
+        if donor.config.materials != MATERIALS:
+            raise RecipeError(f"--init-from {init_from}: the model knows the materials "
+                              f"{donor.config.materials}, not {MATERIALS}")
+        old_unet, init = donor.config.unet, donor.params
+    elif init_from:
         old_cfg, state = train.restore_run(init_from)
-        init = state.params
-        if old_cfg.unet.width != cfg.unet.width:
-            init = _widened(init, old_cfg, cfg, data.PatchDataset(data_root).patch_size, log)
+        old_unet, init = old_cfg.unet, state.params
+    if init_from:
+        # The gain's starting value is no part of the network: the donor's learned gains come
+        # with its parameters.
+        old_unet = dataclasses.replace(old_unet, unsharp_amount=cfg.unet.unsharp_amount)
+        if old_unet != cfg.unet:
+            init = _widened(init, old_unet, cfg, data.PatchDataset(data_root).patch_size, log)
     if gains:
         if cfg.unet.residual_base != "unsharp":
             raise RecipeError("--material-gains needs --residual-base unsharp")
@@ -281,21 +297,22 @@ def train_from_args(cfg: train.TrainConfig, args: argparse.Namespace, data_root:
                        eval_split=args.eval_split)
 
 
-def _widened(params, old_cfg, cfg, patch_size: int, log: Callable[[str], Any]):
-    """`--init-from` a narrower run: its network embedded in `cfg`'s width, computing the
-    same function (`nn.widen.widen_params`); any other architecture difference is an error."""
+def _widened(params, old_unet, cfg, patch_size: int, log: Callable[[str], Any]):
+    """`--init-from` a narrower network (`old_unet`, a UNetConfig): embedded in `cfg`'s width,
+    computing the same function (`nn.widen.widen_params`); any other architecture difference
+    is an error."""
     import jax
 
     from wrinkle_jax import train
     from wrinkle_jax.nn.widen import widen_params
 
-    if (old_cfg.unet.width > cfg.unet.width
-            or dataclasses.replace(old_cfg.unet, width=cfg.unet.width) != cfg.unet):
+    if (old_unet.width > cfg.unet.width
+            or dataclasses.replace(old_unet, width=cfg.unet.width) != cfg.unet):
         raise RecipeError("--init-from: the run's network differs from the flags in more than "
-                          f"a wider --width ({old_cfg.unet} vs {cfg.unet})")
+                          f"a wider --width ({old_unet} vs {cfg.unet})")
     fresh = train.create_train_state(cfg, jax.random.key(cfg.seed, impl="rbg"),
                                      patch_size).params
-    log(json.dumps({"widened_from": old_cfg.unet.width, "width": cfg.unet.width}))
+    log(json.dumps({"widened_from": old_unet.width, "width": cfg.unet.width}))
     return widen_params(params, fresh)
 
 

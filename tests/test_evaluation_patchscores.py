@@ -95,3 +95,31 @@ def test_cell_files_round_trip_and_only_unreadable_or_foreign_files_are_recomput
     monkeypatch.setattr(patchscores, "cell_part", broken)
     with pytest.raises(RuntimeError, match="bug"):
         patchscores.load_cell(path, fp)
+
+
+def test_a_cell_of_a_sequence_simulated_again_is_scored_again(tmp_path):
+    """Cells name their simulations by digest; a cell stored before digests were recorded is
+    reused (and marked for rewriting) only while it is newer than both sequence files."""
+    import os
+
+    res = {"frame": np.array([0]), "origin": np.array([[0, 0]]), "coverage": np.array([1.0]),
+           "loss_input": np.array([1.0]), "loss": {"identity": np.array([1.0])},
+           "n_candidates": 1, "timings": {}}
+    seqs = {r: tmp_path / f"{r}.npz" for r in ("fine", "coarse")}
+    for r, p in seqs.items():
+        p.write_bytes(r.encode())
+        os.utime(p, (1e9, 1e9))
+    old = {"sampling": {"frames": 3}, "sequences": {r: str(p) for r, p in seqs.items()}}
+    new = {**old, "simulations": {r: suite.file_digest(p) for r, p in seqs.items()}}
+    path = tmp_path / "cell.npz"
+    patchscores.save_cell(path, res, old, {"identity": "identity"})
+    got = patchscores.load_cell(path, new)
+    assert got is not None and got["legacy"] and got["sources"] == {"identity": "identity"}
+    assert patchscores.load_cell(path, {**new, "sampling": {"frames": 4}}) is None
+    seqs["fine"].write_bytes(b"simulated again")  # newer than the cell now
+    again = {**old, "simulations": {r: suite.file_digest(p) for r, p in seqs.items()}}
+    assert patchscores.load_cell(path, again) is None
+    # Stored with digests: reused exactly while the digests agree.
+    patchscores.save_cell(path, res, new, {"identity": "identity"})
+    assert not patchscores.load_cell(path, new)["legacy"]
+    assert patchscores.load_cell(path, again) is None

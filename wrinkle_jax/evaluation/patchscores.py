@@ -30,8 +30,8 @@ from wrinkle_jax.fileio import NPZ_READ_ERRORS, atomic_write_bytes
 
 __all__ = ["CELL_KEYS", "MODEL", "WRONG", "Sampling", "Setup", "add_cell_args", "cell_part",
            "cell_path", "cell_scores", "evaluate_cell", "frames_text", "legacy_sources",
-           "load_cell", "merge_cell", "pooled_scores", "run", "save_cell", "setup_from_args",
-           "summary"]
+           "load_cell", "merge_cell", "pooled_scores", "run", "same_patches", "save_cell",
+           "setup_from_args", "summary"]
 
 MODEL = "model"
 WRONG = "model, wrong material"
@@ -161,9 +161,32 @@ def cell_path(out: Path, cell: cell_lib.Cell) -> Path:
     return out / "cells" / f"{cell.scene.name}__{cell.material}.npz"
 
 
-# What defines a cell's patches (sampling, sequences); each method's losses are tagged with a
-# source string instead, so a rerun with another method set scores only the new methods.
-CELL_KEYS = ("sampling", "sequences")
+# What defines a cell's patches (sampling, sequence files and their contents); each method's
+# losses are tagged with a source string instead, so a rerun with another method set scores
+# only the new methods.
+CELL_KEYS = ("sampling", "sequences", "simulations")
+
+
+def same_patches(stored: dict, wanted: dict, path: Path,
+                 keys: tuple[str, ...] = CELL_KEYS) -> bool | None:
+    """Whether the cell stored at `path` with fingerprint `stored` has `wanted`'s patches:
+    True; False; or None for a cell stored before the simulations' digests were recorded
+    that agrees in every other key and is newer than both sequence files it names (so it was
+    scored from these files: reuse it, and store it again with the digests). A sequence
+    simulated again after the cell was scored makes it False."""
+    a, b = cell_part(stored, keys), cell_part(wanted, keys)
+    if a == b:
+        return True
+    if "simulations" not in keys or a.get("simulations") is not None:
+        return False
+    if {**a, "simulations": b.get("simulations")} != b:
+        return False
+    files = [suite.ROOT / p for p in b["sequences"].values()]  # portable: root-relative
+    try:
+        newest = max(f.stat().st_mtime for f in files)
+        return None if path.stat().st_mtime > newest else False
+    except OSError:
+        return False
 
 
 def save_cell(path: Path, result: dict, fingerprint: dict, sources: dict[str, str]) -> None:
@@ -220,11 +243,13 @@ def load_cell(path: Path, fingerprint: dict) -> dict | None:
     # A file of another layout (missing keys, lengths that disagree) is recomputed.
     try:
         meta = json.loads(str(z["meta"]))
-        if cell_part(meta["fingerprint"]) != cell_part(fingerprint):
+        same = same_patches(meta["fingerprint"], fingerprint, path)
+        if same is False:
             return None
         names = z["methods"].tolist()
-        legacy = "sources" not in meta
-        sources = legacy_sources(meta["fingerprint"], names) if legacy else meta["sources"]
+        legacy = "sources" not in meta or same is None
+        sources = (legacy_sources(meta["fingerprint"], names) if "sources" not in meta
+                   else meta["sources"])
         return {"frame": z["frame"], "origin": z["origin"], "coverage": z["coverage"],
                 "loss_input": z["loss_input"],
                 "loss": dict(zip(names, z["losses"], strict=True)),
@@ -359,10 +384,13 @@ class Setup:
                         for o, u in self.unsharp.items()}}
 
     def fingerprint_of(self, cell: cell_lib.Cell, **extra) -> dict:
-        """What defines the cell's patches: sampling, sequence files (portable), `extra`."""
+        """What defines the cell's patches: sampling, sequence files (portable) and their
+        contents' digests (a sequence simulated again at the same path is another cell),
+        `extra`."""
+        files = {r: self.sequences[cell.key][r] for r in ("fine", "coarse")}
         return {"sampling": dataclasses.asdict(self.sampling), **extra,
-                "sequences": {r: suite.portable_path(self.sequences[cell.key][r])
-                              for r in ("fine", "coarse")}}
+                "sequences": {r: suite.portable_path(p) for r, p in files.items()},
+                "simulations": {r: suite.file_digest(p) for r, p in files.items()}}
 
 
 def setup_from_args(ap, args, min_frame_stride: int = 1, wrong_material: bool = False,

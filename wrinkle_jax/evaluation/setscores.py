@@ -92,7 +92,7 @@ def cell_path(out: Path, cell: cell_lib.Cell) -> Path:
 
 
 # What defines a cell's sets a and c and their features; each method's numbers carry a source.
-CELL_KEYS = ("sampling", "sequences", "metric")
+CELL_KEYS = ("sampling", "sequences", "simulations", "metric")
 
 
 def save_cell(path: Path, record: dict, fingerprint: dict, sources: dict[str, str]) -> None:
@@ -121,19 +121,19 @@ def load_cell(path: Path, fingerprint: dict) -> dict | None:
     # A file of another layout (missing keys, lengths that disagree) is recomputed.
     try:
         meta = json.loads(str(z["meta"]))
-        if (patchscores.cell_part(meta["fingerprint"], CELL_KEYS)
-                != patchscores.cell_part(fingerprint, CELL_KEYS)):
+        same = patchscores.same_patches(meta["fingerprint"], fingerprint, path, CELL_KEYS)
+        if same is False:
             return None
         names = z["methods"].tolist()
-        legacy = "sources" not in meta
+        legacy = "sources" not in meta or same is None
         methods = {name: {**meta["numbers"][name], "embedding": emb}
                    for name, emb in zip(names, z["embeddings"], strict=True)}
         return {"frame": z["frame"], "origin": z["origin"], "frame_c": z["frame_c"],
                 "origin_c": z["origin_c"], "scales": meta["scales"],
                 "n_candidates": meta["n_candidates"], "timings": meta["timings"],
                 "methods": methods, "legacy": legacy,
-                "sources": (patchscores.legacy_sources(meta["fingerprint"], names) if legacy
-                            else meta["sources"])}
+                "sources": (patchscores.legacy_sources(meta["fingerprint"], names)
+                            if "sources" not in meta else meta["sources"])}
     except (KeyError, ValueError, TypeError):
         return None
 

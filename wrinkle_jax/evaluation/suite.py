@@ -22,7 +22,7 @@ import jax
 import numpy as np
 
 from wrinkle_jax import enhancer as enhancer_lib
-from wrinkle_jax.fileio import atomic_write_bytes, atomic_write_text
+from wrinkle_jax.fileio import atomic_write_bytes, atomic_write_text, sha256_file
 
 __all__ = ["MODEL_CARD_RESULTS", "RESULTS", "ROOT", "SEQUENCES", "TABLE1_SEQUENCES", "eta_text",
            "file_digest", "load_model_or_usage_error", "machine_info", "portable_path",
@@ -49,11 +49,9 @@ def machine_info() -> dict:
 
 
 def file_digest(path: str | os.PathLike) -> str:
-    """'sha256:<first 16 hex digits>' of a file's bytes: identifies a model across clones (its
-    mtime does not)."""
-    import hashlib
-
-    return "sha256:" + hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+    """'sha256:<first 16 hex digits>' of a file's bytes: identifies a model or a simulation
+    across clones (its mtime does not)."""
+    return "sha256:" + sha256_file(path)[:16]
 
 
 def portable_path(path: str | os.PathLike) -> str:

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from wrinkle_jax import meshio
-from wrinkle_jax.evaluation import cells
+from wrinkle_jax.evaluation import cells, suite
 from wrinkle_jax.sim import intersect, scenes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -62,8 +62,9 @@ def main(argv=None) -> None:
               flush=True)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps({"material": args.material, "every": args.every,
-                                          "resolution": args.resolution, "scenes": rows},
-                                         indent=1) + "\n")
+                                          "resolution": args.resolution,
+                                          "sequences": suite.portable_path(args.sequences),
+                                          "scenes": rows}, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -33,7 +33,9 @@ def test_reads_the_plan_s_seeds_and_only_the_scenes_asked_for(tmp_path):
     out = tmp_path / "si.json"
     self_intersections.main(["--sequences", str(tmp_path), "--every", "1", "--out", str(out),
                              "--scenes", val, test])
-    rows = json.loads(out.read_text())["scenes"]
+    got = json.loads(out.read_text())
+    rows = got["scenes"]
+    assert got["sequences"] == str(tmp_path.resolve())  # which files: outside the project
     assert set(rows) == {val, test}
     assert rows[val]["max_pairs"] == 1 and rows[val]["mean_face_fraction"] == 1.0
     assert rows[test]["max_pairs"] == 0

@@ -67,8 +67,10 @@ def main(argv=None) -> int:
                 fine_p = seq_root / scene / f"{mat}_fine_s{args.seed}.npz"
                 coarse_p = seq_root / scene / f"{mat}_coarse_s{args.seed}.npz"
                 if not (fine_p.exists() and coarse_p.exists()):
+                    kept = any((out / "index" / f"{n}.json").exists() for n in names)
                     say(f"missing {fine_p.name if not fine_p.exists() else coarse_p.name} "
-                        f"of {scene}; skipped")
+                        f"of {scene}; skipped" + ("; its existing cell is kept, unverified"
+                                                  if kept else ""))
                     missing += 1
                     continue
                 sources = data.pair_sources(fine_p, coarse_p)

@@ -64,5 +64,13 @@ def test_a_rerun_cuts_again_only_the_cells_whose_simulations_changed(tmp_path, m
     assert denim["sources"]["fine"]["sha256"] == index("sheet_x__denim_light__val")[
         "sources"]["fine"]["sha256"] != wool["sources"]["fine"]["sha256"]
     assert make_pair_dataset.main(args + ["--check"]) == 0
+    # A cell whose simulation is gone is kept, and the log says it cannot be checked.
+    (seqs / "sheet_x" / "wool_melton_fine_s0.npz").unlink()
+    assert make_pair_dataset.main(args) == 1
+    assert log.read_text().splitlines()[-1].endswith(
+        "missing wool_melton_fine_s0.npz of sheet_x; skipped; its existing cell is kept, "
+        "unverified")
+    assert index("sheet_x__wool_melton") == wool
+    _write(seqs / "sheet_x", "wool_melton", "fine", 0.0)
     # Other settings make every cell stale.
     assert make_pair_dataset.main(args + ["--check", "--crops", "3"]) == 1

@@ -177,7 +177,8 @@ def same_patches(stored: dict, wanted: dict, path: Path,
     a, b = cell_part(stored, keys), cell_part(wanted, keys)
     if a == b:
         return True
-    if "simulations" not in keys or a.get("simulations") is not None:
+    if ("simulations" not in keys or a.get("simulations") is not None
+            or not isinstance(b.get("sequences"), dict)):
         return False
     if {**a, "simulations": b.get("simulations")} != b:
         return False

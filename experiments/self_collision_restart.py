@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from wrinkle_jax import meshio
-from wrinkle_jax.evaluation import cells
+from wrinkle_jax.evaluation import cells, suite
 from wrinkle_jax.sim import intersect, scenes
 from wrinkle_jax.sim.selfcollision import SelfCollisionConfig
 
@@ -91,7 +91,8 @@ def main(argv=None) -> list[dict]:
         rows.append(row)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps({"command": vars(args), "rows": rows}, indent=1))
+        command = {**vars(args), "sequences": suite.portable_path(args.sequences)}
+        Path(args.out).write_text(json.dumps({"command": command, "rows": rows}, indent=1))
     return rows
 
 

@@ -79,18 +79,18 @@ def plan(train_frames: int, test_frames: int, val_frames: int = 150) -> list[dic
     jobs = []
     for name in scenes.TRAINING_SCENES:
         for mat in MATERIALS:
-            jobs.append({"scene": name, "resolution": "fine", "material": mat, "seed": 0,
-                         "frames": train_frames})
+            jobs.append({"scene": name, "resolution": "fine", "material": mat,
+                         "seed": scenes.dataset_seed(name), "frames": train_frames})
     for name in scenes.VAL_SCENES:
         for res in ("fine", "coarse"):
             for mat in MATERIALS:
-                jobs.append({"scene": name, "resolution": res, "material": mat, "seed": 0,
-                             "frames": val_frames})
+                jobs.append({"scene": name, "resolution": res, "material": mat,
+                             "seed": scenes.dataset_seed(name), "frames": val_frames})
     for name in scenes.TEST_SCENES:
         for res in ("fine", "coarse"):
             for mat in MATERIALS:
-                jobs.append({"scene": name, "resolution": res, "material": mat, "seed": 1,
-                             "frames": test_frames})
+                jobs.append({"scene": name, "resolution": res, "material": mat,
+                             "seed": scenes.dataset_seed(name), "frames": test_frames})
     return jobs
 
 
@@ -251,7 +251,7 @@ def make_previews(out: Path, data: Path, frame: int = 90, material: str = "silk_
     for name, sc in scenes.SCENES.items():
         if name not in keep:
             continue
-        seed = 1 if sc.test_only else 0
+        seed = scenes.dataset_seed(sc)
         seqs = {}
         for res in ("fine", "coarse"):
             p = data / name / f"{material}_{res}_s{seed}.npz"

@@ -64,8 +64,7 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--every", type=int, default=2)
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
-    # Seeds as make_sequences writes them: the test scenes' unseen performance, else 0.
-    seed = cells.TEST_SEED if scenes.get_scene(args.scene).test_only else 0
+    seed = scenes.dataset_seed(args.scene)
     path = cells.sequence_file(args.sequences, args.scene, args.material, args.resolution, seed)
     seq = meshio.load_sequence(path)
     meta = seq.metadata

@@ -42,8 +42,8 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     rows = {}
     for name in args.scenes:
-        seed = cells.TEST_SEED if name in scenes.TEST_SCENES else 0  # make_sequences' plan
-        path = cells.sequence_file(args.sequences, name, args.material, args.resolution, seed)
+        path = cells.sequence_file(args.sequences, name, args.material, args.resolution,
+                                   scenes.dataset_seed(name))
         if not path.exists():
             print(f"{name}: {path} missing, skipped")
             continue

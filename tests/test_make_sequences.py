@@ -277,3 +277,16 @@ def test_coarse_runs_skip_a_file_another_run_is_simulating(tmp_path, monkeypatch
         runs.main(["--out", str(tmp_path), "--frames", "3", *args])
     assert calls == [MATERIALS[1]]  # the first fabric's file is another run's
     assert not lock.exists()
+
+
+def test_the_plan_seeds_are_the_data_sets():
+    """Every job's seed is `scenes.dataset_seed`: the test scenes' unseen performance (the
+    evaluation's TEST_SEED), 0 for the training and validation scenes."""
+    from wrinkle_jax.evaluation import cells
+
+    jobs = make_sequences.plan(3, 3, 3)
+    assert {(j["scene"], j["seed"]) for j in jobs} == (
+        {(n, 0) for n in scenes.TRAINING_SCENES + scenes.VAL_SCENES}
+        | {(n, cells.TEST_SEED) for n in scenes.TEST_SCENES})
+    assert cells.TEST_SEED == 1 and scenes.dataset_seed("skirt_walk") == 1
+

@@ -99,6 +99,17 @@ SELF_COLLISION_SUBSTEPS = 20
 DATASET_COARSE_SUBSTEPS = 80
 
 
+# Seed of the test scenes' files: an unseen performance of their motion (training and
+# validation scenes use seed 0).
+TEST_SEED = 1
+
+
+def dataset_seed(scene: str | SceneConfig) -> int:
+    """The seed of a scene's files in the data set (`experiments.make_sequences`)."""
+    sc = get_scene(scene) if isinstance(scene, str) else scene
+    return TEST_SEED if sc.test_only else 0
+
+
 def dataset_solver(scene: str | SceneConfig,
                    resolution: str) -> tuple[int, SelfCollisionConfig]:
     """Solver substeps per frame and self-collision settings of the data set's sequences of

@@ -76,7 +76,8 @@ def main(argv=None) -> list[dict]:
     for text in args.variants.split(";"):
         cfg, substeps = variant_settings(text, meta["self_collision"], int(meta["substeps"]))
         t0 = time.perf_counter()
-        xs = scenes.resimulate(seq, args.start, args.stop, cfg, substeps, setup=setup)
+        xs, final = scenes.resimulate(seq, args.start, args.stop, cfg, substeps, setup=setup,
+                                      return_state=True)
         wall = time.perf_counter() - t0
         frames = list(range(args.start + 1, args.stop + 1, args.every))
         pct = [100.0 * len(np.unique(intersect.intersecting_pairs(xs[k - args.start - 1], faces)))
@@ -85,7 +86,8 @@ def main(argv=None) -> list[dict]:
                "substeps": substeps, "self_collision": dataclasses.asdict(cfg),
                "wall_s_with_compile": round(wall, 1), "frames": frames,
                "face_pct": [round(p, 3) for p in pct],
-               "max_face_pct": round(max(pct), 3), "mean_face_pct": round(float(np.mean(pct)), 3)}
+               "max_face_pct": round(max(pct), 3), "mean_face_pct": round(float(np.mean(pct)), 3),
+               "self_overflow": np.asarray(final.self_overflow).tolist()}
         print(json.dumps(row), flush=True)
         rows.append(row)
     if args.out:

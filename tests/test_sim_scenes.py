@@ -205,6 +205,11 @@ def test_resimulate_continues_a_stored_run_with_its_or_other_settings(tmp_path, 
     np.testing.assert_array_equal(xs, scenes.resimulate(back, 2, 5, self_collision=cfg,
                                                         substeps=TINY.substeps, scene=TINY))
     assert not np.array_equal(xs, scenes.resimulate(back, 2, 5, scene=TINY, substeps=4))
+    # The final state comes with the same frames on request (its dropped-candidate counts).
+    again, final = scenes.resimulate(back, 2, 5, scene=TINY, return_state=True)
+    np.testing.assert_array_equal(again, xs)
+    np.testing.assert_array_equal(np.asarray(final.x), xs[-1])
+    assert np.asarray(final.self_overflow).shape == (3,)
     with pytest.raises(scenes.SceneError, match="start"):
         scenes.resimulate(back, 0, 3, scene=TINY)
     with pytest.raises(scenes.SceneError, match="start"):

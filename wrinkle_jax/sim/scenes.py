@@ -555,7 +555,7 @@ def simulate(scene: str | SceneConfig, material: str, resolution: str | float = 
 def resimulate(seq: GarmentSequence, start: int, stop: int,
                self_collision: SelfCollisionConfig | None | str = "recorded",
                substeps: int | None = None, scene: SceneConfig | None = None,
-               setup: SceneSetup | None = None) -> np.ndarray:
+               setup: SceneSetup | None = None, return_state: bool = False):
     """Simulate a stored sequence's frames start+1 .. stop again from its frame `start`,
     with the recorded or other solver settings (to see what a setting changes where a
     stored run went wrong, without simulating the frames before it).
@@ -574,8 +574,11 @@ def resimulate(seq: GarmentSequence, start: int, stop: int,
       scene: the scene config, for scenes outside `SCENES` (default: by the recorded name;
         its JSON must match the recorded one). setup: a prebuilt `setup_scene(...)` of the
         recorded resolution, frame count and seed.
+      return_state: also return the final `xpbd.ClothState` (its `self_overflow`: the
+        dropped-candidate counts over the continuation).
     Returns:
-      (stop - start, V, 3) float32 positions of frames start+1 .. stop, m.
+      (stop - start, V, 3) float32 positions of frames start+1 .. stop, m; with return_state,
+      (positions, final state).
     Raises:
       SceneError: frames out of range, or a scene that no longer matches the file's.
     """
@@ -608,6 +611,7 @@ def resimulate(seq: GarmentSequence, start: int, stop: int,
     # Stored frame k is the state after preroll_frames + k simulated frames.
     pre = setup.preroll_frames
     drives = xpbd.slice_drives(setup.drives, 0, pre + stop + 1)
-    _, xs = xpbd.simulate_frames(config, setup.model, xpbd.fabric_params(fabric(meta["material"])),
-                                 state, drives, chunk=stop - start, start=pre + start)
-    return xs
+    final, xs = xpbd.simulate_frames(config, setup.model,
+                                     xpbd.fabric_params(fabric(meta["material"])),
+                                     state, drives, chunk=stop - start, start=pre + start)
+    return (xs, final) if return_state else xs

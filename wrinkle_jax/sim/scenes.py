@@ -50,34 +50,15 @@ from wrinkle_jax.sim.selfcollision import SelfCollisionConfig
 
 RESOLUTIONS = {"fine": 0.010, "coarse": 0.030}  # particle distance (PD), meters
 
-# Self-collision settings per resolution for the data-set scenes, measured with
-# experiments/self_collision_scenes.py (experiments/results/sim/README.md): thickness ~0.3-0.4
-# PD (vertex-triangle contacts only; thinner lets edges cross between contacts on coarse
-# meshes), candidates rebuilt every 4 substeps with a margin covering ~2 m/s over them.
-# Not the data set's default: measured on skirt_dance coarse 5.3 % -> 0 % intersecting faces,
-# fine 2.0 % -> 0.6 % (the fine row with margin 12 mm), but cape_walk coarse 2.9 % -> 55 %, and
-# 14-28x the cost per frame (target <= 1.5x).
-# Session 16: same-panel pairs nearer at rest than reach + ~0.6 PD (a triangle's
-# circumradius) are excluded, so a flat layer adds no candidates (rest pose, skirt_dance:
-# 0.31 coarse / 1.0 fine candidates per vertex, from 2.7 / 30); the projections run over a flat
-# list of one (coarse) or two (fine) contacts per vertex; the coarse cell reads cover the rest
-# pose's fullest cell (94 entries; fine 280 at rest, more in motion). Measured (60 frames,
-# results/sim/README.md): coarse met (skirt_dance 0.06 %, cape_walk 0.03 % intersecting faces),
-# fine not (skirt_dance 1.1 %, candidates still dropped), and 6-9x the cost: not the default.
-# Session 17: the fine meshes use the flat build (`build_pairs`: bounds on totals, the nearest
-# kept), because the per-vertex bounds dropped most of the contacts that mattered (of the pairs
-# closer than the thickness on the data set's skirt poses, the build above kept 6-11 %); the
-# read budget covers the skirt's cells in motion (mean 368 entries per vertex). Measured
-# (60 frames): skirt_dance fine 2.03 % -> 0.003 % intersecting faces, at 11x the cost.
-# Session 18: the fine meshes use the blocked flat build (`selfcollision_blocks`: a cell's
-# vertices tested in blocks of 8 against each triangle of the 27 cells around it; the same
-# contacts when no bound is exceeded): one build 551-586 -> 148-149 ms (load 3-4); skirt_dance fine
-# 2.03 % -> 0.001 % intersecting faces at 6.1x the cost (results/sim/README.md). Coarse too
-# (the per-vertex build above dropped 14 M cell entries over 60 skirt frames): skirt_dance
-# 6.5 % -> 0 %, cape_walk 4.9 % -> 0.008 %; the cost ratio stays ~6-7x there (the build is
-# ~18 ms; the per-substep work and the off run's small size set it). Fine: 2 contacts per
-# vertex (nearest kept) instead of 4 halve the per-substep contact work; skirt_dance 0.003 %,
-# cape_walk 0.018 % (the same as with 4) at 5.1x / 4.0x.
+# Self-collision settings per resolution of the data set's scenes (the measurements behind
+# each choice, session by session: experiments/results/sim/README.md). Thickness ~0.3-0.4 PD
+# (vertex-triangle contacts only; thinner lets edges cross between contacts on coarse meshes);
+# candidates rebuilt every 4 substeps with a margin covering ~2 m/s of relative motion over
+# them; same-panel pairs nearer at rest than the rest exclusion are skipped, so a flat layer
+# adds no candidates. Fine meshes use the blocked flat build (`selfcollision_blocks`: bounds on
+# totals, the nearest kept; per-vertex bounds dropped most of the contacts that mattered) with
+# the 2 nearest contacts per vertex; coarse keeps 1. Measured on skirt_dance fine: 2.03 % ->
+# 0.003 % intersecting faces at ~5x the cost of a run without self-collision.
 SELF_COLLISION = {
     "fine": SelfCollisionConfig(thickness=0.004, margin=0.014, rebuild_every=4,
                                 rest_exclusion=0.024, pairs_per_vertex=2.0,

@@ -21,9 +21,10 @@ back, so load drifts hit all alike; ratios are medians of the per-round ratios):
   * U-Net, width 64, batch 8 of 128 x 128 patches, inference. Theirs: `models.Generator_CNNCIN
     (3, 3, 5)` in eval mode under `torch.no_grad`, on ImageNet-normalized NCHW input (their
     input convention; the normalization is inside the timed call, as ours is inside our
-    network). Ours: the same weights converted by `unet.from_torch_state_dict` (seeded random
-    init, with the CIN scales and shifts perturbed so that a wrong material row would show), in
-    the "xla", "im2col_bf16" and "winograd_bf16" convolution forms (`INFER_IMPLS`), jitted.
+    network). Ours: the same weights converted by `torch_interop.from_torch_state_dict` (seeded
+    random init, with the CIN scales and shifts perturbed so that a wrong material row would
+    show), in the "xla", "im2col_bf16" and "winograd_bf16" convolution forms (`INFER_IMPLS`),
+    jitted.
     Reported: ms/patch, patches/s,
     speedups (their time / ours, wall and process CPU), and the agreement on one batch in the
     network's own output units (ImageNet-normalized): max |ours - theirs| / RMS(theirs) and the
@@ -112,7 +113,7 @@ import numpy as np  # noqa: E402
 
 from wrinkle_jax import lift as L  # noqa: E402
 from wrinkle_jax import mesh, primitives, timing, train  # noqa: E402
-from wrinkle_jax.nn import unet, vgg  # noqa: E402
+from wrinkle_jax.nn import torch_interop, unet, vgg  # noqa: E402
 from wrinkle_jax.reference import (  # noqa: E402
     AUTHORS_C_ALPHA,
     AUTHORS_LR,
@@ -248,7 +249,7 @@ def authors_unet(authors: dict, args):
             if "_CIN.inns." in name:
                 p.add_(0.2 * torch.randn_like(p))
     sd = {k: v.detach().cpu().numpy() for k, v in net.state_dict().items()}
-    params, kwargs = unet.from_torch_state_dict(sd)
+    params, kwargs = torch_interop.from_torch_state_dict(sd)
     if kwargs["config"].width != args.width:
         raise SystemExit(f"their network has width {kwargs['config'].width}, not {args.width}")
     return net, params, kwargs
@@ -299,9 +300,10 @@ def bench_unet(authors: dict, args, rng) -> dict:
         **speedups(t),
         "compile_s": compile_s,
         "agreement_vs_authors": errors,
-        "agreement_note": "same weights (theirs converted by unet.from_torch_state_dict), one "
-                          "batch of synthetic normal maps, errors in ImageNet-normalized output "
-                          "units relative to RMS of their output",
+        "agreement_note": "same weights (theirs converted by "
+                          "torch_interop.from_torch_state_dict), one batch of synthetic normal "
+                          "maps, errors in ImageNet-normalized output units relative to RMS of "
+                          "their output",
         "timing": t.to_json("authors_torch"),
     }
 
@@ -359,7 +361,7 @@ def bench_train(authors: dict, args, rng) -> dict:
     net.zero_grad()
     c_loss, s_loss = their_loss()
     (c_loss + s_loss).backward()
-    their_grads = unet.from_torch_state_dict(
+    their_grads = torch_interop.from_torch_state_dict(
         {k: (np.zeros(p.shape, np.float32) if p.grad is None  # materials not in the batch
              else p.grad.detach().cpu().numpy()) for k, p in net.named_parameters()})[0]
     their_parts = {"content": c_loss.item(), "style": s_loss.item()}

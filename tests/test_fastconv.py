@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from wrinkle_jax.nn import fastconv, unet
+from wrinkle_jax.nn import fastconv, torch_interop, unet
 
 F32_RTOL = 1e-5
 
@@ -259,7 +259,7 @@ def test_unet_fast_form_with_torch_weights():
     which test_unet verifies against the NumPy reference of the authors' forward pass."""
     from test_unet import _random_state_dict  # tests/ is on sys.path
 
-    params, config = unet.from_torch_state_dict(_random_state_dict(width=4, materials=2))
+    params, config = torch_interop.from_torch_state_dict(_random_state_dict(width=4, materials=2))
     x = np.random.default_rng(1).uniform(size=(2, 32, 32, 3)).astype(np.float32)
     m = jnp.array([0, 1])
     ref = jax.jit(unet.CINUNet(**config).apply)({"params": params}, x, m)

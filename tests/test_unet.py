@@ -12,7 +12,7 @@ import pytest
 from torch_checkpoint_writer import save_state_dict  # tests/ is on sys.path
 
 from wrinkle_jax import evaluation
-from wrinkle_jax.nn import unet
+from wrinkle_jax.nn import torch_interop, unet
 
 
 def test_width64_parameter_count():
@@ -167,7 +167,7 @@ def _denormalized(ref):
 
 def test_torch_state_dict_reproduces_reference_forward():
     sd = _random_state_dict(width=4, materials=2)
-    params, kwargs = unet.from_torch_state_dict(sd)
+    params, kwargs = torch_interop.from_torch_state_dict(sd)
     assert kwargs == dict(num_materials=2, config=unet.UNetConfig(
         width=4, input_norm="imagenet", residual=False, output_norm="imagenet"))
     model = unet.CINUNet(**kwargs)
@@ -186,15 +186,15 @@ def test_torch_state_dict_reproduces_reference_forward():
 def test_state_dict_errors():
     sd = _random_state_dict()
     del sd["D3_Deconv2d.bias"]
-    with pytest.raises(unet.StateDictError, match="D3_Deconv2d.bias"):
-        unet.from_torch_state_dict(sd)
+    with pytest.raises(torch_interop.StateDictError, match="D3_Deconv2d.bias"):
+        torch_interop.from_torch_state_dict(sd)
 
 
 def test_load_torch_checkpoint(tmp_path):
     sd = _random_state_dict(width=4, materials=5, seed=3)
     path = tmp_path / "authors.pth"
     save_state_dict(path, sd, wrap_key="model")
-    model, params = unet.load_torch_checkpoint(path)
+    model, params = torch_interop.load_torch_checkpoint(path)
     assert model.config.width == 4 and model.num_materials == 5
     x = np.random.default_rng(2).uniform(size=(1, 32, 32, 3)).astype(np.float32)
     # Jitted (op by op, each primitive of the U-Net compiles on its own).

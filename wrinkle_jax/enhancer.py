@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax import MATERIALS, modelfile, normalmap
-from wrinkle_jax.nn import unet
+from wrinkle_jax.nn import torch_interop, unet
 from wrinkle_jax.numerics import to_device
 
 __all__ = ["DEFAULT_PATH", "Enhancer", "EnhancerConfig", "EnhancerError", "from_torch_checkpoint",
@@ -187,12 +187,12 @@ def from_torch_checkpoint(path: str | os.PathLike, materials: tuple[str, ...] | 
                           conv_impl: str | None = None) -> Enhancer:
     """The authors' PyTorch U-Net checkpoint as a pipeline-ready enhancer (no torch needed).
 
-    The weights are converted by `unet.load_torch_checkpoint` (the allow-listed reader). Their
-    network takes ImageNet-normalized RGB and outputs ImageNet-normalized RGB; the config
-    records both (`UNetConfig(input_norm="imagenet", output_norm="imagenet", residual=False)`),
-    so the model normalizes its input and de-normalizes its output to the RGB form in [0, 1]
-    inside its own forward pass -- exactly once, wherever it is applied (`make_apply`, the
-    pipeline, a model file written by `save_enhancer` and read back).
+    The weights are converted by `torch_interop.load_torch_checkpoint` (the allow-listed
+    reader). Their network takes ImageNet-normalized RGB and outputs ImageNet-normalized RGB;
+    the config records both (`UNetConfig(input_norm="imagenet", output_norm="imagenet",
+    residual=False)`), so the model normalizes its input and de-normalizes its output to the RGB
+    form in [0, 1] inside its own forward pass -- exactly once, wherever it is applied
+    (`make_apply`, the pipeline, a model file written by `save_enhancer` and read back).
 
     Args:
       path: the `torch.save` file (a dict with a "model" state dict, or a bare state dict).
@@ -203,12 +203,12 @@ def from_torch_checkpoint(path: str | os.PathLike, materials: tuple[str, ...] | 
         record the scale it was trained at; the default is this package's).
       conv_impl: the convolution form (see `load_enhancer`).
     Raises:
-      unet.StateDictError: naming the file, if the weights are not the authors' U-Net.
+      torch_interop.StateDictError: naming the file, if the weights are not the authors' U-Net.
       EnhancerError: the number of materials does not match the checkpoint's CIN tables.
       io.torch_pickle.CheckpointError: the file is not a readable PyTorch checkpoint
         (`UnsafeCheckpointError`, a subclass: it names a global outside the allow-list).
     """
-    net, params = unet.load_torch_checkpoint(path)
+    net, params = torch_interop.load_torch_checkpoint(path)
     if materials is None:
         materials = MATERIALS
         if net.num_materials != len(MATERIALS):

@@ -57,8 +57,8 @@ XLA:CPU specifics (each measured; they decide the speed more than the FLOPs do):
   128 x 128 patch and layer at width 64) -- the main reason the plain U-Net trains slowly.
 
 Shapes: NHWC activations, HWIO kernels exactly as `flax.linen.Conv` / `ConvTranspose` store them
-(the U-Net's `from_torch_state_dict` layout), so parameters are interchangeable between the XLA
-and the fast forms.
+(`torch_interop.from_torch_state_dict`'s layout), so parameters are interchangeable between the
+XLA and the fast forms.
 """
 
 from __future__ import annotations
@@ -442,8 +442,8 @@ def conv_transpose4x4s2(x, kernel, bias=None, *, compute_dtype=jnp.bfloat16):
 
     The kernel is in the `flax.linen.ConvTranspose` layout the U-Net stores: HWIO and spatially
     flipped relative to PyTorch's `(in, out, kH, kW)` weight (see
-    `unet.from_torch_state_dict`); i.e. this equals `nn.ConvTranspose(O, (4, 4), strides=(2, 2),
-    padding=((2, 2), (2, 2)))`.
+    `torch_interop.from_torch_state_dict`); i.e. this equals
+    `nn.ConvTranspose(O, (4, 4), strides=(2, 2), padding=((2, 2), (2, 2)))`.
 
     Args:
       x: (N, H, W, C) float.

@@ -98,6 +98,19 @@ def test_find_or_simulate_reuses_only_files_of_the_data_sets_solver_settings(tmp
                                            solver), change
         # Without settings to check (the old rule) the file still matches.
         assert cell_lib.stored_matches(path, sc, "silk_charmeuse", cell_lib.TEST_SEED, 3)
+    # A setting added after the file was written takes its default (the old behaviour), so the
+    # file still matches while the default is what the data set uses; a setting the config
+    # lacks, or one missing whose default differs, does not.
+    rec = dataclasses.asdict(solver[1])
+    assert rec["post_passes"] == 1 and rec["block"] != 0  # the coarse recipe: default, not
+    for recorded, same in (({k: v for k, v in rec.items() if k != "post_passes"}, True),
+                           ({k: v for k, v in rec.items() if k != "block"}, False),
+                           ({**rec, "no_such_setting": 1}, False)):
+        meshio.save_sequence(path, meshio.make_sequence(
+            seq.frames, seq.garment, metadata={**seq.metadata, "self_collision": recorded}))
+        assert cell_lib.stored_matches(path, sc, "silk_charmeuse", cell_lib.TEST_SEED, 3,
+                                       solver) is same, recorded
+    assert cell_lib.recorded_self_collision(None) is None
     # find_or_simulate then simulates anew, with the data set's settings.
     calls = []
 

@@ -98,3 +98,35 @@ def test_report_table2_detail_headline_gives_means_medians_and_the_oracles_as_ce
     assert "oracle fine" not in head and "identity" not in head
     assert "oracle fine +30.0 (+30.0) / +3.0 (+3.0)" in ceilings
     assert headlines.table2_detail_headline(None) == []
+
+
+def test_table1_headline_names_the_best_baseline_by_each_form_and_the_wrong_material_cost():
+    s = lambda signed, absolute, n=10: {"n": n, "signed_mean": signed,  # noqa: E731
+                                        "improvement_mean": absolute}
+    kind = {headlines.MODEL: s(20.0, 30.0), headlines.WRONG: s(5.0, 25.0),
+            "identity": s(0.0, 0.0), "unsharp": s(22.0, 28.0), "bicubic": s(0.5, 31.0),
+            "patchgan": s(-3.0, 35.0)}
+    t1 = {"by_kind": {"unseen garment": kind},
+          "all": {headlines.MODEL: s(40.0, 45.0), headlines.WRONG: s(38.0, 44.0)}}
+    rows = headlines.table1_headline(t1)
+    assert rows[0] == ("- Table 1, unseen garments (10 patches): model signed mean +20.0 "
+                       "(paper's |.| form 30.0); best baseline by signed mean unsharp +22.0 "
+                       "(|.| 28.0), by |.| patchgan 35.0 (signed -3.0).")
+    assert rows[1] == "- Table 1, unseen garments: PatchGAN signed mean -3.0 (|.| 35.0)."
+    assert rows[2] == ("- Wrong material at inference (all cells): signed mean +40.0 -> +38.0 "
+                       "(+2.0 points lost; 5.0 % drop; the paper saw about a 5 % drop).")
+    # Near 0 a relative drop is not stated.
+    t1["all"] = {headlines.MODEL: s(4.0, 9.0), headlines.WRONG: s(3.0, 9.0)}
+    assert "meaningless" in headlines.table1_headline(t1)[2]
+    assert headlines.table1_headline(None) == []
+
+
+def test_table2_headline_gives_the_models_unseen_garment_row_or_nothing():
+    m = {"embedded": {"c1": 0.1234, "c2": 0.5, "dr": 14.8, "dr_signed": -2.04},
+         "full": {"dr": 0.8, "dr_signed": 0.75}}
+    t2 = {"by_group": {"unseen garment": {headlines.MODEL: m}}}
+    assert headlines.table2_headline(t2) == [
+        "- Table 2, unseen garments (model, mean over cells): embedded C1 0.123, C2 0.500, "
+        "DR 14.8 (signed -2.0); full space DR 0.8 (signed +0.8)."]
+    assert headlines.table2_headline({"by_group": {}}) == []
+    assert headlines.table2_headline(None) == []

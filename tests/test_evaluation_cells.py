@@ -3,8 +3,10 @@
 
 from __future__ import annotations
 
+import pytest
+
 from wrinkle_jax.evaluation import cells as cell_lib
-from wrinkle_jax.sim import scenes
+from wrinkle_jax.sim import scenes, selfcollision
 
 
 def test_run_cells_reuses_by_source_adds_missing_methods_and_upgrades_legacy_files(tmp_path):
@@ -110,7 +112,9 @@ def test_find_or_simulate_reuses_only_files_of_the_data_sets_solver_settings(tmp
             seq.frames, seq.garment, metadata={**seq.metadata, "self_collision": recorded}))
         assert cell_lib.stored_matches(path, sc, "silk_charmeuse", cell_lib.TEST_SEED, 3,
                                        solver) is same, recorded
-    assert cell_lib.recorded_self_collision(None) is None
+    assert selfcollision.recorded_config(None) is None
+    with pytest.raises(ValueError, match="no_such_setting"):
+        selfcollision.recorded_config({**rec, "no_such_setting": 1})
     # find_or_simulate then simulates anew, with the data set's settings.
     calls = []
 

@@ -42,7 +42,7 @@ import numpy as np
 from wrinkle_jax import MATERIALS
 from wrinkle_jax.classifier import calibrated, motion
 from wrinkle_jax.mesh import Garment
-from wrinkle_jax.sim import xpbd
+from wrinkle_jax.sim import selfcollision, xpbd
 from wrinkle_jax.sim.colliders import Colliders
 from wrinkle_jax.sim.materials import Fabric, fabric
 from wrinkle_jax.sim.selfcollision import SelfCollisionConfig
@@ -87,7 +87,7 @@ def config_from_metadata(metadata: Mapping, **changes) -> SynthesisConfig:
     sc = metadata.get("self_collision")
     base = SynthesisConfig(substeps=int(metadata.get("substeps", 20)),
                            stretch_sweeps=int(metadata.get("stretch_sweeps", 2)),
-                           self_collision=None if not sc else SelfCollisionConfig(**sc))
+                           self_collision=None if not sc else selfcollision.recorded_config(sc))
     return dataclasses.replace(base, **changes)
 
 

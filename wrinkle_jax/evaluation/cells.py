@@ -20,14 +20,13 @@ import numpy as np
 from wrinkle_jax import meshio
 from wrinkle_jax.evaluation.suite import SEQUENCES, TABLE1_SEQUENCES, eta_text
 from wrinkle_jax.fileio import NPZ_READ_ERRORS
-from wrinkle_jax.sim import scenes
-from wrinkle_jax.sim.selfcollision import SelfCollisionConfig
+from wrinkle_jax.sim import scenes, selfcollision
 
 __all__ = ["GARMENTS", "GARMENT_BASE_SCENE", "GARMENT_SHORT", "MOTIONS", "SEEN_GARMENT",
            "SEEN_MOTION", "TABLE_MATERIALS", "TEST_SEED", "UNSEEN_GARMENT", "Cell",
            "add_sequence_args", "cell_sequences", "find_or_simulate", "load_first_frames",
-           "merge_methods", "merge_timings", "recorded_self_collision", "run_cells",
-           "scene_for", "sequence_file", "stored_frames", "stored_matches", "table_cells"]
+           "merge_methods", "merge_timings", "run_cells", "scene_for", "sequence_file",
+           "stored_frames", "stored_matches", "table_cells"]
 
 # The scene each garment's cells are derived from (its pins, attachment and pre-roll).
 GARMENT_BASE_SCENE = {"flared_skirt": "skirt_dance", "dress": "dress_dance", "cape": "cape_walk"}
@@ -73,7 +72,7 @@ def stored_matches(path: Path, config: scenes.SceneConfig, material: str, seed: 
     """Whether a stored simulation is this scene config, material and seed with >= frames,
     and, when `solver` = (substeps, SelfCollisionConfig or None) is given, was simulated with
     those settings (metadata "substeps" and "self_collision", read by
-    `recorded_self_collision`)."""
+    `sim.selfcollision.recorded_config`)."""
     try:
         if stored_frames(path) < frames:
             return False
@@ -86,21 +85,11 @@ def stored_matches(path: Path, config: scenes.SceneConfig, material: str, seed: 
     if solver is None or not same:
         return same
     substeps, self_collision = solver
-    return (meta.get("substeps") == substeps
-            and recorded_self_collision(meta.get("self_collision")) == self_collision)
-
-
-def recorded_self_collision(recorded: dict | None) -> SelfCollisionConfig | None | bool:
-    """A file's recorded "self_collision" metadata as a config: None if it ran without, False
-    (equal to no config and not None) if it names a setting `SelfCollisionConfig` lacks. Settings
-    added since the file was written take their defaults, which keep the old behaviour, so
-    adding one does not make every stored simulation look foreign."""
-    if recorded is None:
-        return None
     try:
-        return SelfCollisionConfig(**recorded)
-    except TypeError:
+        recorded = selfcollision.recorded_config(meta.get("self_collision"))
+    except ValueError:  # a setting this code does not know: another recipe
         return False
+    return meta.get("substeps") == substeps and recorded == self_collision
 
 
 def find_or_simulate(config: scenes.SceneConfig, material: str, resolution: str, seed: int,

@@ -43,7 +43,7 @@ import numpy as np
 
 from wrinkle_jax import MATERIALS, __version__, material_index
 from wrinkle_jax.meshio import GarmentSequence, make_sequence, save_sequence
-from wrinkle_jax.sim import aero, mannequin, patterns, resume, xpbd
+from wrinkle_jax.sim import aero, mannequin, patterns, resume, selfcollision, xpbd
 from wrinkle_jax.sim.colliders import Colliders, attach_rigid, blend_pins, to_local
 from wrinkle_jax.sim.materials import fabric
 from wrinkle_jax.sim.selfcollision import SelfCollisionConfig
@@ -580,8 +580,7 @@ def resimulate(seq: GarmentSequence, start: int, stop: int,
         if self_collision != "recorded":
             raise SceneError("self_collision: 'recorded', None or a config, "
                              f"got {self_collision!r}")
-        rec = meta.get("self_collision")
-        self_collision = None if rec is None else SelfCollisionConfig(**rec)
+        self_collision = selfcollision.recorded_config(meta.get("self_collision"))
     config = xpbd.SimConfig(fps=float(seq.fps),
                             substeps=int(meta["substeps"]) if substeps is None else substeps,
                             iterations=int(meta.get("iterations", 1)),

@@ -118,6 +118,19 @@ class SelfCollisionConfig:
     block: int = 0
 
 
+def recorded_config(recorded: dict | None) -> SelfCollisionConfig | None:
+    """A simulation file's "self_collision" metadata (`dataclasses.asdict` of its config) as a
+    config; None if it ran without. Settings added since the file was written take their
+    defaults, which keep the old behaviour, so a new setting does not orphan stored files.
+    Raises ValueError if it names a setting the config lacks."""
+    if recorded is None:
+        return None
+    unknown = set(recorded) - {f.name for f in dataclasses.fields(SelfCollisionConfig)}
+    if unknown:
+        raise ValueError(f"self-collision settings {sorted(unknown)} are not SelfCollisionConfig's")
+    return SelfCollisionConfig(**recorded)
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class SelfTopology:

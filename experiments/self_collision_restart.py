@@ -26,7 +26,7 @@ import numpy as np
 
 from wrinkle_jax import meshio
 from wrinkle_jax.evaluation import cells, suite
-from wrinkle_jax.sim import intersect, scenes
+from wrinkle_jax.sim import intersect, scenes, selfcollision
 from wrinkle_jax.sim.selfcollision import SelfCollisionConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def variant_settings(text: str, recorded: dict, substeps: int) -> tuple[SelfCollisionConfig, int]:
     """("recorded" | "name=value,...") -> (self-collision config, substeps)."""
-    cfg = SelfCollisionConfig(**recorded)
+    cfg = selfcollision.recorded_config(recorded)
     if text == "recorded":
         return cfg, substeps
     fields = {f.name: f.type for f in dataclasses.fields(SelfCollisionConfig)}

@@ -236,6 +236,8 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
     if sc is not None and (sc.rebuild_every < 1 or n_sub % sc.rebuild_every):
         raise ValueError(f"self_collision.rebuild_every={sc.rebuild_every} must divide "
                          f"substeps={n_sub}")
+    if sc is not None and not 0.0 <= sc.poke_repair < 1.0:
+        raise ValueError(f"self_collision.poke_repair={sc.poke_repair} must be in [0, 1)")
 
     def init_fn(model: ClothModel, positions) -> ClothState:
         x = jnp.asarray(positions, jnp.float32)
@@ -348,7 +350,8 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
                     overflow = overflow + lost
                 # Closest points and directions at the substep's start: fixed over the
                 # substep, so computed once for both projection stages.
-                frame = selfcollision.contact_frame(x, model.faces, cand)
+                frame = selfcollision.contact_frame(x, model.faces, cand, model.self_topo.poke,
+                                                    sc.poke_repair)
             s0 = k / n_sub
             s1 = (k + 1) / n_sub
             acc = frame_acc

@@ -1,11 +1,13 @@
 """Simulator benchmark: ms per frame (30 fps) per scene at PD 10 and 30 mm, speed against
 error over substep counts (constraint violation, energy drift, penetration depth), and the
 skirts' self-intersections; with --self-collision, ms/frame with and without it per scene
-(the resolution's `scenes.SELF_COLLISION` setting; the two runs advance in alternating
-chunks) and their ratio.
+(the data set's setting of the scene, `scenes.self_collision_config`; before session 35 the
+resolution's `scenes.SELF_COLLISION` without the scene's own changes; with --variants also
+changed settings; the runs advance in alternating chunks) and their ratio to the run without.
 
     python benchmarks/bench_sim.py [--quick] [--part speed|substeps|intersect|all]
                                    [--scenes a,b] [--data data/sequences] [--self-collision]
+                                   [--variants "poke_repair=0.5;thickness=0.006"]
 
 Prints one JSON document. Timings exclude compilation (a warm-up chunk runs first). On a
 shared CPU the numbers are upper bounds; `load_avg` is reported alongside.
@@ -27,7 +29,7 @@ import numpy as np
 from wrinkle_jax.sim import colliders as C
 from wrinkle_jax.sim import materials as M
 from wrinkle_jax.sim import patterns as P
-from wrinkle_jax.sim import scenes, xpbd
+from wrinkle_jax.sim import scenes, selfcollision, xpbd
 
 
 def bench_speed(scene_names, resolutions, frames: int, material: str = "silk_charmeuse",
@@ -42,8 +44,11 @@ def bench_speed(scene_names, resolutions, frames: int, material: str = "silk_cha
     for name in scene_names:
         for res in resolutions:
             setup = scenes.setup_scene(name, res, frames)
-            settings = [scenes.SELF_COLLISION[res] if sc == "default" else sc
-                        for sc in self_collision]  # "default": the data-set scenes' setting
+            # "default": the data set's setting of this scene (`scenes.self_collision_config`);
+            # "default:name=value,...": it with those settings replaced.
+            data_set = scenes.self_collision_config(res, setup.scene.substeps, name)
+            settings = [sc if sc is None else selfcollision.with_settings(
+                            data_set, sc.partition(":")[2]) for sc in self_collision]
             group = _speed_rows(setup, name, res, frames, material, settings)
             for row, sc in zip(group, settings, strict=True):
                 if sc is not None and settings[0] is None:
@@ -202,7 +207,11 @@ def main(argv=None):
     ap.add_argument("--scenes", default=",".join(scenes.SCENES))
     ap.add_argument("--self-collision", action="store_true",
                     help="--part speed: also time each scene with self-collision "
-                         "(scenes.SELF_COLLISION of the resolution; ratio_to_off per row)")
+                         "(the data set's setting of each scene; ratio_to_off per row)")
+    ap.add_argument("--variants", default="",
+                    help="with --self-collision: also time these changes of that setting, "
+                         "';'-separated 'name=value,...' (e.g. 'poke_repair=0.5'), alternating "
+                         "with the others")
     args = ap.parse_args(argv)
     out = {"jax": jax.__version__, "devices": [str(d) for d in jax.devices()],
            "cpu_count": os.cpu_count(), "load_avg_start": os.getloadavg()}
@@ -210,7 +219,8 @@ def main(argv=None):
     if args.part in ("speed", "all"):
         out["speed"] = bench_speed(names, ["coarse"] if args.quick else ["coarse", "fine"],
                                    frames=10 if args.quick else 30,
-                                   self_collision=(None, "default")
+                                   self_collision=(None, "default", *(
+                                       f"default:{v}" for v in args.variants.split(";") if v))
                                    if args.self_collision else (None,))
     if args.part in ("substeps", "all"):
         out["substeps"] = bench_substeps([5, 10, 20] if args.quick else [5, 10, 20, 40, 80],

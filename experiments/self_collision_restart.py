@@ -37,19 +37,19 @@ def variant_settings(text: str, recorded: dict, substeps: int) -> tuple[SelfColl
     cfg = selfcollision.recorded_config(recorded)
     if text == "recorded":
         return cfg, substeps
-    fields = {f.name: f.type for f in dataclasses.fields(SelfCollisionConfig)}
-    changes = {}
+    rest = []
     for item in text.split(","):
         name, _, value = item.partition("=")
         if name == "substeps":
             n = int(value)  # the rebuild interval kept in time, as the data set's settings
             every = scenes.rebuild_interval(cfg.rebuild_every, substeps, n)
             cfg, substeps = dataclasses.replace(cfg, rebuild_every=every), n
-        elif name in fields:
-            changes[name] = int(value) if fields[name] in (int, "int") else float(value)
         else:
-            raise SystemExit(f"unknown setting {name!r} (substeps or {sorted(fields)})")
-    return dataclasses.replace(cfg, **changes), substeps
+            rest.append(item)
+    try:
+        return selfcollision.with_settings(cfg, ",".join(rest)), substeps
+    except ValueError as e:
+        raise SystemExit(f"{e}; or substeps") from None
 
 
 def main(argv=None) -> list[dict]:

@@ -78,6 +78,11 @@ def test_segment_test_agrees_with_the_independent_checker():
     assert (got == want).mean() > 0.999  # float32 against float64: a hit on an edge may flip
 
 
+def _frame(x, faces, v, t, sides=None):
+    pairs = S.Pairs(v, t, jnp.full(v.shape, 0.006), jnp.ones(v.shape, bool))
+    return np.asarray(S.contact_frame(jnp.asarray(x), jnp.asarray(faces), pairs, sides).d)
+
+
 def test_layers_apart_have_no_crossing_and_keep_every_direction():
     # An intersection-free mesh has no crossing edge: the repair changes nothing there.
     x, faces = _two_layers()
@@ -85,9 +90,9 @@ def test_layers_apart_have_no_crossing_and_keep_every_direction():
     v, t = _all_pairs(x, faces)
     frac = np.asarray(_crossing_fraction(jnp.asarray(x), jnp.asarray(faces), topo, v, t))
     assert frac.max() == 0.0
-    d = jnp.asarray(np.random.default_rng(1).normal(size=(len(v), 3)), jnp.float32)
-    out = P.repair_directions(jnp.asarray(x), jnp.asarray(faces), topo, v, t, d, 0.5)
-    np.testing.assert_array_equal(np.asarray(out), np.asarray(d))
+    sides = P.repair_sides(jnp.asarray(x), jnp.asarray(faces), topo, v, t, 0.5)
+    assert not np.asarray(sides).any()
+    np.testing.assert_array_equal(_frame(x, faces, v, t, sides), _frame(x, faces, v, t))
 
 
 def test_a_poked_vertex_is_sent_back_to_its_rings_side():
@@ -105,11 +110,15 @@ def test_a_poked_vertex_is_sent_back_to_its_rings_side():
     mine = (vv == poked) & np.isin(tt, list(through))
     assert mine.any() and frac[mine].max() == 1.0
     assert frac[vv != poked].max() <= 0.5      # no other vertex has most of its ring across
-    d = jnp.asarray(np.tile([0.0, 0.0, -1.0], (len(vv), 1)), jnp.float32)  # its start side
-    out = np.asarray(P.repair_directions(jnp.asarray(x), jnp.asarray(faces), topo, v, t, d, 0.5))
+    sides = P.repair_sides(jnp.asarray(x), jnp.asarray(faces), topo, v, t, 0.5)
     fixed = frac > 0.5
+    # Both layers' normals point up (+z): the poked vertex is sent back up, whatever side
+    # the start-side rule would keep it on.
+    np.testing.assert_array_equal(np.asarray(sides), np.where(fixed, 1.0, 0.0))
+    out, plain = _frame(x, faces, v, t, sides), _frame(x, faces, v, t)
     np.testing.assert_allclose(out[fixed], np.tile([0.0, 0.0, 1.0], (fixed.sum(), 1)), atol=1e-6)
-    np.testing.assert_array_equal(out[~fixed], np.asarray(d)[~fixed])
+    assert (plain[fixed][:, 2] < 0).all()       # without the repair: held below
+    np.testing.assert_array_equal(out[~fixed], plain[~fixed])
 
 
 @pytest.fixture(scope="module")

@@ -418,3 +418,11 @@ def test_prefix_sum_equals_cumsum(n):
     m = rng.integers(0, 5, (37, 8)).astype(np.int32)
     np.testing.assert_array_equal(np.asarray(S.prefix_rows(jnp.asarray(m))),
                                   np.cumsum(m.reshape(-1)).reshape(m.shape))
+
+
+def test_with_settings_types_values_by_field_and_rejects_unknown_names():
+    cfg = S.with_settings(CFG, "thickness=0.005,post_passes=3,poke_repair=0.5")
+    assert cfg == dataclasses.replace(CFG, thickness=0.005, post_passes=3, poke_repair=0.5)
+    assert isinstance(cfg.post_passes, int) and S.with_settings(CFG, "") == CFG
+    with pytest.raises(ValueError, match="post_pases"):
+        S.with_settings(CFG, "post_pases=3")

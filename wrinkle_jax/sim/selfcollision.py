@@ -138,6 +138,19 @@ def recorded_config(recorded: dict | None) -> SelfCollisionConfig | None:
     return SelfCollisionConfig(**recorded)
 
 
+def with_settings(cfg: SelfCollisionConfig, text: str) -> SelfCollisionConfig:
+    """cfg with the settings of "name=value[,name=value]" replaced (values typed by the field:
+    e.g. "thickness=0.006,poke_repair=0.5"). Raises ValueError for an unknown name."""
+    types = {f.name: f.type for f in dataclasses.fields(SelfCollisionConfig)}
+    changes = {}
+    for item in filter(None, text.split(",")):
+        name, _, value = item.partition("=")
+        if name not in types:
+            raise ValueError(f"unknown self-collision setting {name!r} (of {sorted(types)})")
+        changes[name] = int(value) if types[name] in (int, "int") else float(value)
+    return dataclasses.replace(cfg, **changes)
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class SelfTopology:
@@ -507,11 +520,11 @@ def flatten(cand: Candidates, size: int) -> tuple[Pairs, Any]:
     return pairs, jnp.maximum(n - size, 0).astype(jnp.int32)
 
 
-def contact_frame(x, faces, pairs: Pairs, poke=None, repair: float = 0.0) -> ContactFrame:
+def contact_frame(x, faces, pairs: Pairs, sides=None) -> ContactFrame:
     """Closest points and directions of the contacts at the substep's start positions x
-    (V, 3) m (computed once per substep, shared by every projection pass). With repair > 0
-    (`SelfCollisionConfig.poke_repair`) and poke (a `pokethrough.PokeTopology`), poked-through
-    vertices are directed back to their one-ring's side."""
+    (V, 3) m (computed once per substep, shared by every projection pass). sides: optional
+    (M,) from `pokethrough.repair_sides`; where nonzero, the direction is the triangle's
+    normal times it (a poked-through vertex sent back to its one-ring's side)."""
     idx = faces[pairs.tri]                                                # (M, 3)
     xt = x[idx]
     xv = x[pairs.vertex]
@@ -520,8 +533,8 @@ def contact_frame(x, faces, pairs: Pairs, poke=None, repair: float = 0.0) -> Con
     side = jnp.where(jnp.sum(off * n, -1) >= 0, 1.0, -1.0)[:, None] * n
     # Exactly on the surface the direction is undefined: fall back to the normal.
     d = jnp.where((d2 > 1e-12)[:, None], normalize(off), side)
-    if repair > 0:
-        d = pokethrough.repair_directions(x, faces, poke, pairs.vertex, pairs.tri, d, repair)
+    if sides is not None:
+        d = jnp.where((sides != 0)[:, None], sides[:, None] * n, d)
     return ContactFrame(idx, bary, d)
 
 

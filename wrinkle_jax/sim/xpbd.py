@@ -61,7 +61,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax.numerics import normalize, safe_div, safe_norm
-from wrinkle_jax.sim import aero, colliders, selfcollision, selfcollision_blocks
+from wrinkle_jax.sim import aero, colliders, pokethrough, selfcollision, selfcollision_blocks
 
 # The model's pytrees and their allocation live in cloth_model; every name stays importable
 # from here (old import paths, pickles).
@@ -335,23 +335,31 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
             return jax.lax.fori_loop(0, config.iterations,
                                      lambda _, c: one_iteration(*c), (q, lam_b, lam_s))[0]
 
+        def rebuild_sides(x):
+            cand, lost = rebuild(x)
+            sides = None
+            if sc.poke_repair > 0:  # poked-through vertices, decided until the next rebuild
+                sides = pokethrough.repair_sides(x, model.faces, model.self_topo.poke,
+                                                 cand.vertex, cand.tri, sc.poke_repair)
+            return cand, sides, lost
+
         def substep(carry, k):
-            x, v, cand, overflow = carry
+            x, v, cand, sides, overflow = carry
             if sc is not None:
                 # Candidates from the substep's start positions; the margin covers the motion
                 # until the next rebuild.
                 if sc.rebuild_every == 1:
-                    cand, lost = rebuild(x)
+                    cand, sides, lost = rebuild_sides(x)
                     overflow = overflow + lost
                 else:
                     fresh = k % sc.rebuild_every == 0
-                    cand, lost = jax.lax.cond(fresh, rebuild,
-                                              lambda _: (cand, jnp.zeros(3, jnp.int32)), x)
+                    cand, sides, lost = jax.lax.cond(
+                        fresh, rebuild_sides,
+                        lambda _: (cand, sides, jnp.zeros(3, jnp.int32)), x)
                     overflow = overflow + lost
                 # Closest points and directions at the substep's start: fixed over the
                 # substep, so computed once for both projection stages.
-                frame = selfcollision.contact_frame(x, model.faces, cand, model.self_topo.poke,
-                                                    sc.poke_repair)
+                frame = selfcollision.contact_frame(x, model.faces, cand, sides)
             s0 = k / n_sub
             s1 = (k + 1) / n_sub
             acc = frame_acc
@@ -386,15 +394,17 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
                     p, _ = selfcollision.project_pairs(p, w_held, cand, frame)
             else:
                 p = jnp.where(free[:, None] > 0, moved, p)
-            return (p, (p - x) / h, cand, overflow), None
+            return (p, (p - x) / h, cand, sides, overflow), None
 
-        cand0 = None
+        cand0 = sides0 = None
         if sc is not None:  # rebuilt at k = 0
             m = selfcollision.max_pairs(state.x.shape[0], sc)
             cand0 = selfcollision.Pairs(jnp.zeros(m, jnp.int32), jnp.zeros(m, jnp.int32),
                                         jnp.zeros(m, jnp.float32), jnp.zeros(m, bool))
-        (x, v, _, overflow), _ = jax.lax.scan(
-            substep, (state.x, state.v, cand0, state.self_overflow), jnp.arange(n_sub))
+            if sc.poke_repair > 0:
+                sides0 = jnp.zeros(m, jnp.float32)
+        (x, v, _, _, overflow), _ = jax.lax.scan(
+            substep, (state.x, state.v, cand0, sides0, state.self_overflow), jnp.arange(n_sub))
         return ClothState(x=x, v=v, self_overflow=overflow)
 
     return init_fn, step_fn

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 
-def _segment_hits_triangle(p, q, a, b, c, eps: float = 1e-12) -> np.ndarray:
+def segment_hits_triangle(p, q, a, b, c, eps: float = 1e-12) -> np.ndarray:
     """(N,) bool: segment p-q crosses triangle a-b-c (all (N, 3) float64)."""
     d = q - p
     e1, e2 = b - a, c - a
@@ -77,8 +77,8 @@ def intersecting_pairs(vertices, faces, chunk: int = 1 << 20) -> np.ndarray:
         a, b = tri[i], tri[j]
         hit = np.zeros(len(i), bool)
         for k in range(3):
-            hit |= _segment_hits_triangle(a[:, k], a[:, (k + 1) % 3], b[:, 0], b[:, 1], b[:, 2])
-            hit |= _segment_hits_triangle(b[:, k], b[:, (k + 1) % 3], a[:, 0], a[:, 1], a[:, 2])
+            hit |= segment_hits_triangle(a[:, k], a[:, (k + 1) % 3], b[:, 0], b[:, 1], b[:, 2])
+            hit |= segment_hits_triangle(b[:, k], b[:, (k + 1) % 3], a[:, 0], a[:, 1], a[:, 2])
         hits.append(np.stack([i[hit], j[hit]], 1))
     return np.concatenate(hits) if hits else np.zeros((0, 2), np.int64)
 

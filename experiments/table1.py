@@ -160,10 +160,15 @@ def main(argv=None) -> int:
             "sequence_source": {res: sequences[cell.key][f"{res}_info"]["source"]
                                 for res in ("fine", "coarse")},
             "methods": {k: patchscores.summary(v) for k, v in sc.items()}, "timings": r["timings"]}
-    by_kind = {k: {m: patchscores.summary(s) for m, s in patchscores.pooled_scores(v).items()}
-               for k, v in kinds.items() if v}
-    everything = {m: patchscores.summary(s) for m, s
-                  in patchscores.pooled_scores(list(results_by_cell.values())).items()}
+    pooled = {k: patchscores.pooled_scores(v) for k, v in kinds.items() if v}
+    pooled["all"] = patchscores.pooled_scores(list(results_by_cell.values()))
+    by_kind = {k: {m: patchscores.summary(s) for m, s in p.items()}
+               for k, p in pooled.items() if k != "all"}
+    everything = {m: patchscores.summary(s) for m, s in pooled["all"].items()}
+    # The robust summary: every other method against the unsharp baselines, patch by patch.
+    refs = [m for m in pooled["all"] if m.startswith("unsharp")]
+    paired = {k: patchscores.paired_against(p, [m for m in p if m not in refs + ["identity"]],
+                                            refs) for k, p in pooled.items()}
     cell_t = [c["timings"] for c in cells_out.values()]
     n_all = sum(c["n_patches"] for c in cells_out.values())
     score_s = sum(t["score_s"] for t in cell_t)
@@ -186,6 +191,7 @@ def main(argv=None) -> int:
                    "motions": args.motions.split(","), "seed": cell_lib.TEST_SEED,
                    "scenes": {c.key: json.loads(c.scene.to_json()) for c in cells}},
         "cells": cells_out, "by_kind": by_kind, "all": everything,
+        "paired_vs_unsharp": paired,
         "timings": {
             "note": "per-cell timings are from the run that scored the cell (see cells.*.timings)",
             "cells_s": sum(t.get("cell_s", 0.0) for t in cell_t),

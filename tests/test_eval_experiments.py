@@ -421,6 +421,11 @@ def test_report_assembles_stored_results_and_names_what_is_missing(tmp_path, mon
     t1 = json.loads((results / "table1" / "results.json").read_text())
     unseen = t1["by_kind"]["unseen garment"]
     assert f"model signed mean {unseen['model']['signed_mean']:+.1f}" in text
+    # The robust row leads: the median, and paired differences against each unsharp mask.
+    pair = t1["paired_vs_unsharp"]["unseen garment"]["model"]
+    assert sorted(pair) == sorted(m for m in unseen if m.startswith("unsharp"))
+    assert f"model signed median {unseen['model']['signed_median']:+.1f}; paired" in text
+    assert text.index("model signed median") < text.index("model signed mean")
     assert "| silk_charmeuse | walk (unseen) |" in text  # Table 1's own layout, embedded
     assert "### Wrong material at inference" in text and "| denim_light |" in text
     timing_run = json.loads((results / "timing" / "results.json").read_text())
@@ -451,6 +456,29 @@ def test_report_assembles_stored_results_and_names_what_is_missing(tmp_path, mon
     assert f"best baseline {best} {held[best]:+.1f}" in text
     assert text.count("- patchgan: `python -m experiments.patchgan`") == 1  # read once
     assert report.main(["--results", str(results), "--out", str(out), "--strict"]) == 1
+
+
+def test_report_table2_section_says_when_its_cells_lag_table1s_simulations(tmp_path):
+    def cell(folder, name, sims):
+        (tmp_path / folder / "cells").mkdir(parents=True, exist_ok=True)
+        meta = {"fingerprint": {} if sims is None else {"simulations": sims}}
+        np.savez(tmp_path / folder / "cells" / f"{name}.npz", meta=np.str_(json.dumps(meta)))
+
+    now, old = {"fine": "a", "coarse": "b"}, {"fine": "c", "coarse": "b"}
+    cell("table1", "x", now)
+    cell("table1", "y", now)
+    cell("table2", "x", now)
+    rep = report.Report(tmp_path)
+    report.table2_section(rep, {"cells": {}})
+    assert not any("Not known" in line for line in rep.lines)
+    cell("table2", "y", old)
+    cell("table2", "z", None)
+    cell("table1", "z", now)
+    rep = report.Report(tmp_path)
+    report.table2_section(rep, {"cells": {}})
+    assert ("**Not known to be on Table 1's simulations:** 2 of 3 cells: 1 were scored on "
+            "other simulation files than Table 1's cell of the same name, 1 record no digests "
+            "(scored before they were kept); rerun `python -m experiments.table2`.") in rep.lines
 
 
 def test_report_reference_section_reads_both_runs_and_says_what_is_missing():

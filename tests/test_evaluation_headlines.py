@@ -119,6 +119,15 @@ def test_table1_headline_names_the_best_baseline_by_each_form_and_the_wrong_mate
     t1["all"] = {headlines.MODEL: s(4.0, 9.0), headlines.WRONG: s(3.0, 9.0)}
     assert "meaningless" in headlines.table1_headline(t1)[2]
     assert headlines.table1_headline(None) == []
+    # With paired differences stored, the robust row leads.
+    kind[headlines.MODEL]["signed_median"] = 12.34
+    d = {"n": 10, "median_diff": 0.4, "median_diff_ci": (-0.04, 0.7), "mean_diff": -2.1}
+    t1["paired_vs_unsharp"] = {"unseen garment": {headlines.MODEL: {"unsharp": d}}}
+    rows = headlines.table1_headline(t1)
+    assert rows[0] == ("- **Table 1, unseen garments** (10 patches): model signed median +12.3; "
+                       "paired median difference (95 % bootstrap) against unsharp +0.4 "
+                       "[-0.0, +0.7] (mean -2.1).")
+    assert rows[1].startswith("- Table 1, unseen garments (10 patches): model signed mean")
 
 
 def test_table2_headline_gives_the_models_unseen_garment_row_or_nothing():

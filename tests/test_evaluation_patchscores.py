@@ -123,3 +123,16 @@ def test_a_cell_of_a_sequence_simulated_again_is_scored_again(tmp_path):
     patchscores.save_cell(path, res, new, {"identity": "identity"})
     assert not patchscores.load_cell(path, new)["legacy"]
     assert patchscores.load_cell(path, again) is None
+
+
+def test_paired_against_pairs_patches_valid_for_both():
+    a = {"improvement_signed": np.array([5.0, 7.0, 1.0, 100.0]),
+         "valid": np.array([True, True, True, False])}
+    b = {"improvement_signed": np.array([4.0, 3.0, 2.0, 0.0]),
+         "valid": np.array([True, True, True, True])}
+    out = patchscores.paired_against({"m": a, "u": b}, ["m", "missing"], ["u", "absent"])
+    assert list(out) == ["m"] and list(out["m"]) == ["u"]
+    d = out["m"]["u"]
+    assert d["n"] == 3 and d["median_diff"] == 1.0 and np.isclose(d["mean_diff"], 4.0 / 3)
+    lo, hi = d["median_diff_ci"]
+    assert -1.0 <= lo <= 1.0 <= hi <= 4.0

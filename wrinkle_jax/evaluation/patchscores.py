@@ -146,6 +146,25 @@ def cell_scores(cell_result: dict) -> dict[str, dict]:
             for k, v in cell_result["loss"].items()}
 
 
+def paired_against(pooled: dict[str, dict], methods, references, seed: int = 0) -> dict:
+    """Each method's signed per-patch score against each reference on the same patches
+    (`evaluation.paired_difference`: median of the differences with a 95 % bootstrap interval,
+    means beside), over the patches valid for both. pooled: `pooled_scores` output; names
+    missing from it are skipped. Returns {method: {reference: paired difference}}."""
+    out = {}
+    for m in methods:
+        if m not in pooled:
+            continue
+        out[m] = {}
+        for r in references:
+            if r in pooled and r != m:
+                a, b = pooled[m], pooled[r]
+                out[m][r] = evaluation.paired_difference(
+                    a["improvement_signed"], b["improvement_signed"], a["valid"] & b["valid"],
+                    seed=seed)
+    return out
+
+
 def pooled_scores(results: list[dict]) -> dict[str, dict]:
     """Scores of several cells pooled patch by patch (each cell's eps kept)."""
     per = [cell_scores(r) for r in results]

@@ -22,6 +22,7 @@ import json
 import sys
 from pathlib import Path
 
+from wrinkle_jax.evaluation import cells as cell_lib
 from wrinkle_jax.evaluation import markdown, suite
 from wrinkle_jax.evaluation.headlines import (
     FIDELITY_METHODS,
@@ -220,6 +221,16 @@ def table2_section(rep: Report, t2, folder: str = "table2", title: str = (
         return
     if intro:
         rep.add(intro, "")
+    check = cell_lib.same_simulations(rep.results / "table1" / "cells", rep.results / folder
+                                      / "cells")
+    stale = len(check["different"]) + len(check["unrecorded"])
+    if stale:
+        # Table 1 and 2 read the same simulations; after a regeneration one can lag.
+        rep.add(f"**Not known to be on Table 1's simulations:** {stale} of "
+                f"{stale + len(check['same'])} cells: {len(check['different'])} were scored "
+                f"on other simulation files than Table 1's cell of the same name, "
+                f"{len(check['unrecorded'])} record no digests (scored before they were "
+                f"kept); rerun `{COMMANDS[folder]}`.", "")
     table = rep.results / folder / "table.md"
     if table.exists():
         rep.add(markdown.demote(table.read_text().split("\n", 1)[1].strip(), 1), "")

@@ -295,3 +295,13 @@ def test_subdivide_to_edge_length(sheet):
     assert mesh.subdivide_to_edge_length(sheet, mean * 2).levels == 0
     with pytest.raises(ValueError):
         mesh.subdivide_to_edge_length(sheet, 0.0)
+
+
+def test_shared_sides_pair_the_sides_of_each_interior_edge():
+    faces = np.array([[0, 1, 2], [2, 1, 3], [1, 0, 4], [1, 0, 5]])
+    sides = mesh.face_sides(faces)
+    assert sides[3].tolist() == [2, 1] and sides[5].tolist() == [3, 2]  # side 3 i + k: k -> k+1
+    a, b = mesh.shared_sides(faces)
+    # Edge (0, 1) is non-manifold (faces 0, 2, 3): consecutive pairs; edge (1, 2): faces 0, 1.
+    assert [sorted((int(i), int(j))) for i, j in zip(a, b, strict=True)] == [[0, 6], [6, 9], [1, 3]]
+    assert all(sorted(sides[i]) == sorted(sides[j]) for i, j in zip(a, b, strict=True))

@@ -236,21 +236,34 @@ def mean_edge_length_np(vertices, edges) -> float:
 # --------------------------------------------------------------------------------------------
 
 
+def face_sides(faces) -> np.ndarray:
+    """(3F, 2) int64 vertex pairs of the faces' sides: side 3 i + k of face i runs from corner k
+    to corner k + 1."""
+    f = np.asarray(faces, np.int64)
+    return np.stack([f, np.roll(f, -1, axis=1)], -1).reshape(-1, 2)
+
+
 def unique_edges(faces) -> np.ndarray:
     """Unique undirected edges (E, 2) int32, each sorted (i < j), lexicographically ordered."""
-    f = np.asarray(faces, np.int64)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    e.sort(axis=1)
-    return np.unique(e, axis=0).astype(np.int32)
+    return np.unique(np.sort(face_sides(faces), axis=1), axis=0).astype(np.int32)
 
 
 def edge_face_counts(faces) -> tuple[np.ndarray, np.ndarray]:
     """Unique edges (E, 2) and how many faces share each (1 = boundary, 2 = interior)."""
-    f = np.asarray(faces, np.int64)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    e.sort(axis=1)
-    edges, counts = np.unique(e, axis=0, return_counts=True)
+    edges, counts = np.unique(np.sort(face_sides(faces), axis=1), axis=0, return_counts=True)
     return edges.astype(np.int32), counts
+
+
+def shared_sides(faces) -> tuple[np.ndarray, np.ndarray]:
+    """Face sides (`face_sides` numbering) that lie on one edge. Returns (a, b): (E,) int64
+    side indices, the consecutive pairs of sides of each edge in lexicographic order of the
+    edge's sorted vertices (one pair per interior edge; a non-manifold edge gives each
+    consecutive pair)."""
+    key = np.sort(face_sides(faces), axis=1)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    k = key[order]
+    first = np.nonzero(np.all(k[1:] == k[:-1], axis=1))[0]
+    return order[first], order[first + 1]
 
 
 def boundary_vertices(faces, num_vertices: int) -> np.ndarray:

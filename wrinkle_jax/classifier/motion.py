@@ -43,6 +43,7 @@ import dataclasses
 
 import numpy as np
 
+from wrinkle_jax import mesh
 from wrinkle_jax.classifier import drape
 
 FAMILIES = ("kinematic", "spectral", "lag", "stretch", "curvature", "sag", "rigidity",
@@ -87,7 +88,7 @@ def make_topology(faces, uvs=None, uv_faces=None) -> Topology:
       Topology. Sides whose UV length is below 0.1 mm get rest length NaN (ignored).
     """
     f = np.asarray(faces, np.int64)
-    sides = np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1).reshape(-1, 2)
+    sides = mesh.face_sides(f)
     rest = None
     if uvs is not None:
         uf = f if uv_faces is None else np.asarray(uv_faces, np.int64)
@@ -95,14 +96,9 @@ def make_topology(faces, uvs=None, uv_faces=None) -> Topology:
         us = np.stack([uf[:, [0, 1]], uf[:, [1, 2]], uf[:, [2, 0]]], axis=1).reshape(-1, 2)
         rest = np.linalg.norm(uv[us[:, 0]] - uv[us[:, 1]], axis=-1)
         rest = np.where(rest > 1e-4, rest, np.nan)
-    key = np.sort(sides, axis=1)
-    face_of = np.repeat(np.arange(len(f)), 3)
-    order = np.lexsort((key[:, 1], key[:, 0]))
-    k = key[order]
-    same = np.all(k[1:] == k[:-1], axis=1)
-    first = np.nonzero(same)[0]
-    edge_faces = np.stack([face_of[order[first]], face_of[order[first + 1]]], axis=1)
-    return Topology(edge_faces=edge_faces, edge_verts=k[first], corner_edges=sides,
+    a, b = mesh.shared_sides(f)
+    return Topology(edge_faces=np.stack([a // 3, b // 3], axis=1),
+                    edge_verts=np.sort(sides[a], axis=1), corner_edges=sides,
                     rest_lengths=rest, faces=f)
 
 

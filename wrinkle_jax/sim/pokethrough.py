@@ -52,16 +52,8 @@ def poke_topology(faces, num_vertices: int) -> PokeTopology:
     f = np.asarray(faces, np.int64)
     ring, valid = mesh.one_ring_padded(f, num_vertices)
     num_f = len(f)
-    # Face edge k of face i runs from corner k to corner k + 1; faces sharing an undirected
-    # edge are neighbours across it.
-    e = np.stack([f, np.roll(f, -1, axis=1)], -1).reshape(-1, 2)
-    e.sort(axis=1)
-    key = e[:, 0] * num_vertices + e[:, 1]
-    order = np.argsort(key, kind="stable")
-    ks = key[order]
     nbr = np.repeat(np.arange(num_f), 3)            # default: the face itself
-    same = ks[1:] == ks[:-1]                         # consecutive slots of one edge
-    a, b = order[:-1][same], order[1:][same]
+    a, b = mesh.shared_sides(f)                      # sides 3 i + k of face i
     nbr[a], nbr[b] = b // 3, a // 3
     return PokeTopology(jnp.asarray(ring, jnp.int32), jnp.asarray(valid),
                         jnp.asarray(nbr.reshape(num_f, 3), jnp.int32))

@@ -22,8 +22,7 @@ import json
 import sys
 from pathlib import Path
 
-from wrinkle_jax.evaluation import cells as cell_lib
-from wrinkle_jax.evaluation import markdown, suite
+from wrinkle_jax.evaluation import markdown, patchscores, suite
 from wrinkle_jax.evaluation.headlines import (
     FIDELITY_METHODS,
     LADDER,
@@ -221,8 +220,8 @@ def table2_section(rep: Report, t2, folder: str = "table2", title: str = (
         return
     if intro:
         rep.add(intro, "")
-    check = cell_lib.same_simulations(rep.results / "table1" / "cells", rep.results / folder
-                                      / "cells")
+    check = patchscores.same_simulations(rep.results / "table1" / "cells",
+                                         rep.results / folder / "cells")
     stale = len(check["different"]) + len(check["unrecorded"])
     if stale:
         # Table 1 and 2 read the same simulations; after a regeneration one can lag.

@@ -3,9 +3,6 @@
 
 from __future__ import annotations
 
-import json
-
-import numpy as np
 import pytest
 
 from wrinkle_jax.evaluation import cells as cell_lib
@@ -137,24 +134,3 @@ def test_find_or_simulate_reuses_only_files_of_the_data_sets_solver_settings(tmp
     assert len(calls) == 1
     assert (calls[0]["substeps"], calls[0]["self_collision"]) == solver
 
-
-def _cell(path, sims):
-    fingerprint = {"sampling": {}} if sims is None else {"sampling": {}, "simulations": sims}
-    np.savez(path, meta=np.str_(json.dumps({"fingerprint": fingerprint})))
-
-
-def test_same_simulations_sorts_cells_by_their_recorded_digests(tmp_path):
-    a, b = tmp_path / "t1", tmp_path / "t2"
-    a.mkdir()
-    b.mkdir()
-    one, two = {"fine": "sha256:1", "coarse": "sha256:2"}, {"fine": "sha256:1", "coarse": "x"}
-    for name, ref, got in (("same", one, one), ("diff", one, two), ("old", one, None),
-                           ("refold", None, one)):
-        _cell(a / f"{name}.npz", ref)
-        _cell(b / f"{name}.npz", got)
-    _cell(b / "extra.npz", one)
-    (b / "broken.npz").write_bytes(b"not a zip")
-    assert cell_lib.same_simulations(a, b) == {
-        "same": ["same"], "different": ["diff"], "unrecorded": ["old", "refold"],
-        "unmatched": ["broken", "extra"]}
-    assert cell_lib.cell_simulations(b)["broken"] is None

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from evaluation_fixtures import (  # tests/ is on sys.path
@@ -136,3 +138,25 @@ def test_paired_against_pairs_patches_valid_for_both():
     assert d["n"] == 3 and d["median_diff"] == 1.0 and np.isclose(d["mean_diff"], 4.0 / 3)
     lo, hi = d["median_diff_ci"]
     assert -1.0 <= lo <= 1.0 <= hi <= 4.0
+
+
+def _cell(path, sims):
+    fingerprint = {"sampling": {}} if sims is None else {"sampling": {}, "simulations": sims}
+    np.savez(path, meta=np.str_(json.dumps({"fingerprint": fingerprint})))
+
+
+def test_same_simulations_sorts_cells_by_their_recorded_digests(tmp_path):
+    a, b = tmp_path / "t1", tmp_path / "t2"
+    a.mkdir()
+    b.mkdir()
+    one, two = {"fine": "sha256:1", "coarse": "sha256:2"}, {"fine": "sha256:1", "coarse": "x"}
+    for name, ref, got in (("same", one, one), ("diff", one, two), ("old", one, None),
+                           ("refold", None, one)):
+        _cell(a / f"{name}.npz", ref)
+        _cell(b / f"{name}.npz", got)
+    _cell(b / "extra.npz", one)
+    (b / "broken.npz").write_bytes(b"not a zip")
+    assert patchscores.same_simulations(a, b) == {
+        "same": ["same"], "different": ["diff"], "unrecorded": ["old", "refold"],
+        "unmatched": ["broken", "extra"]}
+    assert patchscores.cell_simulations(b)["broken"] is None

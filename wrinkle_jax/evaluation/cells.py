@@ -287,33 +287,3 @@ def add_sequence_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--sim-out", default=str(TABLE1_SEQUENCES),
                     help="folder for the simulations made here (shared by the suite)")
 
-
-def cell_simulations(cell_dir: Path) -> dict[str, dict | None]:
-    """The simulation digests each stored cell file (`<cell_dir>/*.npz`, Table 1/2 form) was
-    scored on: {file stem: {"fine": digest, "coarse": digest}, or None where the file records
-    none (written before the digests were kept) or cannot be read}."""
-    out = {}
-    for path in sorted(Path(cell_dir).glob("*.npz")):
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                meta = json.loads(str(z["meta"]))
-            out[path.stem] = meta.get("fingerprint", {}).get("simulations")
-        except (*NPZ_READ_ERRORS, KeyError, ValueError):
-            out[path.stem] = None
-    return out
-
-
-def same_simulations(reference_dir: Path, cell_dir: Path) -> dict[str, list[str]]:
-    """Which cells of `cell_dir` were scored on the same simulations as the cell of the same
-    name in `reference_dir`: {"same", "different", "unrecorded" (either side records no
-    digests), "unmatched" (no such cell in the reference)}, each a sorted list of stems."""
-    ref, got = cell_simulations(reference_dir), cell_simulations(cell_dir)
-    out = {"same": [], "different": [], "unrecorded": [], "unmatched": []}
-    for stem, sims in got.items():
-        if stem not in ref:
-            out["unmatched"].append(stem)
-        elif sims is None or ref[stem] is None:
-            out["unrecorded"].append(stem)
-        else:
-            out["same" if sims == ref[stem] else "different"].append(stem)
-    return out

@@ -289,6 +289,36 @@ def read_cell_file(path: Path) -> dict[str, np.ndarray] | None:
         return None
 
 
+def cell_simulations(cell_dir: Path) -> dict[str, dict | None]:
+    """The simulation digests each stored cell file (`<cell_dir>/*.npz`, Table 1/2 form) was
+    scored on: {file stem: {"fine": digest, "coarse": digest}, or None where the file records
+    none (written before the digests were kept) or cannot be read}."""
+    out = {}
+    for path in sorted(Path(cell_dir).glob("*.npz")):
+        z = read_cell_file(path)
+        try:
+            out[path.stem] = json.loads(str(z["meta"]))["fingerprint"].get("simulations")
+        except (TypeError, KeyError, ValueError):  # unreadable, or no meta / fingerprint
+            out[path.stem] = None
+    return out
+
+
+def same_simulations(reference_dir: Path, cell_dir: Path) -> dict[str, list[str]]:
+    """Which cells of `cell_dir` were scored on the same simulations as the cell of the same
+    name in `reference_dir`: {"same", "different", "unrecorded" (either side records no
+    digests), "unmatched" (no such cell in the reference)}, each a sorted list of stems."""
+    ref, got = cell_simulations(reference_dir), cell_simulations(cell_dir)
+    out = {"same": [], "different": [], "unrecorded": [], "unmatched": []}
+    for stem, sims in got.items():
+        if stem not in ref:
+            out["unmatched"].append(stem)
+        elif sims is None or ref[stem] is None:
+            out["unrecorded"].append(stem)
+        else:
+            out["same" if sims == ref[stem] else "different"].append(stem)
+    return out
+
+
 def merge_cell(cached: dict, new: dict, order: list[str]) -> dict:
     """A stored cell plus newly scored methods on the same patches (`new` from
     `evaluate_cell` with only those methods); methods in `order`, then any others stored.

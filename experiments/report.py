@@ -52,6 +52,7 @@ COMMANDS = {
     "reference_train": ("python benchmarks/bench_reference.py --authors-repo PATH --skip-unet "
                         "--skip-lift --train-impls im2col_bf16 winograd_bf16 --rounds 3 "
                         "> experiments/results/timing/reference_train.json"),
+    "ceiling": "python benchmarks/bench_ceiling.py > experiments/results/timing/ceiling.json",
     "lift": "python benchmarks/bench_lift.py --quick > experiments/results/lift/bench.json",
     "substeps": ("python benchmarks/bench_sim.py --quick --part substeps "
                  "> experiments/results/sim/substeps.json"),
@@ -412,6 +413,42 @@ def reference_section(rep: Report, unet_run, train_run) -> None:
             + "; ".join(f"{x['before']}/{x['after']}" for x in loads) + ".", "")
 
 
+def ceiling_section(rep: Report, run) -> None:
+    """How far each convolution form can go: every dot of the compiled program replayed alone
+    (`benchmarks/bench_ceiling.py`), and the ceilings on the speed-up against the authors' code
+    that follow from the stored side-by-side ratios."""
+    rep.add("### GEMM ceilings of these forms", "")
+    if not run:
+        rep.not_run("the GEMM ceilings", "ceiling")
+        return
+    parts = [(p, run[p]) for p in ("infer", "train") if p in run]
+    peak = parts[0][1]["peak_gflops_per_s"] if parts else {}
+    rep.add("Each program's matrix products (read from its optimized HLO) replayed alone at "
+            "their exact shapes, dtypes and layouts, as often as it runs them, alternating with "
+            f"the program (width {run['width']}; bfloat16 GEMM peak through XLA "
+            f"{peak.get('peak_bf16', '-')} GFLOP/s, float32 {peak.get('peak_f32', '-')}). "
+            "Ceiling = stored speed-up x program time / dots time (or / the dots' FLOPs at the "
+            "peak rate): what the same decomposition reaches if nothing but its products cost "
+            "time.", "")
+    rep.add("| part | form | program ms | dots ms (share) | dots GFLOP/s | x their speed now "
+            "| ceiling: dots / at peak | target |", "|---|---|---|---|---|---|---|---|")
+    for part, res in parts:
+        name = {"infer": f"inference (batch {res['batch']})",
+                "train": f"training step (batch {res['batch']})"}[part]
+        for form, r in res["forms"].items():
+            now = r.get("stored_speedup_vs_authors")
+            if now:
+                vs = (f"{now:.2f}x | {r['ceiling_speedup_vs_authors_dots']:.2f}x / "
+                      f"{r['ceiling_speedup_vs_authors_peak']:.2f}x | {r['target']:.0f}x")
+            else:
+                vs = "- | - | -"
+            rep.add(f"| {name} | {form} | {r['program_ms']:,.1f} | {r['dots_ms']:,.1f} "
+                    f"({r['dots_share']:.0%}) | {r['dots_gflops_per_s']:.0f} | {vs} |")
+    loads = [res["timing"]["load_avg_1m"] for _, res in parts]
+    rep.add("", "1-minute load before/after: "
+            + "; ".join(f"{x['before']}/{x['after']}" for x in loads) + ".", "")
+
+
 # --------------------------------------------------------------------------------------------
 # Speed against error
 # --------------------------------------------------------------------------------------------
@@ -563,6 +600,7 @@ def build(results: Path) -> Report:
     timing_section(rep, timing)
     reference_section(rep, rep.load("reference_unet", "timing/reference_unet.json"),
                       rep.load("reference_train", "timing/reference_train.json"))
+    ceiling_section(rep, rep.load("ceiling", "timing/ceiling.json"))
     pareto_section(rep, stride)
     machines_section(rep)
     return rep

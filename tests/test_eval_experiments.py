@@ -498,6 +498,26 @@ def test_report_reference_section_reads_both_runs_and_says_what_is_missing():
     assert "**Not run yet**" in "\n".join(rep.lines)
 
 
+def test_report_ceiling_section_gives_each_form_its_ceilings():
+    run = json.loads((suite.RESULTS / "timing" / "ceiling.json").read_text())
+    rep = report.Report(suite.RESULTS)
+    report.ceiling_section(rep, run)
+    text = "\n".join(rep.lines)
+    for part, target in (("infer", 3), ("train", 4)):
+        for form, r in run[part]["forms"].items():
+            assert (f"| {form} | {r['program_ms']:,.1f} | {r['dots_ms']:,.1f} "
+                    f"({r['dots_share']:.0%}) | {r['dots_gflops_per_s']:.0f} "
+                    f"| {r['stored_speedup_vs_authors']:.2f}x "
+                    f"| {r['ceiling_speedup_vs_authors_dots']:.2f}x / "
+                    f"{r['ceiling_speedup_vs_authors_peak']:.2f}x | {target}x |") in text
+            # the ceiling is the stored ratio times the program's time over its dots'
+            assert r["ceiling_speedup_vs_authors_dots"] == pytest.approx(
+                r["stored_speedup_vs_authors"] * r["ceiling_gain_dots"], abs=0.006)
+    rep = report.Report(suite.RESULTS)
+    report.ceiling_section(rep, None)
+    assert "**Not run yet**" in "\n".join(rep.lines)
+
+
 def test_make_sequences_only_selects_the_named_scenes_in_plan_order():
     from experiments import make_sequences
 

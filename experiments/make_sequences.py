@@ -76,22 +76,13 @@ EST_MS = {"sheet_balls_wind": (125, 8), "skirt_dance": (210, 15), "pleated_skirt
 
 def plan(train_frames: int, test_frames: int, val_frames: int = 150) -> list[dict]:
     """The jobs: one per (scene, resolution, material), grouped by scene and resolution."""
-    jobs = []
-    for name in scenes.TRAINING_SCENES:
-        for mat in MATERIALS:
-            jobs.append({"scene": name, "resolution": "fine", "material": mat,
-                         "seed": scenes.dataset_seed(name), "frames": train_frames})
-    for name in scenes.VAL_SCENES:
-        for res in ("fine", "coarse"):
-            for mat in MATERIALS:
-                jobs.append({"scene": name, "resolution": res, "material": mat,
-                             "seed": scenes.dataset_seed(name), "frames": val_frames})
-    for name in scenes.TEST_SCENES:
-        for res in ("fine", "coarse"):
-            for mat in MATERIALS:
-                jobs.append({"scene": name, "resolution": res, "material": mat,
-                             "seed": scenes.dataset_seed(name), "frames": test_frames})
-    return jobs
+    groups = ((scenes.TRAINING_SCENES, ("fine",), train_frames),
+              (scenes.VAL_SCENES, ("fine", "coarse"), val_frames),
+              (scenes.TEST_SCENES, ("fine", "coarse"), test_frames))
+    return [{"scene": name, "resolution": res, "material": mat,
+             "seed": scenes.dataset_seed(name), "frames": frames}
+            for names, resolutions, frames in groups
+            for name in names for res in resolutions for mat in MATERIALS]
 
 
 def self_collision_for(resolution: str, setting: str, substeps: int | None = None,

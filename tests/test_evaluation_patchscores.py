@@ -55,6 +55,22 @@ def test_legacy_cell_sources_trust_an_unchanged_model_file_only(tmp_path):
     assert suite.portable_path(tmp_path / "y") == str((tmp_path / "y").resolve())
 
 
+def test_file_digest_is_hashed_once_per_file_version(tmp_path, monkeypatch):
+    import os
+
+    calls = []
+    real = suite.sha256_file
+    monkeypatch.setattr(suite, "sha256_file", lambda p: calls.append(p) or real(p))
+    f = tmp_path / "seq.npz"
+    f.write_bytes(b"aaaa")
+    os.utime(f, ns=(10**18, 10**18))
+    first = suite.file_digest(f)
+    assert suite.file_digest(str(f)) == first and len(calls) == 1
+    f.write_bytes(b"bbbb")  # same size: only the mtime tells the new version
+    os.utime(f, ns=(10**18 + 1, 10**18 + 1))
+    assert suite.file_digest(f) != first and len(calls) == 2
+
+
 def test_merge_cell_adds_methods_on_the_same_patches_only():
     base = {"frame": np.array([0, 0]), "origin": np.array([[0, 0], [4, 4]]),
             "loss_input": np.array([1.0, 2.0]), "loss": {"a": np.array([0.5, 0.5])},

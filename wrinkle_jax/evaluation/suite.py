@@ -9,6 +9,7 @@ inputs (`SEQUENCES`) and outputs (`RESULTS`).
 from __future__ import annotations
 
 import argparse
+import functools
 import io
 import json
 import math
@@ -50,7 +51,16 @@ def machine_info() -> dict:
 
 def file_digest(path: str | os.PathLike) -> str:
     """'sha256:<first 16 hex digits>' of a file's bytes: identifies a model or a simulation
-    across clones (its mtime does not)."""
+    across clones (its mtime does not). Remembered per (path, mtime, size) within a process:
+    the tables ask for each sequence's digest when they look for a stored cell and again
+    when they store it."""
+    st = os.stat(path)
+    return _digest(str(Path(path).resolve()), st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=512)
+def _digest(path: str, mtime_ns: int, size: int) -> str:
+    del mtime_ns, size  # the cache key: a rewritten file is hashed again
     return "sha256:" + sha256_file(path)[:16]
 
 

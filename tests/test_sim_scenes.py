@@ -185,7 +185,10 @@ def test_self_collision_config_keeps_the_rebuild_interval_in_time():
 
 
 def test_resimulate_continues_a_stored_run_with_its_or_other_settings(tmp_path, monkeypatch):
-    cfg = scenes.self_collision_config("coarse")
+    # Thick enough to act on this tiny sheet: with the data set's 9 mm layer its frames are the
+    # same with self-collision off, and the test could not tell whether it ran.
+    cfg = dataclasses.replace(scenes.self_collision_config("coarse"), thickness=0.025,
+                              rest_exclusion=0.05)
     seq = scenes.simulate(TINY, "silk_chiffon", 0.06, frames=6, seed=3, self_collision=cfg)
     path = tmp_path / "s.npz"
     scenes.save_simulation(path, seq)
@@ -205,6 +208,7 @@ def test_resimulate_continues_a_stored_run_with_its_or_other_settings(tmp_path, 
     np.testing.assert_array_equal(xs, scenes.resimulate(back, 2, 5, self_collision=cfg,
                                                         substeps=TINY.substeps, scene=TINY))
     assert not np.array_equal(xs, scenes.resimulate(back, 2, 5, scene=TINY, substeps=4))
+    assert not np.array_equal(xs, scenes.resimulate(back, 2, 5, scene=TINY, self_collision=None))
     # The final state comes with the same frames on request (its dropped-candidate counts).
     again, final = scenes.resimulate(back, 2, 5, scene=TINY, return_state=True)
     np.testing.assert_array_equal(again, xs)

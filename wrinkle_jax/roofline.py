@@ -12,7 +12,8 @@ other cost (im2col copies, Winograd transforms, normalizations, activations) cou
 code that XLA dropped (e.g. the unused forward dots a custom VJP's backward traces) is not
 counted, and dots that XLA merged or split are counted as XLA runs them. Each dot instruction
 counts once per program run: none of the programs measured here has loops around its dots
-(`Dot.in_loop` says when one does; its count is then a lower bound).
+(`Dot.in_loop` says when one does; its count is then a lower bound, as it is for a
+computation that several call sites share; XLA clones fusions per call site).
 
 Example:
   >>> import jax, jax.numpy as jnp

@@ -2,7 +2,7 @@
 how much faster each program could get if everything but its matrix products cost nothing.
 Prints one JSON object.
 
-    python benchmarks/bench_ceiling.py [--rounds 3] [--parts infer,train] [--batch 8]
+    python benchmarks/bench_ceiling.py [--rounds 3] [--parts infer,train,shipped] [--batch 8]
         [--train-batch 32] [--forms im2col_bf16,winograd_bf16]
 
 What is measured, in one run (`wrinkle_jax.timing.alternate`: each round calls every variant
@@ -12,7 +12,9 @@ once, so load drifts hit all alike):
     of the authors' layout (width 64, ImageNet-normalized input and output, no residual) on a
     batch of 128 x 128 patches in each convolution form; the training step of their recipe
     (batch 32, VGG19 style loss on relu1_2 .. relu5_1, content on relu2_1, average pools,
-    AdamW) in each form. Weights are seeded random: speed does not depend on them.
+    AdamW) in each form. Weights are seeded random: speed does not depend on them. And
+    ("shipped") the shipped model as the pipeline runs it: `PipelineConfig.batch_size`
+    patches, the blurs' mask weights precomputed (no side-by-side run: its own ceiling only).
   * `dots`: every dot instruction of that program's optimized HLO
     (`wrinkle_jax.roofline.program_dots`), each run alone, jitted, at its exact operand shapes,
     dtypes, memory layouts and contraction, as often as the program runs it, back to back.
@@ -47,7 +49,8 @@ TIMING = ROOT / "experiments" / "results" / "timing"
 
 def _parse(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--parts", default="infer,train", help="comma list of infer, train")
+    p.add_argument("--parts", default="infer,train,shipped",
+                   help="comma list of infer, train, shipped")
     p.add_argument("--forms", default=",".join(FORMS), help="convolution forms")
     p.add_argument("--width", type=int, default=64)
     p.add_argument("--batch", type=int, default=8, help="inference batch (patches)")
@@ -69,6 +72,7 @@ import numpy as np  # noqa: E402
 
 from wrinkle_jax import primitives, roofline, timing, train  # noqa: E402
 from wrinkle_jax.nn import unet, vgg  # noqa: E402
+from wrinkle_jax.pipeline_setup import PipelineConfig  # noqa: E402
 from wrinkle_jax.reference import CONTENT_LAYER, STYLE_LAYERS  # noqa: E402
 
 PATCH = 128
@@ -124,6 +128,26 @@ def infer_programs(args, forms) -> dict:
         params = unet.init_params(model, jax.random.key(0), PATCH)
         compiled = jax.jit(model.apply).lower({"params": params}, x, mats).compile()
         out[form] = (lambda c=compiled, p=params: c({"params": p}, x, mats),
+                     roofline.program_dots(compiled))
+    return out
+
+
+def shipped_programs(args, forms) -> dict:
+    """form -> (the shipped model on one pipeline batch, its dots): `make_apply` as the
+    pipeline calls it, blur weights of an all-ones mask given (the pipeline's precomputed
+    form), `PipelineConfig.batch_size` patches."""
+    from wrinkle_jax.enhancer import load_enhancer, make_apply
+
+    n, rng = PipelineConfig.batch_size, np.random.default_rng(0)
+    x = jnp.asarray(primitives.wavy_normal_maps(rng, n, PATCH))
+    mats = jnp.zeros((n,), jnp.int32)
+    out = {}
+    for form in forms:
+        enh = load_enhancer(conv_impl=form)
+        apply = make_apply(enh)
+        bw = enh.config.unet.blur_weights(jnp.ones((n, PATCH, PATCH, 1), jnp.float32))
+        compiled = apply.lower(enh.params, x, mats, None, bw).compile()
+        out[form] = (lambda c=compiled, p=enh.params, bw=bw: c(p, x, mats, None, bw),
                      roofline.program_dots(compiled))
     return out
 
@@ -199,13 +223,18 @@ def summarize(t: timing.Timing, programs: dict, stored: dict, target: float) -> 
     return {"peak_gflops_per_s": peak, "forms": forms, "timing": t.to_json()}
 
 
+PARTS = {"infer": infer_programs, "train": train_programs, "shipped": shipped_programs}
+
+
 def bench(part: str, args, forms) -> dict:
-    programs = (infer_programs if part == "infer" else train_programs)(args, forms)
+    programs = PARTS[part](args, forms)
     runs = peak_runs()
     for form, (call, dots) in programs.items():
         runs[f"{form}_program"] = call
         runs[f"{form}_dots"] = replay(dots)
     t = timing.alternate(runs, args.rounds)
+    if part == "shipped":  # no side-by-side run: only the program's own ceiling
+        return {"batch": PipelineConfig.batch_size, **summarize(t, programs, {}, 0.0)}
     stored = stored_speedups(args.reference_unet if part == "infer" else args.reference_train,
                              "unet" if part == "infer" else "train")
     return {"batch": args.batch if part == "infer" else args.train_batch,
@@ -219,8 +248,8 @@ def main(args) -> dict:
            "platform": platform.platform(), "malloc_retained": MALLOC_RETAINED,
            "rounds": args.rounds}
     for part in args.parts.split(","):
-        if part not in ("infer", "train"):
-            sys.exit(f"unknown part {part!r}")
+        if part not in PARTS:
+            sys.exit(f"unknown part {part!r}; choose from {sorted(PARTS)}")
         out[part] = bench(part, args, forms)
     return out
 

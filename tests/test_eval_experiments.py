@@ -513,6 +513,10 @@ def test_report_ceiling_section_gives_each_form_its_ceilings():
             # the ceiling is the stored ratio times the program's time over its dots'
             assert r["ceiling_speedup_vs_authors_dots"] == pytest.approx(
                 r["stored_speedup_vs_authors"] * r["ceiling_gain_dots"], abs=0.006)
+    for form, r in run["shipped"]["forms"].items():  # no side-by-side run: no ceiling vs theirs
+        assert (f"| shipped model (pipeline batch {run['shipped']['batch']}) | {form} "
+                f"| {r['program_ms']:,.1f} | {r['dots_ms']:,.1f} ({r['dots_share']:.0%}) "
+                f"| {r['dots_gflops_per_s']:.0f} | - | - | - |") in text
     rep = report.Report(suite.RESULTS)
     report.ceiling_section(rep, None)
     assert "**Not run yet**" in "\n".join(rep.lines)

@@ -59,22 +59,27 @@ def test_dot_in_a_loop_is_flagged():
     assert dots and all(d.in_loop for d in dots)
 
 
-@pytest.mark.parametrize("transpose_lhs", [False, True])
-def test_replay_runs_the_same_product(transpose_lhs):
-    """The replayed dot on operands in the program's memory layout computes the same product
-    (checked against NumPy on its own operands) with the program's output shape."""
-    a, b = jnp.ones((48, 24)), jnp.ones((48, 16))
-    fn = (lambda x, y: x.T @ y) if transpose_lhs else (lambda x, y: x[:24, :24] @ y[:24])
-    (d,) = _dots(fn, a, b)
+@pytest.mark.parametrize("lhs_layout", [(1, 0), (0, 1)])
+def test_replay_computes_the_logical_product(lhs_layout):
+    """The replayed dot stores each operand as the program does (layout (0, 1): column-major,
+    i.e. a row-major array of the transposed shape) and still computes the logical product:
+    checked against NumPy on the operands read back in logical order."""
+    d = roofline.Dot((6, 4), (4, 5), (6, 5), lhs_layout, (1, 0), "f32", "f32", "f32", (1,), (0,))
     run, (p, q) = roofline.dot_runner(d)
+    order = list(reversed(lhs_layout))  # physical axes, major to minor
+    assert p.shape == tuple(d.lhs_shape[i] for i in order)
+    lhs = np.transpose(np.asarray(p), np.argsort(order))  # back to the logical (6, 4)
     out = np.asarray(run(p, q))
     assert out.shape == d.out_shape
-    ref = np.asarray(jax.lax.dot_general(
-        p, q, ((roofline._physical(d.lhs_shape, d.lhs_layout, d.lhs_contracting)[1],
-                roofline._physical(d.rhs_shape, d.rhs_layout, d.rhs_contracting)[1]),
-               ((), ())), precision="highest"))
-    np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-4)
-    assert roofline.operand_bytes(d) == 4 * (np.prod(d.lhs_shape) + np.prod(d.rhs_shape))
+    np.testing.assert_allclose(out, lhs @ np.asarray(q), rtol=1e-5, atol=1e-5)
+    assert roofline.operand_bytes(d) == 4 * (24 + 20)
+
+
+def test_replay_of_a_program_dot_runs():
+    a, b = jnp.ones((48, 24)), jnp.ones((48, 16))
+    (d,) = _dots(lambda x, y: x.T @ y, a, b)
+    run, ops = roofline.dot_runner(d)
+    assert np.asarray(run(*ops)).shape == d.out_shape == (24, 16)
 
 
 def test_layout_maps_logical_dims():

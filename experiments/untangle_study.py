@@ -37,20 +37,22 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def crossing_pairs(x: np.ndarray, faces: np.ndarray, pairs: np.ndarray):
     """For each intersecting face pair with exactly two edge-triangle crossings (the general
-    case), the crossing edges (K, 2, 2) and the triangles they cross (K, 2, 3), vertex ids."""
-    edges, tris = [], []
-    for i, j in pairs:
-        got = []
-        for s, o in ((i, j), (j, i)):
-            a_, b_, c_ = (x[faces[o]][k][None] for k in range(3))
-            for m in range(3):
-                a, b = faces[s][m], faces[s][(m + 1) % 3]
-                if intersect.segment_hits_triangle(x[a][None], x[b][None], a_, b_, c_)[0]:
-                    got.append(((a, b), tuple(faces[o])))
-        if len(got) == 2:
-            edges += [g[0] for g in got]
-            tris += [g[1] for g in got]
-    return np.array(edges, np.int64).reshape(-1, 2, 2), np.array(tris, np.int64).reshape(-1, 2, 3)
+    case), the crossing edges (K, 2, 2) and the triangles they cross (K, 2, 3), vertex ids;
+    per pair the crossings in order (the first face's edges through the second, then the
+    second's through the first; edges in corner order)."""
+    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    tri = x[faces]
+    hits = np.zeros((len(pairs), 2, 3), bool)  # (pair, which face's edges, edge)
+    for d in range(2):
+        src, dst = tri[pairs[:, d]], tri[pairs[:, 1 - d]]
+        for m in range(3):
+            hits[:, d, m] = intersect.segment_hits_triangle(
+                src[:, m], src[:, (m + 1) % 3], dst[:, 0], dst[:, 1], dst[:, 2])
+    two = hits.sum(axis=(1, 2)) == 2
+    k, d, m = np.nonzero(hits & two[:, None, None])  # row-major: each pair's two together
+    src, dst = pairs[k, d], pairs[k, 1 - d]
+    edges = np.stack([faces[src, m], faces[src, (m + 1) % 3]], axis=1)
+    return edges.reshape(-1, 2, 2), faces[dst].reshape(-1, 2, 3)
 
 
 def contour_length(x, edges, tris):

@@ -487,8 +487,7 @@ class Subdivision:
 def _midpoint_level(faces: np.ndarray, n: int):
     """Edge-midpoint 1-to-4 split of (F,3) over n vertices: new faces, edges, edge id per corner."""
     f = np.asarray(faces, np.int64)
-    he = np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1)  # edge k: c_k -> c_k+1
-    key = np.sort(he, axis=2).reshape(-1, 2)
+    key = np.sort(face_sides(f), axis=1)  # side 3 i + k: corner k -> k + 1
     edges, inv = np.unique(key, axis=0, return_inverse=True)
     mid = n + inv.reshape(-1, 3)  # new vertex id on edge (k, k+1)
     a, b, c = f[:, 0], f[:, 1], f[:, 2]

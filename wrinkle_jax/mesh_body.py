@@ -40,6 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wrinkle_jax import mesh
 from wrinkle_jax.numerics import normalize, positive_div, safe_div, safe_norm, to_device
 
 # Distance (meters) below which a point is treated as lying on the surface: its outward
@@ -216,7 +217,7 @@ def _closed_mesh_normals(v: np.ndarray, f: np.ndarray):
         cosang = np.sum(e1 * e2, 1) / np.maximum(
             np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1), 1e-300)
         np.add.at(vn, f[:, k], fn * np.arccos(np.clip(cosang, -1.0, 1.0))[:, None])
-    he = np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1).reshape(-1, 2)
+    he = mesh.face_sides(f)
     edges, inv, counts = np.unique(np.sort(he, axis=1), axis=0, return_inverse=True,
                                    return_counts=True)
     if (counts != 2).any():

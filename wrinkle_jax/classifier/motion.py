@@ -93,7 +93,7 @@ def make_topology(faces, uvs=None, uv_faces=None) -> Topology:
     if uvs is not None:
         uf = f if uv_faces is None else np.asarray(uv_faces, np.int64)
         uv = np.asarray(uvs, np.float64)
-        us = np.stack([uf[:, [0, 1]], uf[:, [1, 2]], uf[:, [2, 0]]], axis=1).reshape(-1, 2)
+        us = mesh.face_sides(uf)
         rest = np.linalg.norm(uv[us[:, 0]] - uv[us[:, 1]], axis=-1)
         rest = np.where(rest > 1e-4, rest, np.nan)
     a, b = mesh.shared_sides(f)

@@ -286,4 +286,3 @@ def add_sequence_args(ap: argparse.ArgumentParser) -> None:
                     help="folder of existing simulations to reuse")
     ap.add_argument("--sim-out", default=str(TABLE1_SEQUENCES),
                     help="folder for the simulations made here (shared by the suite)")
-

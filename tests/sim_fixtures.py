@@ -1,14 +1,23 @@
-"""Simulator test helpers shared by test_sim_xpbd.py and test_sim_colliders.py: a sheet mesh,
-per-frame drives and a run of the XPBD step over them."""
+"""Simulator test helpers shared by test_sim_xpbd.py and test_sim_colliders.py (a sheet mesh,
+per-frame drives and a run of the XPBD step over them) and by test_sim_pokethrough.py and
+test_sim_untangle.py (two sheets settled on each other with self-collision)."""
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax.sim import colliders as C
+from wrinkle_jax.sim import contact_scenes as CS
+from wrinkle_jax.sim import materials as M
 from wrinkle_jax.sim import patterns as P
+from wrinkle_jax.sim import selfcollision as S
 from wrinkle_jax.sim import xpbd as X
+
+# The blocked build of test_sim_selfcollision (roomy bounds: nothing dropped on these scenes).
+BLOCKED = S.SelfCollisionConfig(thickness=0.006, margin=0.006, raw_per_vertex=512,
+                                box_per_vertex=32, pairs_per_vertex=16, block=4)
 
 
 def sheet(size=0.3, pd=0.03, z=1.0, horizontal=False, seed=0):
@@ -35,3 +44,21 @@ def run(model, params, x0, drives, config=None):
     config = config or X.SimConfig()
     init_fn, _ = X.cloth_simulator(config)
     return X.simulate_frames(config, model, params, init_fn(model, x0), drives)
+
+
+def run_scene(scene, params, cfg, state, k0, n):
+    """n frames of a `contact_scenes` scene from frame k0 and `state`, self-collision `cfg`:
+    (final ClothState, positions (n, V, 3))."""
+    drives = jax.tree_util.tree_map(lambda a: a[k0:k0 + n + 1], scene.drives)
+    return X.simulate_frames(X.SimConfig(self_collision=cfg), scene.model, params, state,
+                             drives, chunk=n)
+
+
+def settled_two_sheets():
+    """`contact_scenes.two_sheets` (PD 20 mm, 20 cm) after 24 frames of silk_charmeuse with
+    BLOCKED: the upper layer resting on the lower over the ball. (scene, params, state)."""
+    scene = CS.two_sheets(pd=0.02, size=0.2, frames=40)
+    params = X.fabric_params(M.fabric("silk_charmeuse"))
+    init_fn, _ = X.cloth_simulator(X.SimConfig(self_collision=BLOCKED))
+    state, _ = run_scene(scene, params, BLOCKED, init_fn(scene.model, scene.x0), 0, 24)
+    return scene, params, state

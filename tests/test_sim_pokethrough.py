@@ -8,18 +8,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from sim_fixtures import BLOCKED, run_scene, settled_two_sheets  # tests/ is on sys.path
 
 from wrinkle_jax import mesh
-from wrinkle_jax.sim import contact_scenes as CS
 from wrinkle_jax.sim import intersect
-from wrinkle_jax.sim import materials as M
 from wrinkle_jax.sim import pokethrough as P
 from wrinkle_jax.sim import selfcollision as S
 from wrinkle_jax.sim import xpbd as X
 
-# The blocked build of test_sim_selfcollision (roomy bounds: nothing dropped on these scenes).
-BLOCKED = S.SelfCollisionConfig(thickness=0.006, margin=0.006, raw_per_vertex=512,
-                                box_per_vertex=32, pairs_per_vertex=16, block=4)
 _crossing_fraction = jax.jit(P.crossing_fraction)
 
 
@@ -123,18 +119,7 @@ def test_a_poked_vertex_is_sent_back_to_its_rings_side():
 
 @pytest.fixture(scope="module")
 def settled_sheets():
-    """two_sheets after 24 frames (the upper layer resting on the lower over the ball)."""
-    scene = CS.two_sheets(pd=0.02, size=0.2, frames=40)
-    params = X.fabric_params(M.fabric("silk_charmeuse"))
-    init_fn, _ = X.cloth_simulator(X.SimConfig(self_collision=BLOCKED))
-    state, _ = _run(scene, params, BLOCKED, init_fn(scene.model, scene.x0), 0, 24)
-    return scene, params, state
-
-
-def _run(scene, params, cfg, state, k0, n):
-    drives = jax.tree_util.tree_map(lambda a: a[k0:k0 + n + 1], scene.drives)
-    return X.simulate_frames(X.SimConfig(self_collision=cfg), scene.model, params, state,
-                             drives, chunk=n)
+    return settled_two_sheets()
 
 
 def test_solver_undoes_poke_throughs_that_the_start_side_rule_keeps(settled_sheets):
@@ -155,7 +140,7 @@ def test_solver_undoes_poke_throughs_that_the_start_side_rule_keeps(settled_shee
     start = dataclasses.replace(state, x=jnp.asarray(x))
     counts = {}
     for repair in (0.0, 0.5):
-        end, xs = _run(scene, params, dataclasses.replace(BLOCKED, poke_repair=repair),
+        end, xs = run_scene(scene, params, dataclasses.replace(BLOCKED, poke_repair=repair),
                        start, 24, 12)
         assert np.isfinite(xs).all() and np.asarray(end.self_overflow).tolist() == [0, 0, 0]
         counts[repair] = [len(intersect.intersecting_pairs(y, faces)) for y in np.asarray(xs)]

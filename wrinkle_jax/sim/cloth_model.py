@@ -149,7 +149,8 @@ class ClothState:
     `selfcollision.Candidates.overflow`, then contacts beyond the flat list
     (`SelfCollisionConfig.pairs_per_vertex`); with the flat build (`build_pairs`) cell
     entries not read, triangles not given the exact test, contacts beyond the list (the
-    nearest kept); else None."""
+    nearest kept); with `SelfCollisionConfig.untangle` a fourth count (4,): crossed face
+    pairs beyond the untangling step's list; else None."""
 
     x: Any
     v: Any

@@ -65,7 +65,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax.numerics import normalize, safe_div, safe_norm
-from wrinkle_jax.sim import pokethrough
+from wrinkle_jax.sim import aero, pokethrough
 
 _SENTINEL = np.uint32(0xFFFFFFFF)  # key of unused cell entries (sorted last, never queried)
 _PRIMES = (np.uint32(73856093), np.uint32(19349663), np.uint32(83492791))
@@ -107,6 +107,10 @@ class SelfCollisionConfig:
       poke_repair: > 0: a contact whose vertex has more than this fraction of its one-ring
         edges crossing the triangle (or its edge neighbours) is sent back to its ring's side
         (`pokethrough`); 0 = off, every contact keeps the vertex's start side.
+      untangle: > 0: at every rebuild, each vertex of a face that crosses a contact's
+        triangle moves this far (m) to shrink the intersection curves, and its contacts
+        are dropped until the next rebuild (`untangle`); 0 = off. untangle_pairs: the bound
+        on crossed face pairs it differentiates, ceil(this x V) (beyond: counted).
     """
 
     thickness: float = 0.004
@@ -123,6 +127,8 @@ class SelfCollisionConfig:
     box_per_vertex: float = 8.0
     block: int = 0
     poke_repair: float = 0.0
+    untangle: float = 0.0
+    untangle_pairs: float = 0.25
 
 
 def recorded_config(recorded: dict | None) -> SelfCollisionConfig | None:
@@ -159,7 +165,8 @@ class SelfTopology:
     Attributes: uv (V, 2) m, a rest position per vertex (on a seam: one of its panels);
     panel (V,) int32, that panel; face_uv (F, 3, 2) m; face_panel (F,) int32; poke, the
     one-ring and face adjacency the poke-through repair reads (`pokethrough.PokeTopology`;
-    None: no repair possible).
+    None: no repair possible); vertex_faces (V, D) int32, incident faces padded with F (what
+    `untangle` pairs a contact's triangle with; None: no untangling possible).
     """
 
     uv: Any
@@ -167,6 +174,7 @@ class SelfTopology:
     face_uv: Any
     face_panel: Any
     poke: Any = None
+    vertex_faces: Any = None
 
 
 @jax.tree_util.register_dataclass
@@ -196,7 +204,8 @@ def self_topology(garment) -> SelfTopology:
     vpanel[faces.reshape(-1)] = np.repeat(panels, 3)
     return SelfTopology(jnp.asarray(vuv), jnp.asarray(vpanel), jnp.asarray(uvs[uv_faces]),
                         jnp.asarray(panels),
-                        pokethrough.poke_topology(faces, garment.num_vertices))
+                        pokethrough.poke_topology(faces, garment.num_vertices),
+                        jnp.asarray(aero.incident_faces(faces, garment.num_vertices)))
 
 
 def empty_candidates(num_vertices: int, cfg: SelfCollisionConfig) -> Candidates:

@@ -32,7 +32,8 @@ length h = 1 / (fps * substeps):
   4. optional self-collision (`SimConfig.self_collision`, see `selfcollision`): candidates
      rebuilt every `rebuild_every` substeps into a flat bounded contact list, vertex-triangle
      thickness constraints (closest points once per substep) projected before the body
-     contacts and again after them with the body-contact vertices held
+     contacts and again after them with the body-contact vertices held; optionally, at each
+     rebuild, an intersection-contour step that shrinks crossings (`untangle`)
   5. collisions with the present colliders (offset = cloth thickness, Coulomb friction;
      pinned vertices are kinematic and not projected)
   6. v = (p - x) / h; x = p
@@ -61,7 +62,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax.numerics import normalize, safe_div, safe_norm
-from wrinkle_jax.sim import aero, colliders, pokethrough, selfcollision, selfcollision_blocks
+from wrinkle_jax.sim import (
+    aero,
+    colliders,
+    pokethrough,
+    selfcollision,
+    selfcollision_blocks,
+    untangle,
+)
 
 # The model's pytrees and their allocation live in cloth_model; every name stays importable
 # from here (old import paths, pickles).
@@ -236,14 +244,20 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
     if sc is not None and (sc.rebuild_every < 1 or n_sub % sc.rebuild_every):
         raise ValueError(f"self_collision.rebuild_every={sc.rebuild_every} must divide "
                          f"substeps={n_sub}")
+    if sc is not None and sc.untangle < 0:
+        raise ValueError(f"self_collision.untangle={sc.untangle} must be >= 0")
     if sc is not None and not 0.0 <= sc.poke_repair < 1.0:
         raise ValueError(f"self_collision.poke_repair={sc.poke_repair} must be in [0, 1)")
+
+    # Dropped-candidate counts: the build's three, and crossed pairs beyond the untangling
+    # step's list when it is on.
+    n_over = 3 if sc is None or sc.untangle == 0 else 4
 
     def init_fn(model: ClothModel, positions) -> ClothState:
         x = jnp.asarray(positions, jnp.float32)
         del model
         return ClothState(x=x, v=jnp.zeros_like(x),
-                          self_overflow=None if sc is None else jnp.zeros(3, jnp.int32))
+                          self_overflow=None if sc is None else jnp.zeros(n_over, jnp.int32))
 
     def step_fn(model: ClothModel, params: SimParams, state: ClothState, drive0: Drive,
                 drive1: Drive) -> ClothState:
@@ -337,25 +351,32 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
 
         def rebuild_sides(x):
             cand, lost = rebuild(x)
+            if sc.untangle > 0:  # shrink the crossings; their contacts off until the next one
+                x, keep, _, crossed_lost = untangle.untangle_contacts(
+                    x, free, model.faces, model.self_topo.vertex_faces, cand.vertex, cand.tri,
+                    cand.valid, sc.untangle, untangle.max_crossed(nv, sc.untangle_pairs))
+                cand = dataclasses.replace(cand, valid=keep)
+                lost = jnp.concatenate([lost, crossed_lost[None]])
             sides = None
             if sc.poke_repair > 0:  # poked-through vertices, decided until the next rebuild
                 sides = pokethrough.repair_sides(x, model.faces, model.self_topo.poke,
                                                  cand.vertex, cand.tri, sc.poke_repair)
-            return cand, sides, lost
+            return x, cand, sides, lost
 
         def substep(carry, k):
             x, v, cand, sides, overflow = carry
             if sc is not None:
                 # Candidates from the substep's start positions; the margin covers the motion
                 # until the next rebuild.
+                # The untangling step (if on) moves x itself; v is kept (no impulse).
                 if sc.rebuild_every == 1:
-                    cand, sides, lost = rebuild_sides(x)
+                    x, cand, sides, lost = rebuild_sides(x)
                     overflow = overflow + lost
                 else:
                     fresh = k % sc.rebuild_every == 0
-                    cand, sides, lost = jax.lax.cond(
+                    x, cand, sides, lost = jax.lax.cond(
                         fresh, rebuild_sides,
-                        lambda _: (cand, sides, jnp.zeros(3, jnp.int32)), x)
+                        lambda y: (y, cand, sides, jnp.zeros(n_over, jnp.int32)), x)
                     overflow = overflow + lost
                 # Closest points and directions at the substep's start: fixed over the
                 # substep, so computed once for both projection stages.

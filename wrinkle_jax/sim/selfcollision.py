@@ -65,7 +65,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax.numerics import normalize, safe_div, safe_norm
-from wrinkle_jax.sim import aero, pokethrough
+from wrinkle_jax.sim import aero, pokethrough, untangle
 
 _SENTINEL = np.uint32(0xFFFFFFFF)  # key of unused cell entries (sorted last, never queried)
 _PRIMES = (np.uint32(73856093), np.uint32(19349663), np.uint32(83492791))
@@ -111,6 +111,7 @@ class SelfCollisionConfig:
         triangle moves this far (m) to shrink the intersection curves, and its contacts
         are dropped until the next rebuild (`untangle`); 0 = off. untangle_pairs: the bound
         on crossed face pairs it differentiates, ceil(this x V) (beyond: counted).
+        untangle_smooth: rings around a curve its step is carried to.
     """
 
     thickness: float = 0.004
@@ -129,6 +130,7 @@ class SelfCollisionConfig:
     poke_repair: float = 0.0
     untangle: float = 0.0
     untangle_pairs: float = 0.25
+    untangle_smooth: int = 0
 
 
 def recorded_config(recorded: dict | None) -> SelfCollisionConfig | None:
@@ -166,7 +168,10 @@ class SelfTopology:
     panel (V,) int32, that panel; face_uv (F, 3, 2) m; face_panel (F,) int32; poke, the
     one-ring and face adjacency the poke-through repair reads (`pokethrough.PokeTopology`;
     None: no repair possible); vertex_faces (V, D) int32, incident faces padded with F (what
-    `untangle` pairs a contact's triangle with; None: no untangling possible).
+    `untangle` pairs a contact's triangle with; None: no untangling possible); near_faces
+    (P, 2) int32, the pairs of faces of one panel, sharing no vertex, whose rest centroids lie
+    closer than 2.4 median rest edges (`untangle.near_face_pairs`: what `rest_exclusion`
+    keeps out of the contacts, which `untangle` tests on its own).
     """
 
     uv: Any
@@ -175,6 +180,7 @@ class SelfTopology:
     face_panel: Any
     poke: Any = None
     vertex_faces: Any = None
+    near_faces: Any = None
 
 
 @jax.tree_util.register_dataclass
@@ -205,7 +211,8 @@ def self_topology(garment) -> SelfTopology:
     return SelfTopology(jnp.asarray(vuv), jnp.asarray(vpanel), jnp.asarray(uvs[uv_faces]),
                         jnp.asarray(panels),
                         pokethrough.poke_topology(faces, garment.num_vertices),
-                        jnp.asarray(aero.incident_faces(faces, garment.num_vertices)))
+                        jnp.asarray(aero.incident_faces(faces, garment.num_vertices)),
+                        jnp.asarray(untangle.near_face_pairs(faces, uvs[uv_faces], panels)))
 
 
 def empty_candidates(num_vertices: int, cfg: SelfCollisionConfig) -> Candidates:

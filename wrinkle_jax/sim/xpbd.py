@@ -354,7 +354,8 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
             if sc.untangle > 0:  # shrink the crossings; their contacts off until the next one
                 x, keep, _, crossed_lost = untangle.untangle_contacts(
                     x, free, model.faces, model.self_topo.vertex_faces, cand.vertex, cand.tri,
-                    cand.valid, sc.untangle, untangle.max_crossed(nv, sc.untangle_pairs))
+                    cand.valid, sc.untangle, untangle.max_crossed(nv, sc.untangle_pairs),
+                    model.self_topo.near_faces, model.self_topo.poke.ring, sc.untangle_smooth)
                 cand = dataclasses.replace(cand, valid=keep)
                 lost = jnp.concatenate([lost, crossed_lost[None]])
             sides = None

@@ -500,7 +500,9 @@ def test_precomputed_blur_weights_give_the_same_output(overrides, keys):
     run = jax.jit(lambda w: model.apply({"params": params}, rgb, jnp.array([0, 1, 1]), None, w))
     got, want = np.asarray(run(weights)), np.asarray(run(None))
     assert np.isfinite(got).all()
-    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    # float32 through the network's two blur paths: up to 8e-6 apart on session 37's fresh
+    # machine (a wrong weight moves the output by > 1e-3, checked below).
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
     if keys:  # the weights do enter: those of another mask change the output
         moved = cfg.blur_weights(jnp.asarray(np.roll(inside, 1, axis=0)[..., None], jnp.float32))
         assert np.abs(np.asarray(run(moved)) - want)[:2].max() > 1e-3

@@ -62,3 +62,20 @@ def settled_two_sheets():
     init_fn, _ = X.cloth_simulator(X.SimConfig(self_collision=BLOCKED))
     state, _ = run_scene(scene, params, BLOCKED, init_fn(scene.model, scene.x0), 0, 24)
     return scene, params, state
+
+
+def upper_layer(scene):
+    """(V,) bool: the vertices of a `two_sheets` scene's upper sheet (panel 1)."""
+    faces = np.asarray(scene.model.faces)
+    upper = np.zeros(len(scene.x0), bool)
+    upper[faces[np.asarray(scene.mesh.garment.panels) == 1].reshape(-1)] = True
+    return upper
+
+
+def push_below(x, verts, upper, depth=0.005):
+    """x (V, 3) with each vertex of `verts` set `depth` m below the lower-layer vertex nearest
+    to it in x-y (in place; returned)."""
+    lo = np.flatnonzero(~upper)
+    for v in verts:
+        x[v, 2] = x[lo[np.argmin(np.linalg.norm(x[lo, :2] - x[v, :2], axis=1))], 2] - depth
+    return x

@@ -8,7 +8,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from sim_fixtures import BLOCKED, run_scene, settled_two_sheets  # tests/ is on sys.path
+from sim_fixtures import (  # tests/ is on sys.path
+    BLOCKED,
+    push_below,
+    run_scene,
+    settled_two_sheets,
+    upper_layer,
+)
 
 from wrinkle_jax import mesh
 from wrinkle_jax.sim import intersect
@@ -125,17 +131,13 @@ def settled_sheets():
 def test_solver_undoes_poke_throughs_that_the_start_side_rule_keeps(settled_sheets):
     scene, params, state = settled_sheets
     faces = np.asarray(scene.model.faces)
-    g = scene.mesh.garment
-    upper = np.zeros(len(scene.x0), bool)
-    upper[faces[np.asarray(g.panels) == 1].reshape(-1)] = True
+    upper = upper_layer(scene)
     x = np.asarray(state.x).copy()
     assert len(intersect.intersecting_pairs(x, faces)) == 0
     # Four upper vertices over the top of the ball pushed 5 mm below the lower layer.
-    up, lo = np.flatnonzero(upper), np.flatnonzero(~upper)
+    up = np.flatnonzero(upper)
     near = up[np.argsort(np.linalg.norm(x[up, :2], axis=1), kind="stable")[:10]]
-    for v in near[[0, 3, 6, 9]]:
-        j = lo[np.argmin(np.linalg.norm(x[lo, :2] - x[v, :2], axis=1))]
-        x[v, 2] = x[j, 2] - 0.005
+    push_below(x, near[[0, 3, 6, 9]], upper)
     assert len(intersect.intersecting_pairs(x, faces)) > 10
     start = dataclasses.replace(state, x=jnp.asarray(x))
     counts = {}

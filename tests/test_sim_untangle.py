@@ -8,7 +8,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from sim_fixtures import BLOCKED, run_scene, settled_two_sheets  # tests/ is on sys.path
+from sim_fixtures import (  # tests/ is on sys.path
+    BLOCKED,
+    push_below,
+    run_scene,
+    settled_two_sheets,
+    upper_layer,
+)
 
 from wrinkle_jax.sim import intersect
 from wrinkle_jax.sim import selfcollision as S
@@ -105,8 +111,7 @@ def settled_sheets():
 def test_a_crossed_patch_is_untangled_in_the_solver(settled_sheets):
     scene, params, state = settled_sheets
     faces = np.asarray(scene.model.faces)
-    upper = np.zeros(len(scene.x0), bool)
-    upper[faces[np.asarray(scene.mesh.garment.panels) == 1].reshape(-1)] = True
+    upper = upper_layer(scene)
     x = np.asarray(state.x).copy()
     assert len(intersect.intersecting_pairs(x, faces)) == 0
     # Nothing crossed: one step moves nothing and keeps every contact.
@@ -121,9 +126,8 @@ def test_a_crossed_patch_is_untangled_in_the_solver(settled_sheets):
     # A patch of the upper layer over the ball (9 vertices, 4.5 cm across) pushed 5 mm below
     # the lower layer: crossed along a closed curve, each vertex's ring on its own side (the
     # poke-through repair does not apply), which the start-side rule keeps.
-    up, lo = np.flatnonzero(upper), np.flatnonzero(~upper)
-    for i in up[np.linalg.norm(x[up, :2], axis=1) < 0.045]:
-        x[i, 2] = x[lo[np.argmin(np.linalg.norm(x[lo, :2] - x[i, :2], axis=1))], 2] - 0.005
+    up = np.flatnonzero(upper)
+    push_below(x, up[np.linalg.norm(x[up, :2], axis=1) < 0.045], upper)
     assert len(intersect.intersecting_pairs(x, faces)) > 10
     counts = {}
     for step in (0.0, 0.001):

@@ -108,8 +108,9 @@ class SelfCollisionConfig:
         edges crossing the triangle (or its edge neighbours) is sent back to its ring's side
         (`pokethrough`); 0 = off, every contact keeps the vertex's start side.
       untangle: > 0: at every rebuild, each vertex of a face that crosses a contact's
-        triangle moves this far (m) to shrink the intersection curves, and its contacts
-        are dropped until the next rebuild (`untangle`); 0 = off. untangle_pairs: the bound
+        triangle (or a near face of its panel) moves this far (m) to shrink the
+        intersection curves, and the contacts that name a crossed pair are dropped until the
+        next rebuild (`untangle`); 0 = off. untangle_pairs: the bound
         on crossed face pairs it differentiates, ceil(this x V) (beyond: counted).
         untangle_smooth: rings around a curve its step is carried to.
     """

@@ -430,13 +430,15 @@ def build_cloth(garment: Garment, pinned=None, wind: aero.WindField | None = Non
             attach = Attachments(to_device(verts.astype(np.int32)),
                                  to_device(slot[verts].astype(np.int32)),
                                  to_device((dist[verts] * (1 + attach_slack)).astype(np.float32)))
+    self_topo = selfcollision.self_topology(garment)
     return ClothModel(
         faces=to_device(faces), vertex_area=to_device(vertex_area, jnp.float32),
         free=to_device(free), pin_idx=pin_idx, stretch=stretch, bend=bend, limits=limits,
         attach=attach,
         wind=wind, aero=jnp.zeros(()) if use_aero else None,
-        vertex_faces=to_device(aero.incident_faces(faces, n)) if use_aero else None,
-        self_topo=selfcollision.self_topology(garment))
+        # The same incident-face table as the self-collision topology's: built once.
+        vertex_faces=self_topo.vertex_faces if use_aero else None,
+        self_topo=self_topo)
 
 
 def color_groups(sizes, max_waste: float = 0.15) -> list[tuple[int, int]]:

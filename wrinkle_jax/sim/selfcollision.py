@@ -64,7 +64,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax.numerics import normalize, safe_div, safe_norm
+from wrinkle_jax.numerics import normalize, safe_div, safe_norm, to_device
 from wrinkle_jax.sim import aero, pokethrough, untangle
 
 _SENTINEL = np.uint32(0xFFFFFFFF)  # key of unused cell entries (sorted last, never queried)
@@ -212,8 +212,8 @@ def self_topology(garment) -> SelfTopology:
     return SelfTopology(jnp.asarray(vuv), jnp.asarray(vpanel), jnp.asarray(uvs[uv_faces]),
                         jnp.asarray(panels),
                         pokethrough.poke_topology(faces, garment.num_vertices),
-                        jnp.asarray(aero.incident_faces(faces, garment.num_vertices)),
-                        jnp.asarray(untangle.near_face_pairs(faces, uvs[uv_faces], panels)))
+                        to_device(aero.incident_faces(faces, garment.num_vertices)),
+                        to_device(untangle.near_face_pairs(faces, uvs[uv_faces], panels)))
 
 
 def empty_candidates(num_vertices: int, cfg: SelfCollisionConfig) -> Candidates:

@@ -23,6 +23,9 @@ from wrinkle_jax.sim import selfcollision as S
 from wrinkle_jax.sim import xpbd as X
 
 _crossing_fraction = jax.jit(P.crossing_fraction)
+# Jitted, as the solver runs them: op by op they compiled ~130 one-op programs per test.
+_repair_sides = jax.jit(P.repair_sides)
+_contact_frame = jax.jit(S.contact_frame)
 
 
 def _grid(n: int, z: float, offset: int = 0, size: float = 0.1):
@@ -82,7 +85,7 @@ def test_segment_test_agrees_with_the_independent_checker():
 
 def _frame(x, faces, v, t, sides=None):
     pairs = S.Pairs(v, t, jnp.full(v.shape, 0.006), jnp.ones(v.shape, bool))
-    return np.asarray(S.contact_frame(jnp.asarray(x), jnp.asarray(faces), pairs, sides).d)
+    return np.asarray(_contact_frame(jnp.asarray(x), jnp.asarray(faces), pairs, sides).d)
 
 
 def test_layers_apart_have_no_crossing_and_keep_every_direction():
@@ -92,7 +95,7 @@ def test_layers_apart_have_no_crossing_and_keep_every_direction():
     v, t = _all_pairs(x, faces)
     frac = np.asarray(_crossing_fraction(jnp.asarray(x), jnp.asarray(faces), topo, v, t))
     assert frac.max() == 0.0
-    sides = P.repair_sides(jnp.asarray(x), jnp.asarray(faces), topo, v, t, 0.5)
+    sides = _repair_sides(jnp.asarray(x), jnp.asarray(faces), topo, v, t, 0.5)
     assert not np.asarray(sides).any()
     np.testing.assert_array_equal(_frame(x, faces, v, t, sides), _frame(x, faces, v, t))
 
@@ -112,7 +115,7 @@ def test_a_poked_vertex_is_sent_back_to_its_rings_side():
     mine = (vv == poked) & np.isin(tt, list(through))
     assert mine.any() and frac[mine].max() == 1.0
     assert frac[vv != poked].max() <= 0.5      # no other vertex has most of its ring across
-    sides = P.repair_sides(jnp.asarray(x), jnp.asarray(faces), topo, v, t, 0.5)
+    sides = _repair_sides(jnp.asarray(x), jnp.asarray(faces), topo, v, t, 0.5)
     fixed = frac > 0.5
     # Both layers' normals point up (+z): the poked vertex is sent back up, whatever side
     # the start-side rule would keep it on.

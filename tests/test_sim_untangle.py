@@ -53,7 +53,7 @@ def test_crossing_set_agrees_with_the_independent_checker_and_gradient_with_diff
     fa, fb = np.stack([i, i + 1, i + 2], 1), np.stack([i + 3, i + 4, i + 5], 1)
     with jax.enable_x64():
         x = jnp.asarray(tri.reshape(-1, 3))
-        length = np.asarray(U.segment_lengths(x, jnp.asarray(fa), jnp.asarray(fb)))
+        length = np.asarray(jax.jit(U.segment_lengths)(x, jnp.asarray(fa), jnp.asarray(fb)))
         a, b = tri[:, :3], tri[:, 3:]
         hit = np.zeros(len(tri), bool)
         for k in range(3):
@@ -66,10 +66,11 @@ def test_crossing_set_agrees_with_the_independent_checker_and_gradient_with_diff
         faces = jnp.asarray(np.concatenate([fa, fb]))
         pa, pb = jnp.arange(len(tri)), jnp.arange(len(tri)) + len(tri)
 
+        @jax.jit
         def total(y):
             return U.contour_length(y, faces, pa, pb, ok)
 
-        g = jax.grad(total)(x)
+        g = jax.jit(jax.grad(total))(x)
         d = jnp.asarray(rng.normal(size=x.shape))
         eps = 1e-6
         fd = (total(x + eps * d) - total(x - eps * d)) / (2 * eps)

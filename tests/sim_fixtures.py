@@ -52,12 +52,12 @@ def run(model, params, x0, drives, config=None):
 SCENE_CHUNK = 12
 
 
-def run_scene(scene, params, cfg, state, k0, n, chunk=SCENE_CHUNK):
-    """n frames of a `contact_scenes` scene from frame k0 and `state`, self-collision `cfg`:
-    (final ClothState, positions (n, V, 3))."""
+def run_scene(scene, params, cfg, state, k0, n):
+    """n frames of a `contact_scenes` scene from frame k0 and `state`, self-collision `cfg`, in
+    chunks of SCENE_CHUNK: (final ClothState, positions (n, V, 3))."""
     drives = jax.tree_util.tree_map(lambda a: a[k0:k0 + n + 1], scene.drives)
     return X.simulate_frames(X.SimConfig(self_collision=cfg), scene.model, params, state,
-                             drives, chunk=chunk)
+                             drives, chunk=SCENE_CHUNK)
 
 
 def settled_two_sheets():

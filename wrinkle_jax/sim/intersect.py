@@ -1,7 +1,8 @@
 """Self-intersection measurement: how many pairs of non-adjacent triangles intersect.
 
 The independent checker of the solver's optional self-collision (`sim.selfcollision`): it
-shares no code with it.
+uses none of the solver's code. (The solver's untangling step borrows `grid_pairs` to list
+faces near in the pattern; the checker's broad phase is only a superset filter.)
 
 Method (NumPy, per frame): a spatial hash with cells as large as the longest edge puts each
 triangle at its centroid's cell, so two triangles that touch are in the same or neighbouring
@@ -12,6 +13,8 @@ Coplanar overlaps are not counted.
 """
 
 from __future__ import annotations
+
+import itertools
 
 import numpy as np
 
@@ -32,27 +35,27 @@ def segment_hits_triangle(p, q, a, b, c, eps: float = 1e-12) -> np.ndarray:
     return ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)
 
 
-def _candidate_pairs(tri: np.ndarray, cell: float):
-    cen = tri.mean(1)
-    g = np.floor((cen - cen.min(0)) / cell).astype(np.int64) + 1
+def grid_pairs(points: np.ndarray, cell: float) -> np.ndarray:
+    """Pairs (K, 2) int64, i < j, of the points (N, D) in the same or adjacent cells of a grid
+    `cell` wide: every pair closer than `cell` is among them (a superset; NumPy)."""
+    g = np.floor((points - points.min(0)) / cell).astype(np.int64) + 1
     dims = g.max(0) + 2
-    key = (g[:, 0] * dims[1] + g[:, 1]) * dims[2] + g[:, 2]
+    stride = np.cumprod(np.concatenate([dims[1:], [1]])[::-1])[::-1]  # mixed-radix key
+    key = g @ stride
     order = np.argsort(key, kind="stable")
     skey = key[order]
     out = []
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            for dz in (-1, 0, 1):
-                q = key + (dx * dims[1] + dy) * dims[2] + dz
-                lo = np.searchsorted(skey, q, "left")
-                hi = np.searchsorted(skey, q, "right")
-                n = hi - lo
-                if n.sum() == 0:
-                    continue
-                i = np.repeat(np.arange(len(tri)), n)
-                j = order[np.repeat(lo, n) + (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))]
-                keep = i < j
-                out.append(np.stack([i[keep], j[keep]], 1))
+    for offset in itertools.product((-1, 0, 1), repeat=points.shape[1]):
+        q = key + int(np.dot(offset, stride))
+        lo = np.searchsorted(skey, q, "left")
+        hi = np.searchsorted(skey, q, "right")
+        n = hi - lo
+        if n.sum() == 0:
+            continue
+        i = np.repeat(np.arange(len(points)), n)
+        j = order[np.repeat(lo, n) + (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))]
+        keep = i < j
+        out.append(np.stack([i[keep], j[keep]], 1))
     return np.concatenate(out) if out else np.zeros((0, 2), np.int64)
 
 
@@ -66,7 +69,7 @@ def intersecting_pairs(vertices, faces, chunk: int = 1 << 20) -> np.ndarray:
     f = np.asarray(faces, np.int64)
     tri = v[f]
     edge = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max()
-    pairs = _candidate_pairs(tri, max(float(edge), 1e-9))
+    pairs = grid_pairs(tri.mean(1), max(float(edge), 1e-9))
     lo, hi = tri.min(1), tri.max(1)
     hits = []
     for s in range(0, len(pairs), chunk):

@@ -49,6 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax.numerics import safe_norm
+from wrinkle_jax.sim import intersect
 
 
 def segment_lengths(x, fa, fb):
@@ -130,22 +131,7 @@ def near_face_pairs(faces, face_uv, face_panel, edges: float = 2.4) -> np.ndarra
     uv = np.asarray(face_uv, np.float64)
     radius = edges * np.median(np.linalg.norm(uv - np.roll(uv, 1, axis=1), axis=-1))
     c = uv.mean(1)
-    # A grid of cells `radius` wide: a pair closer than it lies in the same or adjacent cells.
-    g = np.floor((c - c.min(0)) / radius).astype(np.int64) + 1
-    width = g[:, 1].max() + 2
-    key = g[:, 0] * width + g[:, 1]
-    order = np.argsort(key, kind="stable")
-    skey = key[order]
-    out = []
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            q = key + dx * width + dy
-            lo, hi = np.searchsorted(skey, q, "left"), np.searchsorted(skey, q, "right")
-            n = hi - lo
-            i = np.repeat(np.arange(len(c)), n)
-            j = order[np.repeat(lo, n) + np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)]
-            out.append(np.stack([i, j], 1)[i < j])
-    pairs = np.concatenate(out)
+    pairs = intersect.grid_pairs(c, radius)
     pairs = pairs[np.linalg.norm(c[pairs[:, 0]] - c[pairs[:, 1]], axis=1) < radius]
     panel = np.asarray(face_panel)
     pairs = pairs[panel[pairs[:, 0]] == panel[pairs[:, 1]]]

@@ -156,6 +156,33 @@ def test_overflow_is_counted_not_dropped():
     assert over[:2].min() > 0
     # Rebuilt at both substeps from nearly the rest pose: about 2 x (kept - m) lost.
     assert over[2] >= n_kept - m
+    # A count near the int32 maximum is held there, not wrapped round to a negative number
+    # (a fine skirt's whole run drops more than 2^31 contacts).
+    top = np.iinfo(np.int32).max
+    near = init_fn(scene.model, scene.x0).replace(
+        self_overflow=jnp.asarray(top - over // 2, jnp.int32))
+    held = np.asarray(jax.jit(step_fn)(scene.model, params, near, d, d1).self_overflow)
+    np.testing.assert_array_equal(held, np.minimum(top, top - over // 2 + over.astype(np.int64)))
+    assert (held == top).all()
+
+
+def test_overflow_totals_pass_int32_range():
+    # simulate_frames sums each chunk's counts on the host in int64: a run's totals go past
+    # 2^31 - 1 exactly (no wrap, no saturation), whatever the counts it started from.
+    scene = CS.folded_sheet(pd=0.03, frames=2)
+    tiny = S.SelfCollisionConfig(thickness=0.004, margin=0.02, max_raw=4, max_contacts=1,
+                                 pairs_per_vertex=0.01)
+    config = X.SimConfig(substeps=2, self_collision=tiny)
+    init_fn, _ = X.cloth_simulator(config)
+    params = X.fabric_params(M.fabric("silk_charmeuse"))
+    s0 = init_fn(scene.model, scene.x0)
+    start = np.full(3, np.iinfo(np.int32).max - 5, np.int64)
+    runs = [X.simulate_frames(config, scene.model, params, s0.replace(self_overflow=o),
+                              scene.drives, chunk=1) for o in (np.zeros(3, np.int64), start)]
+    (a, xa), (b, xb) = runs
+    np.testing.assert_array_equal(xa, xb)
+    assert a.self_overflow.dtype == np.int64 and (a.self_overflow >= 6).all()
+    np.testing.assert_array_equal(b.self_overflow, start + a.self_overflow)
 
 
 def _layers_ordered(x, lower, upper, reach=0.01):

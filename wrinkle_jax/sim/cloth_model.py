@@ -145,7 +145,8 @@ class Drive:
 @dataclasses.dataclass(frozen=True)
 class ClothState:
     """Positions (V, 3) m and velocities (V, 3) m/s; with self-collision also
-    self_overflow (3,) int32, candidates dropped since `init_fn`: the two counts of
+    self_overflow (3,) int32, candidates dropped since `init_fn` (held at the int32 maximum
+    rather than wrapping; `xpbd.simulate_frames` returns int64 totals): the two counts of
     `selfcollision.Candidates.overflow`, then contacts beyond the flat list
     (`SelfCollisionConfig.pairs_per_vertex`); with the flat build (`build_pairs`) cell
     entries not read, triangles not given the exact test, contacts beyond the list (the

@@ -10,8 +10,9 @@ solver did not change in between.
 
 File (`.npz`, written atomically): `key` (JSON of everything the result depends on),
 `done` (frames simulated, pre-roll included), `wall_s` (seconds spent so far), the state
-(`x`, `v` (V, 3) float32 m, m/s; `self_overflow` (3,) int32 if self-collision is on) and
-`frames` (done, V, 3) float32 m.
+(`x`, `v` (V, 3) float32 m, m/s; `self_overflow` (3,) or (4,) int64 totals if
+self-collision is on: int32, and possibly wrapped round, in checkpoints written before
+session 39) and `frames` (done, V, 3) float32 m.
 """
 
 from __future__ import annotations

@@ -372,13 +372,12 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
                 # The untangling step (if on) moves x itself; v is kept (no impulse).
                 if sc.rebuild_every == 1:
                     x, cand, sides, lost = rebuild_sides(x)
-                    overflow = overflow + lost
                 else:
                     fresh = k % sc.rebuild_every == 0
                     x, cand, sides, lost = jax.lax.cond(
                         fresh, rebuild_sides,
                         lambda y: (y, cand, sides, jnp.zeros(n_over, jnp.int32)), x)
-                    overflow = overflow + lost
+                overflow = saturating_add(overflow, lost)
                 # Closest points and directions at the substep's start: fixed over the
                 # substep, so computed once for both projection stages.
                 frame = selfcollision.contact_frame(x, model.faces, cand, sides)
@@ -430,6 +429,14 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
         return ClothState(x=x, v=v, self_overflow=overflow)
 
     return init_fn, step_fn
+
+
+def saturating_add(total, count):
+    """total + count for non-negative int32 counts, held at the int32 maximum instead of
+    wrapping round to negative numbers (a fine skirt drops ~1e5 contacts per substep, so a
+    whole run's count passes 2^31; `simulate_frames` sums per chunk on the host instead)."""
+    top = jnp.iinfo(jnp.int32).max
+    return jnp.where(total > top - count, top, total + count)
 
 
 @functools.partial(jax.jit, static_argnames="config")
@@ -484,21 +491,33 @@ def simulate_frames(config: SimConfig, model: ClothModel, params: SimParams,
         (n, V, 3) positions, not copied) after each chunk, before `progress` (checkpoints:
         `resume.Writer`).
     Returns:
-      (final ClothState, positions (T - start, V, 3) NumPy float32).
+      (final ClothState, positions (T - start, V, 3) NumPy float32). With self-collision the
+      final state's (and `on_chunk`'s) `self_overflow` is an int64 NumPy array: the counts
+      are summed per chunk on the host, since a whole run's passes the int32 range.
     """
     total = jax.tree_util.tree_leaves(drives)[0].shape[0] - 1
     out = []
     done = int(start)
+    over = None
+    if state.self_overflow is not None:
+        over = np.asarray(state.self_overflow, np.int64)
+        zero = jnp.zeros(over.shape, jnp.int32)
+        state = state.replace(self_overflow=zero)
     while done < total:
         n = min(chunk, total - done)
         part = slice_drives(drives, done, done + chunk + 1)
         state, xs = run_frames(config, model, params, state, part, jnp.int32(n))
         out.append(np.asarray(xs[:n]))
         done += n
+        if over is not None:
+            over = over + np.asarray(state.self_overflow, np.int64)
+            state = state.replace(self_overflow=zero)
         if on_chunk is not None:
-            on_chunk(done, state, out)
+            on_chunk(done, state if over is None else state.replace(self_overflow=over), out)
         if progress is not None:
             progress(n)
+    if over is not None:
+        state = state.replace(self_overflow=over)
     return state, np.concatenate(out) if out else np.zeros((0,) + state.x.shape, np.float32)
 
 

@@ -189,7 +189,9 @@ def test_resimulate_continues_a_stored_run_with_its_or_other_settings(tmp_path, 
     # same with self-collision off, and the test could not tell whether it ran.
     cfg = dataclasses.replace(scenes.self_collision_config("coarse"), thickness=0.025,
                               rest_exclusion=0.05)
-    seq = scenes.simulate(TINY, "silk_chiffon", 0.06, frames=6, seed=3, self_collision=cfg)
+    # Chunks of 3 frames, as the continuation below runs: one solver program for both.
+    seq = scenes.simulate(TINY, "silk_chiffon", 0.06, frames=6, seed=3, self_collision=cfg,
+                          chunk=3)
     path = tmp_path / "s.npz"
     scenes.save_simulation(path, seq)
     back = meshio.load_sequence(path)  # the settings come back through the JSON metadata

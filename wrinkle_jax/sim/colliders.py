@@ -130,13 +130,16 @@ def capsule_response(p, x_prev, e0, e1, radius, offset, friction):
 
 
 def plane_response(p, x_prev, planes, offset, friction):
-    """Resolve the deepest static-plane contact per point (planes (P, 4))."""
+    """Resolve the deepest static-plane contact per point (planes (P, 4); friction None:
+    none)."""
     n_all = planes[:, :3]
     depth_all = offset - (p @ n_all.T - planes[:, 3][None])
     k = jnp.argmax(depth_all, axis=1)
     depth = jnp.maximum(jnp.take_along_axis(depth_all, k[:, None], 1)[:, 0], 0.0)
     n = n_all[k]
     p = p + depth[:, None] * n
+    if friction is None:
+        return p
     rel = p - x_prev
     rel_t = rel - jnp.sum(rel * n, -1, keepdims=True) * n
     keep = jnp.clip(safe_div(friction * depth, safe_norm(rel_t), fill=1.0), 0.0, 1.0)
@@ -160,7 +163,7 @@ def collide(p, x_prev, c0: Colliders, c1: Colliders, offset, friction, passes: i
     Args:
       p: (V, 3) predicted positions at the substep end; x_prev: (V, 3) at its start.
       c0, c1: colliders at the substep start and end.
-      offset: contact offset (cloth thickness), m. friction: coefficient.
+      offset: contact offset (cloth thickness), m. friction: coefficient (None: none).
       passes: deepest-contact passes (friction is applied in the first).
     Returns:
       (V, 3) positions outside the colliders' offset surfaces.

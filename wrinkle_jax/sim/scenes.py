@@ -465,8 +465,8 @@ def simulate(scene: str | SceneConfig, material: str, resolution: str | float = 
                       "frames": frames, "seed": int(seed), "substeps": config.substeps,
                       "iterations": iterations, "chunk": int(chunk),
                       "stretch_sweeps": config.stretch_sweeps, "generator": __version__,
-                      "self_collision": None if self_collision is None
-                      else dataclasses.asdict(self_collision)}, sort_keys=True)
+                      "self_collision": selfcollision.key_settings(self_collision)},
+                     sort_keys=True)
     got = resume.load(checkpoint, key) if checkpoint is not None else None
     start, prior, wall0 = 0, [], 0.0
     if got is not None:

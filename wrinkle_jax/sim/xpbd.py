@@ -415,6 +415,15 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
                     p, _ = selfcollision.project_pairs(p, w_held, cand, frame)
             else:
                 p = jnp.where(free[:, None] > 0, moved, p)
+            if sc is not None:
+                # Layers pressed on the body (both held above): the pair separates with the
+                # cloth's masses, the body pushes the inner layer back out (no friction: it
+                # was applied once this substep).
+                for _ in range(sc.body_relax):
+                    p, _ = selfcollision.project_pairs(p, w, cand, frame)
+                    moved = colliders.collide(p, x, c0, c1, params.offset, None,
+                                              passes=config.collision_passes)
+                    p = jnp.where(free[:, None] > 0, moved, p)
             return (p, (p - x) / h, cand, sides, overflow), None
 
         cand0 = sides0 = None

@@ -32,8 +32,10 @@ length h = 1 / (fps * substeps):
   4. optional self-collision (`SimConfig.self_collision`, see `selfcollision`): candidates
      rebuilt every `rebuild_every` substeps into a flat bounded contact list, vertex-triangle
      thickness constraints (closest points once per substep) projected before the body
-     contacts and again after them with the body-contact vertices held; optionally, at each
-     rebuild, an intersection-contour step that shrinks crossings (`untangle`)
+     contacts and again after them with the body-contact vertices held, then `body_relax`
+     rounds (a pass with the cloth's masses, the body again) so layers pressed on the body
+     separate; optionally, at each rebuild, an intersection-contour step that shrinks
+     crossings (`untangle`)
   5. collisions with the present colliders (offset = cloth thickness, Coulomb friction;
      pinned vertices are kinematic and not projected)
   6. v = (p - x) / h; x = p

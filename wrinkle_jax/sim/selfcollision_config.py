@@ -93,19 +93,20 @@ def recorded_config(recorded: dict | None) -> SelfCollisionConfig | None:
     return SelfCollisionConfig(**recorded)
 
 
-# Settings added while the data set's regeneration was under way, with the value that keeps
-# the behaviour before them: left out of a checkpoint's key at that value (`key_settings`), so
-# the runs' checkpoints stay valid.
-ADDED_SETTINGS = {"body_relax": 0}
+# Settings added while the data set's regeneration was under way. Their defaults keep the
+# behaviour before them (as `recorded_config` assumes), and at the default they are left out
+# of a checkpoint's key (`key_settings`), so the runs' checkpoints stay valid.
+ADDED_SETTINGS = ("body_relax",)
 
 
 def key_settings(cfg: SelfCollisionConfig | None) -> dict | None:
-    """`dataclasses.asdict(cfg)` without the `ADDED_SETTINGS` at their neutral values (what a
+    """`dataclasses.asdict(cfg)` without the `ADDED_SETTINGS` at their defaults (what a
     checkpoint's key records); None for None."""
     if cfg is None:
         return None
+    default = SelfCollisionConfig()
     return {k: v for k, v in dataclasses.asdict(cfg).items()
-            if k not in ADDED_SETTINGS or v != ADDED_SETTINGS[k]}
+            if k not in ADDED_SETTINGS or v != getattr(default, k)}
 
 
 def with_settings(cfg: SelfCollisionConfig, text: str) -> SelfCollisionConfig:

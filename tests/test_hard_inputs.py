@@ -409,6 +409,28 @@ def test_a_signal_right_after_the_temporary_folder_appears_still_removes_it(
     assert list(tmp_path.iterdir()) == []  # neither the temporary folder nor a/
 
 
+@pytest.mark.parametrize("sig, exc", [(signal.SIGTERM, outdir.Terminated),
+                                      (signal.SIGINT, KeyboardInterrupt)])
+def test_a_signal_whose_exception_c_code_turned_into_another_error_is_still_reported(sig, exc):
+    # NumPy's structured-array comparison turned a Ctrl-C inside np.unique(axis=0) into a
+    # TypeError (a CLI run interrupted during subdivision exited 1 with a traceback). Here the
+    # handler's exception is replaced the same way; the block still raises the signal's.
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(exc) as got, outdir.terminate_as_exception():
+            try:
+                signal.raise_signal(sig)
+            except (KeyboardInterrupt, outdir.Terminated):
+                raise TypeError("Cannot compare structured arrays") from None
+        assert isinstance(got.value.__cause__, TypeError)
+        # Without a signal, errors pass through unchanged.
+        with pytest.raises(TypeError), outdir.terminate_as_exception():
+            raise TypeError("a plain error")
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 # ------------------------------------------------------------------ inputs that now work
 
 

@@ -169,20 +169,48 @@ def _signals_deferred() -> Iterator[None]:
 
 @contextlib.contextmanager
 def terminate_as_exception() -> Iterator[None]:
-    """Raise `Terminated` on SIGTERM inside the block (main thread only; else a no-op)."""
+    """Raise `Terminated` on SIGTERM inside the block (main thread only; else a no-op).
 
-    def handler(signum, frame):
+    A signal's exception raised inside C code can come out as another error: NumPy's
+    structured-array comparison (`np.unique(..., axis=0)`) turned a Ctrl-C into a TypeError
+    ("Cannot compare structured arrays"). So the block records SIGTERM and, where Python's
+    usual Ctrl-C handler is installed, SIGINT, and an exception leaving the block after one
+    arrived becomes that signal's (`Terminated` or KeyboardInterrupt, from the original).
+    """
+    received = []
+
+    def on_term(signum, frame):
+        received.append(signum)
         raise Terminated()
 
+    def on_int(signum, frame):
+        received.append(signum)
+        raise KeyboardInterrupt
+
     try:
-        previous = signal.signal(signal.SIGTERM, handler)
+        previous = signal.signal(signal.SIGTERM, on_term)
     except ValueError:  # not the main thread
         yield
         return
+    # Only Python's own Ctrl-C handler is wrapped: an ignored SIGINT (a background job) or a
+    # caller's handler is left as it is.
+    previous_int = signal.getsignal(signal.SIGINT)
+    if previous_int is signal.default_int_handler:
+        signal.signal(signal.SIGINT, on_int)
     try:
         yield
+    except (KeyboardInterrupt, Terminated):
+        raise
+    except BaseException as e:
+        if not received:
+            raise
+        if received[-1] == signal.SIGTERM:
+            raise Terminated() from e
+        raise KeyboardInterrupt from e
     finally:
         signal.signal(signal.SIGTERM, previous)
+        if previous_int is signal.default_int_handler:
+            signal.signal(signal.SIGINT, previous_int)
 
 
 def display_path(path) -> str:

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax import enhancer, lift, mesh, meshio, pipeline, timing
+from wrinkle_jax import enhancer, lift, meshio, pipeline, subdivision, timing
 from wrinkle_jax.cli import _demo_sequence_path
 
 
@@ -72,7 +72,7 @@ def main() -> None:
 
         runs[f"L{level}"] = run
         # The common evaluation mesh: this level refined (linearly) to the finest level.
-        rest = mesh.subdivision(fine, finest - level, "midpoint")
+        rest = subdivision.build(fine, finest - level, "midpoint")
         evals[level] = (fine, sub, rest, rest.garment(fine))
     t = timing.alternate(runs, reps=args.reps)
     for level in levels:

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from wrinkle_jax import bodies, lift, mesh, primitives
+from wrinkle_jax import bodies, lift, mesh, primitives, subdivision
 
 PHI = 5e3
 
@@ -15,7 +15,7 @@ PHI = 5e3
 def case():
     """A 9x9 coarse sheet subdivided twice (33x33 lifted vertices), cut 30 mm deep by a capsule."""
     coarse = primitives.grid_sheet(9, 9, size=(0.4, 0.4))
-    sub = mesh.subdivision(coarse, 2)
+    sub = subdivision.build(coarse, 2)
     fine = jnp.asarray(sub.apply(jnp.asarray(coarse.vertices)))
     top = lift.lift_topology(np.asarray(sub.faces), fine.shape[0])
     c = np.array([0.2, 0.2, -0.04])
@@ -58,7 +58,7 @@ def test_same_solution_fewer_iterations(case):
 
 def test_without_levels_the_correction_is_the_whole_fixed_system(case):
     coarse, _, _, _, body = case
-    sub0 = mesh.subdivision(coarse, 0)
+    sub0 = subdivision.build(coarse, 0)
     top0 = lift.lift_topology(np.asarray(coarse.faces), coarse.num_vertices)
     cfg = lift.ResolveConfig(coarse_mass=0.05, cg_tol=1e-6)
     co = lift.resolve_coarse(sub0, top0, PHI, cfg)

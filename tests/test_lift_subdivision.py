@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from wrinkle_jax import enhancer, lift, mesh, pipeline, primitives
+from wrinkle_jax import enhancer, lift, mesh, pipeline, primitives, subdivision
 from wrinkle_jax.nn.unet import UNetConfig
 
 
@@ -82,7 +82,7 @@ def test_pipeline_auto_picks_the_level_from_the_models_texel(texel):
     pipe = pipeline.make_pipeline(g, enh, pipeline.PipelineConfig(subdivision="auto"),
                                   compile=False)
     assert pipe.subdivision.levels == expected
-    assert pipe.fine_garment.num_vertices == mesh.subdivision(g, expected).garment(g).num_vertices
+    assert pipe.fine_garment.num_vertices == subdivision.build(g, expected).garment(g).num_vertices
     # An explicit level is used as given, whatever the texel size.
     pipe3 = pipeline.make_pipeline(g, enh, pipeline.PipelineConfig(subdivision=3), compile=False)
     assert pipe3.subdivision.levels == 3

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax import lift as L
-from wrinkle_jax import mesh, primitives, stages
+from wrinkle_jax import primitives, stages, subdivision
 
 # Tight enough that cold and warm starts stop at the same minimizer (float32).
 TIGHT = L.SolverConfig(max_iters=40, tol=1e-7, cg_tol=1e-6, cg_max_iters=200)
@@ -41,7 +41,7 @@ def _sequence():
     frames = []
     for amp in (0.01, 0.014):
         g = primitives.grid_sheet(10, 10, size=(0.12, 0.12), height_fn=coarse_height(amp))
-        sub = mesh.subdivision(g, 1)
+        sub = subdivision.build(g, 1)
         fine = sub.garment(g)
         frames.append((np.asarray(fine.vertices), wrinkled_normals(fine.vertices, amp)))
     rot = _rotation((0.3, 1.0, 0.2), np.radians(35))

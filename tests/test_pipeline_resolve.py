@@ -8,7 +8,7 @@ with the push: 1.9 mm here (6 %), <= 0.49 mm on the benchmark's scenes
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax import bodies, lift, mesh, pipeline, primitives
+from wrinkle_jax import bodies, lift, pipeline, primitives, subdivision
 from wrinkle_jax.pipeline_setup import LIFT_RESOLVE
 
 
@@ -16,7 +16,7 @@ def test_pipeline_resolve_default_is_the_cheap_two_level_solve_and_stays_close_t
     assert pipeline.PipelineConfig().resolve == LIFT_RESOLVE
     assert LIFT_RESOLVE.coarse_mass is not None
     coarse = primitives.grid_sheet(13, 13, size=(0.5, 0.5))
-    sub = mesh.subdivision(coarse, 2)
+    sub = subdivision.build(coarse, 2)
     v = jnp.asarray(sub.apply(jnp.asarray(coarse.vertices)))
     top = lift.lift_topology(np.asarray(sub.faces), v.shape[0])
     c = np.array([0.25, 0.25, -0.05])

@@ -3,7 +3,7 @@ garment-body interpenetration (the paper's Sec. 4.3), differentiable and sparse.
 
 Pipeline of one frame:
 
-    coarse (Vc, 3) --upsample--> fine p0 (V, 3)      (mesh.subdivide_to_edge_length, ~10 mm)
+    coarse (Vc, 3) --upsample--> fine p0 (V, 3)      (subdivision.to_edge_length, ~10 mm)
     N* (H, W, 3)  --sample_target_normals--> n (V, 3) (bilinear at the vertex UVs)
     (p0, n) --lift--> p (V, 3) --resolve_penetration(body)--> p' (V, 3)
 
@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax import bodies as body_lib
-from wrinkle_jax import mesh, normalmap, solvers
+from wrinkle_jax import mesh, normalmap, solvers, subdivision
 
 # The energy and its pieces, re-exported: `lift` is where users (and tests) find them.
 from wrinkle_jax.lift_energy import (  # noqa: F401
@@ -65,6 +65,7 @@ from wrinkle_jax.lift_energy import (  # noqa: F401
 )
 from wrinkle_jax.numerics import normalize, safe_div, to_device
 from wrinkle_jax.solvers import SolverConfig  # re-exported: the `solver` argument of `lift`
+from wrinkle_jax.subdivision import Subdivision
 
 # k of `texel_subdivision_level`: lifted edges of at least this many texels (measured on the
 # error/time Pareto of benchmarks/bench_subdivision.py, see its JSON).
@@ -134,11 +135,11 @@ def upsample(garment: mesh.Garment, target_edge: float = REFERENCE_EDGE,
       jittable `subdivision.apply(frame)` (vmap over frames).
     """
     if levels is None:
-        sub = mesh.subdivide_to_edge_length(garment, target_edge, scheme, max_levels)
+        sub = subdivision.to_edge_length(garment, target_edge, scheme, max_levels)
     else:
         if int(levels) < 0:
             raise ValueError(f"subdivision levels must be >= 0, got {levels}")
-        sub = mesh.subdivision(garment, int(levels), scheme)
+        sub = subdivision.build(garment, int(levels), scheme)
     return sub.garment(garment), sub
 
 
@@ -253,7 +254,7 @@ def lift(vertices0, topology: LiftTopology, target_normals,
     return lift_with_info(vertices0, topology, target_normals, weights, solver, start)[0]
 
 
-def lift_from_normal_map(coarse_vertices, subdivision: mesh.Subdivision,
+def lift_from_normal_map(coarse_vertices, subdivision: Subdivision,
                          fine_garment: mesh.Garment, topology: LiftTopology, normal_map,
                          layout: normalmap.UVLayout,
                          weights: LiftWeights = LiftWeights(),  # noqa: B008
@@ -367,7 +368,7 @@ def _gram(q, rows: int, cols: int) -> np.ndarray:
     return np.bincount(t[0] * cols + t[1], t[2], minlength=cols * cols).reshape(cols, cols)
 
 
-def resolve_coarse(subdivision: mesh.Subdivision, topology: LiftTopology, phi: float = 5e3,
+def resolve_coarse(subdivision: Subdivision, topology: LiftTopology, phi: float = 5e3,
                    config: ResolveConfig = ResolveConfig()) -> ResolveCoarse | None:  # noqa: B008
     """Precompute the push-out's coarse-grid correction for one garment (NumPy, once).
 
@@ -382,7 +383,7 @@ def resolve_coarse(subdivision: mesh.Subdivision, topology: LiftTopology, phi: f
     15 ms each). The result is still a symmetric positive definite preconditioner.
 
     Args:
-      subdivision: `mesh.Subdivision` from the coarse garment to the lifted mesh.
+      subdivision: `Subdivision` from the coarse garment to the lifted mesh.
       topology: `lift_topology` of the lifted mesh. phi: the push-out's phi.
       config: ResolveConfig; nothing is built (None) when `config.coarse_mass` is None or the
         coarse garment has more than `config.coarse_max_vertices` vertices.

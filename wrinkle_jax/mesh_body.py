@@ -218,8 +218,8 @@ def _closed_mesh_normals(v: np.ndarray, f: np.ndarray):
             np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1), 1e-300)
         np.add.at(vn, f[:, k], fn * np.arccos(np.clip(cosang, -1.0, 1.0))[:, None])
     he = mesh.face_sides(f)
-    edges, inv, counts = np.unique(np.sort(he, axis=1), axis=0, return_inverse=True,
-                                   return_counts=True)
+    edges, inv, counts = mesh.unique_rows(np.sort(he, axis=1), return_inverse=True,
+                                          return_counts=True)
     if (counts != 2).any():
         bad = edges[counts != 2][0]
         raise BodyError(
@@ -333,7 +333,7 @@ def mesh_template(vertices, faces, cell_size: float | None = None, cluster_size:
     offs = np.stack([local // (sp[:, 1] * sp[:, 2]), (local // sp[:, 2]) % sp[:, 1],
                      local % sp[:, 2]], 1)
     cells = first[q] + offs
-    n_cells = len(np.unique(cells, axis=0))
+    n_cells = len(mesh.unique_rows(cells))
     table = 1 << max(10, int(math.ceil(math.log2(4 * n_cells))))
     per_slot = np.bincount(_slots(cells, table, np), minlength=table)
     # Read a quantile, not the maximum: a few dense slots (fingers, face) would otherwise set

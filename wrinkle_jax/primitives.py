@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from wrinkle_jax.mesh import Garment, make_garment, subdivision
+from wrinkle_jax import subdivision
+from wrinkle_jax.mesh import Garment, make_garment, unique_rows
 
 
 def _grid_faces(nx: int, ny: int, alternate: bool = True) -> np.ndarray:
@@ -140,7 +141,7 @@ def uv_cube(size: float = 0.4, n: int = 8, gap: float = 0.05) -> Garment:
     uf = np.concatenate(faces)
     # Weld coincident corners/edges in 3D while the UV faces keep the per-panel copies.
     key = np.round(v / (size / n) * 4).astype(np.int64)
-    _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    _, first, inv = unique_rows(key, return_index=True, return_inverse=True)
     order = np.argsort(first)
     remap = np.empty_like(order)
     remap[order] = np.arange(len(order))
@@ -233,7 +234,7 @@ def wrinkled_sheet_case(cells: int) -> dict:
     """
     side = cells * 0.01
     coarse = grid_sheet(cells // 4, cells // 4, size=(side, side), height_fn=draped_height)
-    fine = subdivision(coarse, 2).garment(coarse)
+    fine = subdivision.build(coarse, 2).garment(coarse)
     x = np.asarray(fine.vertices[:, 0], np.float64)
     y = np.asarray(fine.vertices[:, 1], np.float64)
     d = 1e-6  # central differences of an analytic field: ~1e-10 truncation error

@@ -33,7 +33,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from wrinkle_jax.mesh import Garment, make_garment, unique_edges
+from wrinkle_jax.mesh import Garment, make_garment, unique_edges, unique_rows
 
 
 class PatternError(ValueError):
@@ -231,7 +231,7 @@ def _local_delaunay(points: np.ndarray, spacing: float, k_cand: int = 10, k_chec
     tris = np.concatenate(keep) if keep else np.zeros((0, 3), np.int64)
     # Each triangle is found from up to three of its corners: deduplicate, keep orientation.
     srt = np.sort(tris, 1)
-    _, first = np.unique(srt, axis=0, return_index=True)
+    _, first = unique_rows(srt, return_index=True)
     return tris[np.sort(first)]
 
 

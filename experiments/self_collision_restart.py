@@ -2,7 +2,7 @@
 
     python -m experiments.self_collision_restart --scene skirt_walk --material denim_light \
         --start 190 --stop 226 [--variants "recorded;post_passes=3;substeps=40"] [--every 2] \
-        [--out PATH]
+        [--jitter 1e-6 --repeats 3] [--out PATH]
 
 Continues a data-set file (`data/sequences/<scene>/<material>_<resolution>_s<seed>.npz`) from
 its frame `--start` to `--stop` once per variant (`sim.scenes.resimulate`: the stored positions
@@ -12,6 +12,11 @@ others are compared with, not the stored frames) and counts the intersecting fac
 `SelfCollisionConfig` fields and `substeps` (a substep count keeps the rebuild interval in time,
 as `scenes.self_collision_config` does). Prints one JSON line per variant and writes them all to
 `--out` (default: none).
+
+A cloth run is chaotic: two continuations that differ by far less than any setting does can
+still peak differently. `--jitter SIGMA --repeats K` runs each variant K times from start frames
+moved by Gaussian noise of SIGMA m per coordinate (seeds 1..K, `jitter_start`), so the spread of
+the peaks under one setting is measured beside the differences between settings.
 """
 
 from __future__ import annotations
@@ -52,6 +57,19 @@ def variant_settings(text: str, recorded: dict, substeps: int) -> tuple[SelfColl
         raise SystemExit(f"{e}; or substeps") from None
 
 
+def jitter_start(seq: meshio.GarmentSequence, start: int, sigma: float,
+                 seed: int) -> meshio.GarmentSequence:
+    """seq with its stored frames start - 1 and start (what `scenes.resimulate` starts from:
+    positions and velocity) moved by independent N(0, sigma^2) m per coordinate; sigma 0 or
+    seed 0: seq itself. The other frames are shared, not copied."""
+    if sigma <= 0 or seed == 0:
+        return seq
+    noise = np.random.default_rng(seed).normal(0.0, sigma, (2, *seq.frames.shape[1:]))
+    frames = np.array(seq.frames)  # (T, V, 3) float32
+    frames[start - 1:start + 1] += noise.astype(np.float32)
+    return dataclasses.replace(seq, frames=frames)
+
+
 def main(argv=None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sequences", default=str(ROOT / "data" / "sequences"))
@@ -62,6 +80,10 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--stop", type=int, required=True)
     ap.add_argument("--variants", default="recorded;post_passes=3")
     ap.add_argument("--every", type=int, default=2)
+    ap.add_argument("--jitter", type=float, default=0.0,
+                    help="m: Gaussian noise on the start frames (with --repeats)")
+    ap.add_argument("--repeats", type=int, default=1,
+                    help="runs per variant; with --jitter, seeds 1..K")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     seed = scenes.dataset_seed(args.scene)
@@ -73,17 +95,20 @@ def main(argv=None) -> list[dict]:
     setup = scenes.setup_scene(args.scene, args.resolution, seq.frames.shape[0], seed)
     faces = np.asarray(seq.garment.faces)
     rows = []
-    for text in args.variants.split(";"):
+    runs = [(text, k) for text in args.variants.split(";")
+            for k in (range(1, args.repeats + 1) if args.jitter > 0 else [0])]
+    for text, k in runs:
         cfg, substeps = variant_settings(text, meta["self_collision"], int(meta["substeps"]))
         t0 = time.perf_counter()
-        xs, final = scenes.resimulate(seq, args.start, args.stop, cfg, substeps, setup=setup,
-                                      return_state=True)
+        xs, final = scenes.resimulate(jitter_start(seq, args.start, args.jitter, k), args.start,
+                                      args.stop, cfg, substeps, setup=setup, return_state=True)
         wall = time.perf_counter() - t0
         frames = list(range(args.start + 1, args.stop + 1, args.every))
         pct = [100.0 * len(np.unique(intersect.intersecting_pairs(xs[k - args.start - 1], faces)))
                / len(faces) for k in frames]
         row = {"file": str(path.relative_to(path.parents[2])), "variant": text,
                "substeps": substeps, "self_collision": dataclasses.asdict(cfg),
+               "jitter_m": args.jitter if k else 0.0, "jitter_seed": k,
                "wall_s_with_compile": round(wall, 1), "frames": frames,
                "face_pct": [round(p, 3) for p in pct],
                "max_face_pct": round(max(pct), 3), "mean_face_pct": round(float(np.mean(pct)), 3),

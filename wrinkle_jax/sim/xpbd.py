@@ -394,38 +394,36 @@ def cloth_simulator(config: SimConfig) -> tuple[Callable, Callable]:
                 p = p.at[model.pin_idx].set(drive0.pins + s1 * (drive1.pins - drive0.pins))
             c0 = colliders.lerp_colliders(drive0.colliders, drive1.colliders, s0)
             c1 = colliders.lerp_colliders(drive0.colliders, drive1.colliders, s1)
+
+            def body_contacts(q, friction, passes):
+                """The colliders' contacts applied to the free vertices, and (V,) which
+                vertices they moved."""
+                moved = colliders.collide(q, x, c0, c1, params.offset, friction, passes=passes)
+                return jnp.where(free[:, None] > 0, moved, q), jnp.any(moved != q, axis=-1)
+
             # Contacts before the constraint sweep too: a moving body's push then spreads
             # through the cloth in the same substep instead of stretching the contact ring.
             if config.pre_collide:
-                moved = colliders.collide(p, x, c0, c1, params.offset, params.friction, passes=1)
-                p = jnp.where(free[:, None] > 0, moved, p)
+                p, _ = body_contacts(p, params.friction, 1)
             p = constraint_iterations(p)
             if sc is not None:
                 # After the cloth constraints (they would undo it).
                 for _ in range(sc.passes):
                     p, _ = selfcollision.project_pairs(p, w, cand, frame)
-            moved = colliders.collide(p, x, c0, c1, params.offset, params.friction,
-                                      passes=config.collision_passes)
-            if sc is not None and sc.post_passes:
+            p, held = body_contacts(p, params.friction, config.collision_passes)
+            if sc is not None:
                 # A layer pressed between the body and another layer: the body contact pushed
                 # it out into that layer. Those vertices are now held (inverse mass 0), so the
                 # outer layer gives way instead of pushing them back into the body.
-                held = jnp.any(moved != p, axis=-1)
-                p = jnp.where(free[:, None] > 0, moved, p)
                 w_held = jnp.where(held, 0.0, w)
                 for _ in range(sc.post_passes):
                     p, _ = selfcollision.project_pairs(p, w_held, cand, frame)
-            else:
-                p = jnp.where(free[:, None] > 0, moved, p)
-            if sc is not None:
                 # Layers pressed on the body (both held above): the pair separates with the
                 # cloth's masses, the body pushes the inner layer back out (no friction: it
                 # was applied once this substep).
                 for _ in range(sc.body_relax):
                     p, _ = selfcollision.project_pairs(p, w, cand, frame)
-                    moved = colliders.collide(p, x, c0, c1, params.offset, None,
-                                              passes=config.collision_passes)
-                    p = jnp.where(free[:, None] > 0, moved, p)
+                    p, _ = body_contacts(p, None, config.collision_passes)
             return (p, (p - x) / h, cand, sides, overflow), None
 
         cand0 = sides0 = None

@@ -224,3 +224,5 @@ def test_unique_rows_equals_numpy_row_form(shape, low, high):
             np.testing.assert_array_equal(g, w)
     # (The +-2^40 case's key would need 82 bits: NumPy's row form answers it, and empty input.)
     assert mesh.unique_rows(np.zeros((0, 2), np.int64)).shape == (0, 2)
+    big = np.array([[2**63 + 5, 1], [3, 1], [2**63 + 5, 1]], np.uint64)
+    np.testing.assert_array_equal(mesh.unique_rows(big), np.unique(big, axis=0))

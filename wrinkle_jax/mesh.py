@@ -250,13 +250,14 @@ def unique_rows(rows, return_index: bool = False, return_inverse: bool = False,
     Same outputs as NumPy's row form (the unique rows in lexicographic order, then, as asked,
     the index of each one's first occurrence, the (N,) inverse and the counts), without its
     structured-record comparison: that is slower, and a KeyboardInterrupt raised inside it
-    surfaces as a TypeError. Rows whose mixed-radix key would not fit in 63 bits (and empty or
-    non-integer input) go to NumPy's row form.
+    surfaces as a TypeError. Rows whose mixed-radix key would not fit in 63 bits (and empty,
+    uint64 or non-integer input) go to NumPy's row form.
     """
     a = np.asarray(rows)
     flags = dict(return_index=return_index, return_inverse=return_inverse,
                  return_counts=return_counts)
-    if a.ndim != 2 or a.shape[0] == 0 or not np.issubdtype(a.dtype, np.integer):
+    if (a.ndim != 2 or a.shape[0] == 0 or not np.issubdtype(a.dtype, np.integer)
+            or a.dtype == np.uint64):  # (its values need not fit in int64)
         return np.unique(a, axis=0, **flags)
     lo = a.min(0).astype(np.int64)
     span = [int(s) for s in a.max(0).astype(np.int64) - lo + 1]

@@ -61,7 +61,7 @@ def jitter_start(seq: meshio.GarmentSequence, start: int, sigma: float,
                  seed: int) -> meshio.GarmentSequence:
     """seq with its stored frames start - 1 and start (what `scenes.resimulate` starts from:
     positions and velocity) moved by independent N(0, sigma^2) m per coordinate; sigma 0 or
-    seed 0: seq itself. The other frames are shared, not copied."""
+    seed 0: seq itself. The input is left alone (the frames are copied)."""
     if sigma <= 0 or seed == 0:
         return seq
     noise = np.random.default_rng(seed).normal(0.0, sigma, (2, *seq.frames.shape[1:]))
@@ -95,12 +95,12 @@ def main(argv=None) -> list[dict]:
     setup = scenes.setup_scene(args.scene, args.resolution, seq.frames.shape[0], seed)
     faces = np.asarray(seq.garment.faces)
     rows = []
-    runs = [(text, k) for text in args.variants.split(";")
-            for k in (range(1, args.repeats + 1) if args.jitter > 0 else [0])]
-    for text, k in runs:
+    runs = [(text, rep) for text in args.variants.split(";")
+            for rep in (range(1, args.repeats + 1) if args.jitter > 0 else [0])]
+    for text, rep in runs:
         cfg, substeps = variant_settings(text, meta["self_collision"], int(meta["substeps"]))
         t0 = time.perf_counter()
-        xs, final = scenes.resimulate(jitter_start(seq, args.start, args.jitter, k), args.start,
+        xs, final = scenes.resimulate(jitter_start(seq, args.start, args.jitter, rep), args.start,
                                       args.stop, cfg, substeps, setup=setup, return_state=True)
         wall = time.perf_counter() - t0
         frames = list(range(args.start + 1, args.stop + 1, args.every))
@@ -108,7 +108,7 @@ def main(argv=None) -> list[dict]:
                / len(faces) for k in frames]
         row = {"file": str(path.relative_to(path.parents[2])), "variant": text,
                "substeps": substeps, "self_collision": dataclasses.asdict(cfg),
-               "jitter_m": args.jitter if k else 0.0, "jitter_seed": k,
+               "jitter_m": args.jitter if rep else 0.0, "jitter_seed": rep,
                "wall_s_with_compile": round(wall, 1), "frames": frames,
                "face_pct": [round(p, 3) for p in pct],
                "max_face_pct": round(max(pct), 3), "mean_face_pct": round(float(np.mean(pct)), 3),

@@ -50,14 +50,8 @@ def test_midpoint_subdivision_halves_edges_and_keeps_uv_seams(cube):
 
 def _max_dihedral(g):
     fn = np.asarray(mesh.face_normals(*_j(g)))
-    f = np.asarray(g.faces, np.int64)
-    he = np.sort(np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], 1).reshape(-1, 2), 1)
-    _, inv, cnt = np.unique(he, axis=0, return_inverse=True, return_counts=True)
-    face_of = np.repeat(np.arange(len(f)), 3)
-    order = np.argsort(inv, kind="stable")
-    keep = cnt[inv[order]] == 2  # interior edges: the two faces sharing each
-    pairs = face_of[order][keep].reshape(-1, 2)
-    cos = np.clip((fn[pairs[:, 0]] * fn[pairs[:, 1]]).sum(1), -1, 1)
+    a, b = mesh.shared_sides(g.faces)  # the two sides of each interior edge
+    cos = np.clip((fn[a // 3] * fn[b // 3]).sum(1), -1, 1)
     return np.degrees(np.arccos(cos)).max()
 
 

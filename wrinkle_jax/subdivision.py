@@ -125,7 +125,7 @@ def _loop_operator(faces: np.ndarray, n: int):
     # Even (original) vertices.
     bnd_edges = edges[~interior]
     bdeg = np.bincount(bnd_edges.reshape(-1), minlength=n)
-    ue = unique_edges(f).astype(np.int64)
+    ue = edges  # the unique sorted edges of f (from the midpoint split), int64
     deg = np.bincount(ue.reshape(-1), minlength=n).astype(np.float64)
     idx = np.arange(n)
     is_bnd = bdeg > 0

@@ -398,38 +398,51 @@ def _space_to_depth_padded(g):
     return lax.bitcast_convert_type(s, g.dtype)
 
 
-def _deconv_forward(x, kernel, save=False):
+def _deconv_forward(x, kernel):
     n, h, w, c = x.shape
     o = kernel.shape[-1]
     patches = _im2col(x, 2, h + 1, w + 1, pad=1)  # (N, H+1, W+1, 4 C)
-    if save:
-        patches = _residual(patches)
     z = _dot(patches, _phase_kernel(kernel)).reshape(n, h + 1, w + 1, 2, 2, o)
-    return _depth_to_space(z, h, w), patches
+    return _depth_to_space(z, h, w)
+
+
+def _windows_t(x):
+    """Channel-major 2x2 windows of `x` (N, H, W, C) zero-padded by 1: (4 C, N (H+1) (W+1)),
+    rows (ty, tx, c) -- the transpose of the forward's patches, built from the transposed
+    (C, N, H, W) array so that every shifted view is a long contiguous run (`_im2col_t`)."""
+    _, h, w, c = x.shape
+    xt = jnp.pad(jnp.transpose(_bits(x), (3, 0, 1, 2)), ((0, 0), (0, 0), (1, 1), (1, 1)))
+    parts = [xt[None, :, :, a:a + h + 1, b:b + w + 1] for a in range(2) for b in range(2)]
+    cols = _concat(parts, axis=0)  # (4, C, N, H+1, W+1)
+    return lax.bitcast_convert_type(cols, x.dtype).reshape(4 * c, -1)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3))
 def _deconv(x, kernel, compute, x_dtype):
     del x_dtype
     dt = _DTYPES[compute]
-    return _deconv_forward(x.astype(dt), kernel.astype(dt))[0]
+    return _deconv_forward(x.astype(dt), kernel.astype(dt))
 
 
 def _deconv_fwd(x, kernel, compute, x_dtype):
     del x_dtype
     dt = _DTYPES[compute]
-    y, patches = _deconv_forward(x.astype(dt), kernel.astype(dt), save=True)
-    return y, (patches, kernel)
+    xd = x.astype(dt)
+    return _deconv_forward(xd, kernel.astype(dt)), (xd, kernel)
 
 
 def _deconv_bwd(compute, x_dtype, res, g):
-    patches, kernel = res
+    x, kernel = res
     dt = _DTYPES[compute]
     n, h2, w2, o = g.shape
     h, w, c = h2 // 2, w2 // 2, kernel.shape[2]
     s = _space_to_depth_padded(g.astype(dt))  # (N, H+1, W+1, 4 O); phase (dy,dx) = (1-py,1-px)
     dx = _dot(_im2col(s, 2, h, w), _grad_kernel(kernel).astype(dt))
-    dk = _dot_tn_t(s, patches).reshape(2, 2, c, 2, 2, o)  # (ty, tx, c, py, px, o)
+    # The kernel gradient patches^T s: its transposed operand is the channel-major windows of
+    # the saved input (a plain transpose of x), not s: s is usually fused with the layer's
+    # output gradient (a norm's backward, a Winograd output's interleave), and a transposed
+    # copy of that fusion is a strided loop ~6x slower per element (measured).
+    dk = _dot(_windows_t(x), s.reshape(-1, 4 * o)).reshape(2, 2, c, 2, 2, o)  # (ty,tx,c,py,px,o)
     dk = dk[:, :, :, ::-1, ::-1].transpose(0, 3, 1, 4, 2, 5).reshape(4, 4, c, o)
     return dx.astype(x_dtype), dk.astype(kernel.dtype)
 

@@ -15,6 +15,10 @@ optional extra, never a dependency of the package or of `make test`):
         --extra-index-url https://download.pytorch.org/whl/cpu
     /tmp/refvenv/bin/python benchmarks/bench_reference.py --authors-repo /tmp/dde [--rounds 3]
 
+Where only PyPI is reachable, `pip install -e .[dev,reference]` takes PyPI's torch wheel, which
+pulls ~2.5 GB of CUDA libraries: its import loads them even on CPU, so they cannot be left out
+(`--no-deps` fails on `libcudart`). Session 41's runs used torch 2.5.1 installed that way.
+
 What is measured (`wrinkle_jax.timing.alternate`: every round calls each variant once, back to
 back, so load drifts hit all alike; ratios are medians of the per-round ratios):
 

@@ -238,19 +238,21 @@ def _shifted_sum(x, kernel, pad):
     return sum(up[:, a:a + ho, b:b + wo, 3 * a + b, :] for a in range(3) for b in range(3))
 
 
-def _im2col_t(x, h, w, flip=False):
-    """Channel-major 3x3 patches of small-channel `x` (N, H, W, C), zero-padded by 1:
-    (9 C, N H W) with rows (dy, dx, c) -- or taps (2 - dy, 2 - dx) when `flip`. Built from the
-    transposed (C, N, H, W) array, so every shifted view is a long contiguous run; used as the
-    first operand of kernel-gradient dots (no transposed copy of the wide operand)."""
-    xt = jnp.transpose(_bits(x), (3, 0, 1, 2))
-    xt = jnp.pad(xt, ((0, 0), (0, 0), (1, 1), (1, 1)))
-    taps = [(a, b) for a in range(3) for b in range(3)]
+def _im2col_t(x, taps=3, flip=False):
+    """Channel-major patches of `x` (N, H, W, C) zero-padded by 1, for kernel-gradient dots
+    without a transposed copy of the wide operand: (taps^2 C, N Ho Wo) with Ho = H + 3 - taps,
+    rows (dy, dx, c) -- or taps (taps-1-dy, taps-1-dx) when `flip`. taps=3: the 3x3 conv's
+    patches (Ho = H); taps=2: the transposed conv's 2x2 windows (Ho = H + 1). Built from the
+    transposed (C, N, H, W) array, so every shifted view is a long contiguous run."""
+    _, h, w, c = x.shape
+    ho, wo = h + 3 - taps, w + 3 - taps
+    xt = jnp.pad(jnp.transpose(_bits(x), (3, 0, 1, 2)), ((0, 0), (0, 0), (1, 1), (1, 1)))
+    offsets = [(a, b) for a in range(taps) for b in range(taps)]
     if flip:
-        taps = [(2 - a, 2 - b) for a, b in taps]
-    parts = [xt[None, :, :, a:a + h, b:b + w] for a, b in taps]
-    cols = _concat(parts, axis=0)  # (9, C, N, H, W)
-    return lax.bitcast_convert_type(cols, x.dtype).reshape(9 * x.shape[-1], -1)
+        offsets = [(taps - 1 - a, taps - 1 - b) for a, b in offsets]
+    parts = [xt[None, :, :, a:a + ho, b:b + wo] for a, b in offsets]
+    cols = _concat(parts, axis=0)  # (taps^2, C, N, Ho, Wo)
+    return lax.bitcast_convert_type(cols, x.dtype).reshape(taps * taps * c, -1)
 
 
 def _conv3x3_forward(x, kernel, padding, save=False):
@@ -308,11 +310,11 @@ def _conv3x3_bwd(padding, compute, x_dtype, res, g):
         dx = _reflect_pad_adjoint(dxp)
     if padding == "ZERO" and _output_side(c, o):
         # dk[a, b] = sum_q x[q]^T g[q + 1 - (a, b)]: channel-major patches of g, taps flipped.
-        dk = _dot(_im2col_t(g, h, w, flip=True), residual.reshape(-1, c))  # (9 O, C)
+        dk = _dot(_im2col_t(g, flip=True), residual.reshape(-1, c))  # (9 O, C)
         dk = dk.reshape(3, 3, o, c).transpose(0, 1, 3, 2)
     elif _small_input(c, o):
         if padding == "ZERO":
-            cols = _im2col_t(residual, h, w)
+            cols = _im2col_t(residual)
         else:  # reflection: channel-major patches of the (small) padded input
             cols = _im2col(residual, 3, h, w, pad=1, mode=padding).reshape(-1, 9 * c).T
         dk = _dot(cols, g.reshape(-1, o)).reshape(3, 3, c, o)
@@ -406,17 +408,6 @@ def _deconv_forward(x, kernel):
     return _depth_to_space(z, h, w)
 
 
-def _windows_t(x):
-    """Channel-major 2x2 windows of `x` (N, H, W, C) zero-padded by 1: (4 C, N (H+1) (W+1)),
-    rows (ty, tx, c) -- the transpose of the forward's patches, built from the transposed
-    (C, N, H, W) array so that every shifted view is a long contiguous run (`_im2col_t`)."""
-    _, h, w, c = x.shape
-    xt = jnp.pad(jnp.transpose(_bits(x), (3, 0, 1, 2)), ((0, 0), (0, 0), (1, 1), (1, 1)))
-    parts = [xt[None, :, :, a:a + h + 1, b:b + w + 1] for a in range(2) for b in range(2)]
-    cols = _concat(parts, axis=0)  # (4, C, N, H+1, W+1)
-    return lax.bitcast_convert_type(cols, x.dtype).reshape(4 * c, -1)
-
-
 @functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3))
 def _deconv(x, kernel, compute, x_dtype):
     del x_dtype
@@ -442,7 +433,8 @@ def _deconv_bwd(compute, x_dtype, res, g):
     # the saved input (a plain transpose of x), not s: s is usually fused with the layer's
     # output gradient (a norm's backward, a Winograd output's interleave), and a transposed
     # copy of that fusion is a strided loop ~6x slower per element (measured).
-    dk = _dot(_windows_t(x), s.reshape(-1, 4 * o)).reshape(2, 2, c, 2, 2, o)  # (ty,tx,c,py,px,o)
+    dk = _dot(_im2col_t(x, taps=2), s.reshape(-1, 4 * o))
+    dk = dk.reshape(2, 2, c, 2, 2, o)  # (ty, tx, c, py, px, o)
     dk = dk[:, :, :, ::-1, ::-1].transpose(0, 3, 1, 4, 2, 5).reshape(4, 4, c, o)
     return dx.astype(x_dtype), dk.astype(kernel.dtype)
 

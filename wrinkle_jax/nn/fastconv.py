@@ -51,8 +51,12 @@ XLA:CPU specifics (each measured; they decide the speed more than the FLOPs do):
 * arrays read by two dots (the patches, in the forward and the kernel gradient) and a
   reflection-padded input are materialized once (`optimization_barrier`): otherwise XLA
   re-derives them per consumer and stops fusing the shifted views (10x slower backward);
-* its dot runtime multiplies row-major `(M, K) @ (K, N)` only, so `a^T b` copies `a`
-  transposed: the operand to transpose is chosen per call site (never the patches);
+* a bfloat16 dot that contracts the leading axis of its first operand (`a^T b`) is run as a
+  float32 dot; `(M, K) @ (K, N)` and `(M, K) @ (N, K)^T` run as bfloat16 dots. So `a^T b`
+  needs `a` copied transposed, and that copy is fused with `a`'s producers into a strided loop
+  (a norm's backward fused in: 6-18x slower per element than a stored array's copy). The operand
+  to transpose is chosen per call site: the output gradient of the 3x3 conv, the saved input
+  of the transposed conv (`_im2col_t`'s channel-major windows), never the patches;
 * XLA's own transposed-convolution gradient is pathologically slow on CPU (~0.6-1 s per
   128 x 128 patch and layer at width 64) -- the main reason the plain U-Net trains slowly.
 
@@ -107,8 +111,8 @@ def _dot(a, b):
 def _dot_tn(a, b):
     """`a^T b` over all but the last axis: a (N, H, W, K), b (N, H, W, O) -> (K, O) float32.
 
-    XLA:CPU's runtime multiplies row-major `(M, K) @ (K, N)` only, so it copies `a` into a
-    transposed layout first: callers pass as `a` the operand that is cheapest to transpose (a
+    XLA:CPU copies `a` into a transposed layout first (a bfloat16 dot contracting `a`'s leading
+    axes is not one it runs): callers pass as `a` the operand that is cheapest to transpose (a
     materialized array, not patches whose shifted views XLA would fuse into a slow strided copy).
     """
     dims = tuple(range(a.ndim - 1))

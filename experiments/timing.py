@@ -42,21 +42,35 @@ top-level "coarse_sim", "fine_sim" and "ratio" are the first recipe's (the repor
 Writes `<out>/results.json` (frames timed, ms/frame per stage and per simulation, compile and
 setup seconds, ratios, vertex counts, machine) and `<out>/timing.png` (stacked bars).
 The machine's other load changes the numbers: its 1-minute load average is recorded.
+
+Run as a script, the process is set up as the `wrinkle-jax` command's is (`cli.main`): XLA's
+legacy CPU code generator (`cli.use_fast_compile`) and glibc keeping freed memory
+(`runtime.use_retained_memory`); the same environment variables opt out, and "process" in
+results.json records what was set.
 """
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
+from wrinkle_jax import cli, runtime
 
-from wrinkle_jax import MATERIALS, bodies, pipeline
-from wrinkle_jax import enhancer as enhancer_lib
-from wrinkle_jax.evaluation import cells as cell_lib
-from wrinkle_jax.evaluation import suite
-from wrinkle_jax.sim import scenes
+if __name__ == "__main__":  # this process runs as the `wrinkle-jax` one does, set before JAX
+    PROCESS = {"fast_compile": cli.use_fast_compile(),
+               "malloc_retained": runtime.use_retained_memory()}
+else:
+    PROCESS = {"fast_compile": False, "malloc_retained": False}
+
+import numpy as np  # noqa: E402
+
+from wrinkle_jax import MATERIALS, bodies, pipeline  # noqa: E402
+from wrinkle_jax import enhancer as enhancer_lib  # noqa: E402
+from wrinkle_jax.evaluation import cells as cell_lib  # noqa: E402
+from wrinkle_jax.evaluation import suite  # noqa: E402
+from wrinkle_jax.sim import scenes  # noqa: E402
 
 STAGES = ("bake", "tile", "network", "merge", "lift")
 RECIPES = ("legacy", "dataset")
@@ -347,6 +361,7 @@ def main(argv=None) -> int:
                  "separately (first round), not included"),
         "timings": {"total_s": time.perf_counter() - t_all},
         "machine": {**suite.machine_info(), "load_avg_1min_before": load_before},
+        "process": {**PROCESS, "xla_flags": os.environ.get("XLA_FLAGS", "")},
         "command": "python -m experiments.timing " + " ".join(
             sys.argv[1:] if argv is None else argv),
     }

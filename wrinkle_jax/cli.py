@@ -21,6 +21,9 @@ Exit codes: 0 success, 1 failure (bad input file, runtime error), 2 bad usage, 1
 The command (`main()` without arguments: the process is `wrinkle-jax`) runs XLA's CPU backend
 with its legacy code generator (`FAST_COMPILE_FLAG`, see `use_fast_compile`): set
 WRINKLE_JAX_XLA_DEFAULTS=1, or any value of that flag in XLA_FLAGS, to keep XLA's own choice.
+It also keeps freed memory in glibc's heap (`runtime.use_retained_memory`: XLA's large per-call
+temporaries are not page-faulted afresh every call); WRINKLE_JAX_MALLOC=default keeps glibc's
+own policy.
 """
 
 from __future__ import annotations
@@ -31,6 +34,8 @@ import os
 import sys
 from importlib import resources
 from pathlib import Path
+
+from wrinkle_jax import runtime  # standard library only, no JAX
 
 # One module per sub-command family (simulate: sim/command.py; classify, train-classifier:
 # classifier/cli.py); their names stay importable from here (old import paths).
@@ -312,6 +317,7 @@ def use_fast_compile(environ=None, backend_started: bool | None = None) -> bool:
 def main(argv: list[str] | None = None) -> int:
     if argv is None:  # the `wrinkle-jax` process itself, not a caller's (notebook, test)
         use_fast_compile()
+        runtime.use_retained_memory()
     argv = sys.argv[1:] if argv is None else list(argv)
     # The sub-command is the first argument that is not an option (the top level's only
     # options, -h and --version, take no value); only its parser is built in full, so the

@@ -21,6 +21,11 @@ The same with `--frames-per-batch 4` measures the CLI's setting (a chunk's patch
 network calls; `wrinkle-jax enhance` and `demo` stream chunks of 4 frames), for the CLI's
 `--batch` default, with the same rule.
 
+The process is set up as the `wrinkle-jax` command's is (`cli.main`: XLA's legacy CPU code
+generator, glibc keeping freed memory; the same environment variables opt out). Session 18's
+runs (`experiments/results/timing/batch*_s18.json`) had neither: large temporaries were then
+page-faulted afresh on every call, which weighs on the larger batches.
+
 Usage: python benchmarks/bench_batch.py [--frames 8] [--reps 4] [--sizes 2,4,8,16]
            [--frames-per-batch 1]
 """
@@ -29,13 +34,19 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 
-import numpy as np
+from wrinkle_jax import cli
 
-from wrinkle_jax import enhancer, meshio, pipeline, timing
-from wrinkle_jax.cli import _demo_sequence_path
-from wrinkle_jax.sim import scenes
+# Run as a script: set up as the `wrinkle-jax` process is, before JAX starts.
+PROCESS = cli.use_command_process() if __name__ == "__main__" else {}
+
+import numpy as np  # noqa: E402
+
+from wrinkle_jax import enhancer, meshio, pipeline, timing  # noqa: E402
+from wrinkle_jax.cli import _demo_sequence_path  # noqa: E402
+from wrinkle_jax.sim import scenes  # noqa: E402
 
 
 def garments(frames: int) -> dict:
@@ -97,6 +108,7 @@ def main(argv=None) -> int:
                for name, (g, f) in garments(args.frames).items()}
     print(json.dumps({"benchmark": "batch_size", "frames": args.frames, "reps": args.reps,
                       "frames_per_batch": args.frames_per_batch,
+                      "process": {**PROCESS, "xla_flags": os.environ.get("XLA_FLAGS", "")},
                       "garments": results, "chosen": choose(results, sizes)}, indent=1))
     return 0
 

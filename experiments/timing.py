@@ -44,9 +44,8 @@ setup seconds, ratios, vertex counts, machine) and `<out>/timing.png` (stacked b
 The machine's other load changes the numbers: its 1-minute load average is recorded.
 
 Run as a script, the process is set up as the `wrinkle-jax` command's is (`cli.main`): XLA's
-legacy CPU code generator (`cli.use_fast_compile`) and glibc keeping freed memory
-(`runtime.use_retained_memory`); the same environment variables opt out, and "process" in
-results.json records what was set.
+legacy CPU code generator and glibc keeping freed memory (`cli.use_command_process`); the
+same environment variables opt out, and "process" in results.json records what was set.
 """
 
 from __future__ import annotations
@@ -56,13 +55,10 @@ import sys
 import time
 from pathlib import Path
 
-from wrinkle_jax import cli, runtime
+from wrinkle_jax import cli
 
-if __name__ == "__main__":  # this process runs as the `wrinkle-jax` one does, set before JAX
-    PROCESS = {"fast_compile": cli.use_fast_compile(),
-               "malloc_retained": runtime.use_retained_memory()}
-else:
-    PROCESS = {"fast_compile": False, "malloc_retained": False}
+# Run as a script: set up as the `wrinkle-jax` process is, before JAX starts.
+PROCESS = cli.use_command_process() if __name__ == "__main__" else {}
 
 import numpy as np  # noqa: E402
 

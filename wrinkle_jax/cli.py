@@ -314,10 +314,17 @@ def use_fast_compile(environ=None, backend_started: bool | None = None) -> bool:
     return True
 
 
+def use_command_process() -> dict:
+    """Set up this process as the `wrinkle-jax` command's (call it before JAX starts): XLA's
+    legacy code generator (`use_fast_compile`) and glibc keeping freed memory
+    (`runtime.use_retained_memory`). Scripts that time what the command runs call it too.
+    Returns {"fast_compile": bool, "malloc_retained": bool}: which settings were made."""
+    return {"fast_compile": use_fast_compile(), "malloc_retained": runtime.use_retained_memory()}
+
+
 def main(argv: list[str] | None = None) -> int:
     if argv is None:  # the `wrinkle-jax` process itself, not a caller's (notebook, test)
-        use_fast_compile()
-        runtime.use_retained_memory()
+        use_command_process()
     argv = sys.argv[1:] if argv is None else list(argv)
     # The sub-command is the first argument that is not an option (the top level's only
     # options, -h and --version, take no value); only its parser is built in full, so the

@@ -43,14 +43,16 @@ Writes `<out>/results.json` (frames timed, ms/frame per stage and per simulation
 setup seconds, ratios, vertex counts, machine) and `<out>/timing.png` (stacked bars).
 The machine's other load changes the numbers: its 1-minute load average is recorded.
 
-Run as a script, glibc keeps freed memory, as in the `wrinkle-jax` process
-(`runtime.use_retained_memory`; WRINKLE_JAX_MALLOC=default opts out): bake 14 -> 6, tile 2 ->
-1, merge 19 -> 12 ms/frame (session 42, dress_dance, two runs of 4 rounds). XLA's code
-generator stays XLA's default, unlike the command's (`cli.use_fast_compile`, chosen for
-compile time): in the same two runs the command's legacy generator made the data set's coarse
-simulation 18 % and its fine one 9 % slower, the lift 4 % slower and the network no faster, so
-both sides here run at their steady-state best. "process" in results.json records the
-settings.
+Run as a script, the process is set up as the `wrinkle-jax` command's (`cli.use_command_process`:
+XLA's legacy CPU code generator, glibc keeping freed memory; the same environment variables opt
+out), so the pipeline is timed as the command runs it and the simulations as `wrinkle-jax
+simulate` runs them; "process" in results.json records the settings. Session 42 ran it three
+times (dress_dance, 4 rounds each): XLA defaults without retained memory, no-lift 2.84x / whole
+1.22x; the command's settings 3.02x / 1.28x; retained memory with XLA's default generator
+2.75x / 1.15x. Retained memory took bake 14 -> 6-9, tile 2 -> 1, merge 19 -> 12-13 ms/frame in
+both runs that had it; the other differences between the runs (simulations, network, lift)
+sit within the machine's drift between runs (the fine simulation without self-collision took
+262, 263 and 300 ms/frame).
 """
 
 from __future__ import annotations
@@ -60,10 +62,10 @@ import sys
 import time
 from pathlib import Path
 
-from wrinkle_jax import runtime
+from wrinkle_jax import cli
 
-# Run as a script: glibc keeps freed memory (set before JAX starts).
-PROCESS = {"malloc_retained": runtime.use_retained_memory()} if __name__ == "__main__" else {}
+# Run as a script: set up as the `wrinkle-jax` process is, before JAX starts.
+PROCESS = cli.use_command_process() if __name__ == "__main__" else {}
 
 import numpy as np  # noqa: E402
 

@@ -75,6 +75,10 @@ class PipelineConfig:
         three garments (benchmarks/bench_batch.py, experiments/results/timing/batch_s18.json:
         0.82-0.88x batch 8's CPU, batch 16 1.09-1.30x; bit-identical maps): smaller calls
         keep the convolutions' working set in cache, and less of the last batch is padding.
+        Those runs page-faulted large temporaries afresh every call; with freed memory
+        retained, as the command now runs (session 42, 4 frames per call: batch_fpb4_s42a/b.json),
+        batches 4 and 8 were within 1 % pooled and 16 was 3 % and 8 % slower; the rule's pick
+        flipped (16 at its 3 % edge, then 8), so the default stays.
       chunk_size: frames baked, enhanced and merged per step (bounds memory: one chunk holds
         chunk_size * P patches of S^2 * 3 float32 twice).
       frames_per_batch: frames whose patches share one network call (their F * P patches

@@ -376,6 +376,8 @@ def timing_section(rep: Report, timing) -> None:
                 + f" runs at {r['speedup']:.2f}x the fine simulation's speed "
                 f"({r['speedup_no_lift']:.2f}x without lifting; {p['patches_per_frame']} "
                 f"patches per frame{rounds_txt}).", "")
+    if timing.get("context"):  # what a reader needs beside the numbers, written with the run
+        rep.add(timing["context"], "")
     rep.image("timing/timing.png", "per-stage timing")
 
 

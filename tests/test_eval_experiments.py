@@ -433,6 +433,8 @@ def test_report_assembles_stored_results_and_names_what_is_missing(tmp_path, mon
     assert f"{speedup:.2f}x the fine simulation's speed" in text  # the timing run's ratio
     for name, r in report.timing_ratios(timing_run):  # every solver recipe, table and headline
         assert text.count(f"{r['speedup']:.2f}x the fine simulation's speed") >= 2, name
+    if "context" in timing_run:  # the run's own caveats travel with its numbers
+        assert timing_run["context"] in text
     for missing in ("Table 2", "the stride ablation", "the flicker study",
                     "the PatchGAN baseline"):
         assert f"**Not run yet**: {missing}." in text

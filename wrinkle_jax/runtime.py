@@ -25,12 +25,12 @@ def retain_freed_memory() -> bool:
 
 def use_retained_memory(environ=None) -> bool:
     """`retain_freed_memory` unless `environ` (default `os.environ`) sets WRINKLE_JAX_MALLOC to
-    "default" (glibc's own policy). The `wrinkle-jax` process and the timing experiment call it
-    at start: without it, XLA's per-call temporaries above glibc's mmap threshold (32 MB at
-    most) are mapped afresh, and page-faulted, on every call -- measured in `make demo` (3
-    alternating pairs): bake 8-11 -> 6-7, tile 2 -> 1, merge 18-20 -> 13 ms/frame; a
-    (131072, 27) @ (27, 64) float32 dot 13.6 -> 2.4 ms. Freed memory then stays with the
-    process until it exits. True when the setting was made."""
+    "default" (glibc's own policy). The `wrinkle-jax` process, and the scripts that time what it
+    runs, call it at start: without it, XLA's per-call temporaries above glibc's mmap threshold
+    (128 kB, raised as blocks are freed, to 32 MB at most) are mapped afresh, and page-faulted,
+    on every call -- measured in `make demo` (3 alternating pairs): bake 8-11 -> 6-7, tile 2 -> 1,
+    merge 18-20 -> 13 ms/frame; a (131072, 27) @ (27, 64) float32 dot 13.6 -> 2.4 ms. Freed
+    memory then stays with the process until it exits. True when the setting was made."""
     environ = os.environ if environ is None else environ
     if environ.get(MALLOC_ENV, "retain") == "default":
         return False

@@ -50,9 +50,12 @@ simulate` runs them; "process" in results.json records the settings. Session 42 
 times (dress_dance, 4 rounds each): XLA defaults without retained memory, no-lift 2.84x / whole
 1.22x; the command's settings 3.02x / 1.28x; retained memory with XLA's default generator
 2.75x / 1.15x. Retained memory took bake 14 -> 6-9, tile 2 -> 1, merge 19 -> 12-13 ms/frame in
-both runs that had it; the other differences between the runs (simulations, network, lift)
-sit within the machine's drift between runs (the fine simulation without self-collision took
-262, 263 and 300 ms/frame).
+both runs that had it; the other differences between the runs sit within the machine's drift
+between runs (the fine simulation without self-collision took 262, 263 and 300 ms/frame).
+Alternating processes (3 pairs, `results/timing/sim_codegen_s42.txt`) then showed the legacy
+generator makes the data set's coarse simulation 1.16x slower (212 -> 246 ms/frame, medians)
+and leaves its fine one as it was (1168 / 1161): the command's settings charge our side ~34
+ms/frame of coarse simulation that XLA's default generator would not.
 """
 
 from __future__ import annotations

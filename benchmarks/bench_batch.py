@@ -21,10 +21,10 @@ The same with `--frames-per-batch 4` measures the CLI's setting (a chunk's patch
 network calls; `wrinkle-jax enhance` and `demo` stream chunks of 4 frames), for the CLI's
 `--batch` default, with the same rule.
 
-The process is set up as the `wrinkle-jax` command's is (`cli.main`: XLA's legacy CPU code
-generator, glibc keeping freed memory; the same environment variables opt out). Session 18's
-runs (`experiments/results/timing/batch*_s18.json`) had neither: large temporaries were then
-page-faulted afresh on every call, which weighs on the larger batches.
+The process is set up as the `wrinkle-jax` command's is (`cli.use_command_process`: XLA's
+legacy CPU code generator, glibc keeping freed memory; the same environment variables opt out).
+Session 18's runs (`experiments/results/timing/batch*_s18.json`) had neither: large temporaries
+were then page-faulted afresh on every call, which weighs on the larger batches.
 
 Usage: python benchmarks/bench_batch.py [--frames 8] [--reps 4] [--sizes 2,4,8,16]
            [--frames-per-batch 1]

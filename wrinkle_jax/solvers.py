@@ -186,8 +186,29 @@ def pcg(matvec, b, precond, tol: float, max_iters: int, x0=None) -> CGResult:
     return CGResult(x, k, jnp.sqrt(vdot(r, r)))
 
 
+def inverse3(blocks):
+    """Inverses of invertible 3 x 3 blocks (N, 3, 3) in closed form (adjugate / determinant).
+
+    Elementwise arithmetic only: on CPU about 30x faster than `jnp.linalg.inv`'s batched LU
+    and triangular solves at N = 20k (0.7 against 24 ms). Less accurate than LU on badly
+    conditioned blocks (relative error up to ~4e-6 x the condition number in float32, LU's
+    ~5e-8 x): meant for preconditioners (the lift's Gauss-Newton blocks have condition numbers
+    up to ~60). The adjugate of a symmetric block is symmetric bit for bit (each cofactor pair
+    multiplies the same numbers)."""
+    a = [[blocks[:, i, j] for j in range(3)] for i in range(3)]
+    cof = [[a[(j + 1) % 3][(i + 1) % 3] * a[(j + 2) % 3][(i + 2) % 3]
+            - a[(j + 1) % 3][(i + 2) % 3] * a[(j + 2) % 3][(i + 1) % 3]
+            for j in range(3)] for i in range(3)]  # cof[i][j] = adj(A)[i, j]
+    det = a[0][0] * cof[0][0] + a[0][1] * cof[1][0] + a[0][2] * cof[2][0]
+    return jnp.stack([jnp.stack(row, -1) for row in cof], -2) / det[:, None, None]
+
+
 def block_inverse(blocks):
     """Inverse of SPD d x d blocks (N, d, d) as a function applying it to (N, d)."""
+    if blocks.shape[-1] == 3:
+        inv = inverse3(blocks)
+        # Three multiply-adds, not a batched dot of 3 x 3 blocks (slow on CPU: per-block calls).
+        return lambda r: sum(inv[:, :, b] * r[:, b:b + 1] for b in range(3))
     inv = jnp.linalg.inv(blocks)
     return lambda r: jnp.einsum("vab,vb->va", inv, r)
 

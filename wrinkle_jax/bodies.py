@@ -43,7 +43,7 @@ from wrinkle_jax.mesh_body import (  # noqa: F401  (re-exported: the public body
     mesh_template,
     pose_mesh_body,
 )
-from wrinkle_jax.numerics import normalize, safe_div, safe_norm, to_device
+from wrinkle_jax.numerics import dot3, norm3, normalize3, safe_div, to_device
 
 __all__ = ["BodyError", "BodyQuery", "Capsules", "GridMeshBody", "MeshBody", "MeshTemplate",
            "PrimitiveBody",
@@ -130,51 +130,43 @@ def _perpendicular(axis):
     ex = jnp.zeros_like(axis).at[..., 0].set(1.0)
     ey = jnp.zeros_like(axis).at[..., 1].set(1.0)
     ez = jnp.zeros_like(axis).at[..., 2].set(1.0)
-    a = normalize(axis)
+    a = normalize3(axis)
     use_y = jnp.abs(a[..., :1]) > 0.9
-    perp = normalize(jnp.cross(a, jnp.where(use_y, ey, ex)))
-    zero = jnp.sum(axis * axis, -1, keepdims=True) <= 0
+    perp = normalize3(jnp.cross(a, jnp.where(use_y, ey, ex)))
+    zero = dot3(axis, axis)[..., None] <= 0
     return jnp.where(zero, ez, perp)
 
 
-def _ball_query(points, centers, radius, axis):
-    """Distance to balls around centers (N, P, 3): signed distance and outward direction."""
-    v = points[:, None, :] - centers
-    d = safe_norm(v)
-    on_axis = (d <= _ON_SURFACE)[..., None]
-    direction = jnp.where(on_axis, _perpendicular(axis), normalize(v))
-    return d - radius, direction
-
-
 def _primitive_query(body: PrimitiveBody, points) -> BodyQuery:
-    sdfs, centers, dirs, radii = [], [], [], []
+    """Each point's nearest ball around a sphere centre or a capsule's nearest axis point; the
+    union is the one with the smallest signed distance. The outward direction is computed for
+    that one only; a point on a centre or axis gets a direction perpendicular to the axis
+    (+z for a sphere)."""
+    centers, radii, axes = [], [], []  # per primitive: (N, P, 3) centres, (P,) radii, (P, 3)
     if body.spheres is not None:
-        c = jnp.broadcast_to(body.spheres.center, (points.shape[0],) + body.spheres.center.shape)
-        sdf, dr = _ball_query(points, c, body.spheres.radius, jnp.zeros_like(c))
-        sdfs.append(sdf)
-        centers.append(c)
-        dirs.append(dr)
-        radii.append(jnp.broadcast_to(body.spheres.radius, sdf.shape))
+        c = body.spheres.center
+        centers.append(jnp.broadcast_to(c, (points.shape[0],) + c.shape))
+        radii.append(body.spheres.radius)
+        axes.append(jnp.zeros_like(c))
     if body.capsules is not None:
         a, b = body.capsules.start, body.capsules.end
         ab = b - a
-        t = safe_div(jnp.sum((points[:, None, :] - a) * ab, -1), jnp.sum(ab * ab, -1))
-        c = a + jnp.clip(t, 0.0, 1.0)[..., None] * ab  # nearest axis point (N, C, 3)
-        sdf, dr = _ball_query(points, c, body.capsules.radius, jnp.broadcast_to(ab, c.shape))
-        sdfs.append(sdf)
-        centers.append(c)
-        dirs.append(dr)
-        radii.append(jnp.broadcast_to(body.capsules.radius, sdf.shape))
-    sdf = jnp.concatenate(sdfs, axis=1)
+        t = safe_div(dot3(points[:, None, :] - a, ab), dot3(ab, ab))
+        centers.append(a + jnp.clip(t, 0.0, 1.0)[..., None] * ab)  # nearest axis point
+        radii.append(body.capsules.radius)
+        axes.append(ab)
+    center = jnp.concatenate(centers, axis=1)
+    radius, axis = jnp.concatenate(radii), jnp.concatenate(axes)
+    # The 3-component forms of safe_norm / normalize (see numerics.dot3): several times faster.
+    sdf = norm3(points[:, None, :] - center) - radius
     k = jnp.argmin(sdf, axis=1)  # union: the primitive with the smallest signed distance
-
-    def pick(x):
-        return jnp.take_along_axis(x, k.reshape((-1, 1) + (1,) * (x.ndim - 2)), axis=1)[:, 0]
-
-    normal = pick(jnp.concatenate(dirs, axis=1))
-    center = pick(jnp.concatenate(centers, axis=1))
-    radius = pick(jnp.concatenate(radii, axis=1))
-    return BodyQuery(pick(sdf), center + radius[:, None] * normal, normal)
+    c = jnp.take_along_axis(center, k[:, None, None], axis=1)[:, 0]
+    v = points - c
+    d = norm3(v)  # the picked primitive's distance, by sdf's formula
+    on_axis = (d <= _ON_SURFACE)[:, None]
+    normal = jnp.where(on_axis, _perpendicular(axis[k]), normalize3(v))
+    r = radius[k]
+    return BodyQuery(d - r, c + r[:, None] * normal, normal)
 
 
 # --------------------------------------------------------------------------------------------

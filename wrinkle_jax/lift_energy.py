@@ -73,7 +73,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax import mesh, solvers
-from wrinkle_jax.numerics import normalize, safe_div, safe_norm, to_device
+from wrinkle_jax.numerics import dot3, normalize, safe_div, safe_norm, to_device
 from wrinkle_jax.solvers import SolverConfig
 
 REFERENCE_EDGE = 0.01  # meters: the paper's fine particle distance, where weights are calibrated
@@ -214,11 +214,6 @@ def _sum_slots(x):
     return out
 
 
-def _dot3(a, b):
-    """sum_c a[..., c] b[..., c] over a last axis of 3, as multiply-adds."""
-    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
-
-
 def _ring_apply(off, diag, x, x_nbr):
     """y_i = sum_k off[i, k] x[neighbors[i, k]] + diag[i] x_i, given x_nbr = x[neighbors]."""
     off = off.astype(x.dtype)
@@ -300,9 +295,9 @@ def make_problem(vertices0, topology: LiftTopology, target_normals,
         n0 = mesh.vertex_normals(v0, topology.faces)
         n0_i, n0_j = _pair_normals(n0, topology, weights.normal_at == "edge")
         e0 = v0[topology.neighbors] - v0[:, None, :]
-        w_inv = topology.valid.astype(v0.dtype) * jax.lax.rsqrt(_dot3(e0, e0) + eps_sq)
-        chord_f = w_inv * _dot3(n0_i, e0)
-        chord_b = -w_inv * _dot3(n0_j, e0)
+        w_inv = topology.valid.astype(v0.dtype) * jax.lax.rsqrt(dot3(e0, e0) + eps_sq)
+        chord_f = w_inv * dot3(n0_i, e0)
+        chord_b = -w_inv * dot3(n0_j, e0)
     return LiftProblem(
         vertices0=v0, normals=n, base=base, topology=topology, edge=h,
         c_normal=jnp.asarray(1.0 / nv, v0.dtype), c_lap=weights.eta * s2 / nv,
@@ -335,10 +330,10 @@ def _rows(p, prob: LiftProblem) -> _Rows:
     top = prob.topology
     w = top.valid.astype(p.dtype)
     e = p[top.neighbors] - p[:, None, :]
-    inv = jax.lax.rsqrt(_dot3(e, e) + prob.eps_sq)  # 1 / |e|_eps, finite always
+    inv = jax.lax.rsqrt(dot3(e, e) + prob.eps_sq)  # 1 / |e|_eps, finite always
     n_i, n_j = _pair_normals(prob.normals, top, prob.edge_normals)
-    a = _dot3(n_i, e)
-    b = _dot3(n_j, e)
+    a = dot3(n_i, e)
+    b = dot3(n_j, e)
     # d(n.e/|e|_eps)/de = (n - (n.e) e / |e|_eps^2) / |e|_eps
     g_f = (w * inv)[..., None] * (n_i - (a * inv * inv)[..., None] * e)
     g_b = (w * inv)[..., None] * (n_j - (b * inv * inv)[..., None] * e)

@@ -66,6 +66,30 @@ def normalize(x, axis=-1, eps_sq=EPS_SQ):
     return x * inv
 
 
+def dot3(a, b):
+    """sum_c a[..., c] * b[..., c] over a last axis of size 3, as multiply-adds.
+
+    Why not `jnp.sum(a * b, -1)`: XLA:CPU fuses a short-axis reduction with its producers
+    into a library (YNNPACK) fusion that ran ~5x slower than these elementwise ops (session
+    43: the capsule body query at 20k points x 14 capsules, 18 -> 3.5 ms). Kept separate from
+    `safe_norm` / `normalize` so the simulator's arithmetic does not change with it."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
+def norm3(x, eps_sq=EPS_SQ):
+    """`safe_norm` over a last axis of size 3 (no keepdims), summed by `dot3`."""
+    sq = dot3(x, x)
+    ok = sq > eps_sq
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
+
+
+def normalize3(x, eps_sq=EPS_SQ):
+    """`normalize` over a last axis of size 3, summed by `dot3`."""
+    sq = dot3(x, x)[..., None]
+    ok = sq > eps_sq
+    return x * jnp.where(ok, 1.0 / jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
+
+
 def safe_div(num, den, eps=EPS_DIV, fill=0.0):
     """num / den where |den| > eps, else `fill`; gradients stay finite everywhere."""
     ok = jnp.abs(den) > eps

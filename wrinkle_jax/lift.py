@@ -332,14 +332,15 @@ class ResolveCoarse:
     """The coarse-grid correction of the push-out's PCG (a pytree; `resolve_coarse` builds it).
 
     Attributes:
-      prolong: (V, Vc) SparseOperator P, the subdivision from the coarse garment.
-      restrict: (Vc, V) SparseOperator, P^T.
+      prolong: (V, Vc) `mesh.RowTable` P, the subdivision from the coarse garment.
+      restrict: (Vc, V) `mesh.RowTable`, P^T (row tables: gathers, no scatter-adds in the
+        CG loop).
       inverse: (Vc, Vc) float32, A_c^-1 (see `resolve_coarse`).
       key: static (phi, compliance, coarse_mass) it was built for.
     """
 
-    prolong: mesh.SparseOperator
-    restrict: mesh.SparseOperator
+    prolong: mesh.RowTable
+    restrict: mesh.RowTable
     inverse: Any
     key: tuple = dataclasses.field(metadata=dict(static=True))
 
@@ -413,10 +414,10 @@ def resolve_coarse(subdivision: Subdivision, topology: LiftTopology, phi: float 
     a_c = (a * _gram(_product(lap, p, n), n, cols)
            + (b + config.coarse_mass * (1.0 - b)) * _gram(p, n, cols))
     r, c, v = (np.asarray(x) for x in p)
-    prolong = mesh.SparseOperator(*to_device((r, c), np.int32), to_device(v, np.float32),
-                                  (n, cols))
-    restrict = mesh.SparseOperator(prolong.cols, prolong.rows, prolong.values, (cols, n))
-    return ResolveCoarse(prolong, restrict, to_device(np.linalg.inv(a_c), np.float32),
+    prolong = mesh.sparse_operator(r, c, v, (n, cols))
+    restrict = mesh.sparse_operator(c, r, v, (cols, n))
+    return ResolveCoarse(mesh.row_table(prolong), mesh.row_table(restrict),
+                         to_device(np.linalg.inv(a_c), np.float32),
                          (float(phi), config.compliance, config.coarse_mass))
 
 
@@ -504,8 +505,8 @@ def _resolve(vertices, topology: LiftTopology, body, phi: float, config: Resolve
             precond = lambda r: r / diag  # noqa: E731
         else:
             inv = coarse.inverse.astype(dt)
-            precond = lambda r: r / diag + mesh.apply(  # noqa: E731
-                coarse.prolong, inv @ mesh.apply(coarse.restrict, r))
+            precond = lambda r: r / diag + coarse.prolong @ (  # noqa: E731
+                inv @ (coarse.restrict @ r))
         sol = solvers.pcg(matvec, target, precond, config.cg_tol, config.cg_max_iters)
         p = p + sol.x
         return p, body_lib.query(body, p), k + 1, cg_total + sol.iterations

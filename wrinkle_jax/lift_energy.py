@@ -56,11 +56,12 @@ change of variables u = (p - p0) / h of the first-order solvers); `make_solver(c
     stop after `patience` iterations without a `tol` relative improvement) and "gd" (plain
     gradient descent on the per-vertex energy in edge units) - the references;
   * "gauss_newton" (fast, default): Levenberg-Marquardt on the residual form of E with
-    matrix-free preconditioned conjugate gradients. J^T J v is evaluated from per-slot 3x3
-    blocks by gathers over the padded one-ring (no scatter, no dense matrix); the
-    preconditioner is the exact 3x3 block diagonal of J^T J;
+    matrix-free preconditioned conjugate gradients. J^T J v is evaluated from each one-ring
+    slot's rank-2 block, kept factored, by gathers over the padded one-ring (no scatter, no
+    dense matrix); the preconditioner is the exact 3x3 block diagonal of J^T J, inverted in
+    closed form;
   * "lbfgs": `optax.lbfgs` with its zoom line search.
-Everything is O(V) memory: padded one-ring tables (V, K) and per-slot blocks (V, K, 3, 3).
+Everything is O(V) memory: padded one-ring tables (V, K) and per-slot factors (V, K, 3).
 """
 
 from __future__ import annotations
@@ -421,7 +422,7 @@ def _gn_matvec(sys: _GNSystem, prob: LiftProblem, v):
 
 
 def _gauss_newton_model(prob: LiftProblem, p) -> solvers.GaussNewtonModel:
-    """The Gauss-Newton model of E at p: H = 2 J^T J from per-slot 3x3 blocks (gathers only)."""
+    """The Gauss-Newton model of E at p: H = 2 J^T J from per-slot factors (gathers only)."""
     system = _gn_system(_rows(p, prob), prob)
 
     def damped(lam):  # H + lam D, D = the block diagonal of H (assembled once)

@@ -74,7 +74,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wrinkle_jax import mesh, solvers
-from wrinkle_jax.numerics import dot3, normalize, safe_div, safe_norm, to_device
+from wrinkle_jax.numerics import dot3, matvec3, normalize, safe_div, safe_norm, to_device
 from wrinkle_jax.solvers import SolverConfig
 
 REFERENCE_EDGE = 0.01  # meters: the paper's fine particle distance, where weights are calibrated
@@ -409,7 +409,7 @@ def _gn_matvec(sys: _GNSystem, prob: LiftProblem, v):
     """H v for the Gauss-Newton Hessian H = 2 J^T J (matching E); gathers only."""
     top = prob.topology
     v_nbr = v[top.neighbors]  # one gather serves the normal term and L v
-    out = sum(sys.s[:, :, b] * v[:, b:b + 1] for b in range(3))
+    out = matvec3(sys.s, v)
     for k in range(v_nbr.shape[1]):
         g_f, g_b, v_k = sys.g_f[:, k], sys.g_b[:, k], v_nbr[:, k]
         out = out - g_f * dot3(g_f, v_k)[:, None] - g_b * dot3(g_b, v_k)[:, None]

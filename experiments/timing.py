@@ -43,19 +43,22 @@ Writes `<out>/results.json` (frames timed, ms/frame per stage and per simulation
 setup seconds, ratios, vertex counts, machine) and `<out>/timing.png` (stacked bars).
 The machine's other load changes the numbers: its 1-minute load average is recorded.
 
-Run as a script, the process is set up as the `wrinkle-jax` command's (`cli.use_command_process`:
-XLA's legacy CPU code generator, glibc keeping freed memory; the same environment variables opt
-out), so the pipeline is timed as the command runs it and the simulations as `wrinkle-jax
-simulate` runs them; "process" in results.json records the settings. Session 42 ran it three
-times (dress_dance, 4 rounds each): XLA defaults without retained memory, no-lift 2.84x / whole
-1.22x; the command's settings 3.02x / 1.28x; retained memory with XLA's default generator
-2.75x / 1.15x. Retained memory took bake 14 -> 6-9, tile 2 -> 1, merge 19 -> 12-13 ms/frame in
-both runs that had it; the other differences between the runs sit within the machine's drift
-between runs (the fine simulation without self-collision took 262, 263 and 300 ms/frame).
-Alternating processes (3 pairs, `results/timing/sim_codegen_s42.txt`) then showed the legacy
-generator makes the data set's coarse simulation 1.16x slower (212 -> 246 ms/frame, medians)
-and leaves its fine one as it was (1168 / 1161): the command's settings charge our side ~34
-ms/frame of coarse simulation that XLA's default generator would not.
+Run as a script, the process is set up as the `wrinkle-jax` command's
+(`cli.use_command_process`: XLA's legacy CPU code generator, glibc keeping freed memory; the
+same environment variables opt out), so the pipeline is timed as the command runs it, and the
+legacy recipe's simulations as `wrinkle-jax simulate` runs them (the command runs only the
+scenes' own recipe; the data set's recipe runs in `experiments.make_sequences`, under XLA's
+defaults: see below and `results/timing/sim_codegen_cli_s43.txt`); "process" in results.json
+records the settings. Session 42 ran it three times (dress_dance, 4 rounds each): XLA defaults
+without retained memory, no-lift 2.84x / whole 1.22x; the command's settings 3.02x / 1.28x;
+retained memory with XLA's default generator 2.75x / 1.15x. Retained memory took bake 14 -> 6-9,
+tile 2 -> 1, merge 19 -> 12-13 ms/frame in both runs that had it; the other differences between
+the runs sit within the machine's drift between runs (the fine simulation without self-collision
+took 262, 263 and 300 ms/frame). Alternating processes (3 pairs,
+`results/timing/sim_codegen_s42.txt`) then showed the legacy generator makes the data set's
+coarse simulation 1.16x slower (212 -> 246 ms/frame, medians) and leaves its fine one as it was
+(1168 / 1161): the command's settings charge our side ~34 ms/frame of coarse simulation that
+XLA's default generator would not.
 """
 
 from __future__ import annotations

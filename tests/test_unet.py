@@ -83,6 +83,24 @@ def test_rejects_bad_patch_size(small):
         model.apply({"params": params}, jnp.zeros((1, 30, 30, 3)), jnp.array([0]))
 
 
+def test_max_pool2_values_and_gradient_shared_at_ties():
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal((2, 6, 8, 3)).astype(np.float32)
+    x[0, 0:2, 0:2, 0] = 0.5                      # a 4-way tie
+    x[1, 2, 4:6, 1] = x[1, 3, 4:6, 1].max() + 1  # a 2-way tie in the top row
+    x = jnp.asarray(x)
+    np.testing.assert_array_equal(unet._max_pool2(x),
+                                  jax.lax.reduce_window(x, -jnp.inf, jax.lax.max,
+                                                        (1, 2, 2, 1), (1, 2, 2, 1), "VALID"))
+    g = jnp.asarray(rng.standard_normal((2, 3, 4, 3)), jnp.float32)
+    got = jax.grad(lambda v: jnp.sum(unet._max_pool2(v) * g))(x)
+    # jnp.max's gradient (shared equally among tied maxima) of the reshape-and-reduce form.
+    want = jax.grad(lambda v: jnp.sum(v.reshape(2, 3, 2, 4, 2, 3).max(axis=(2, 4)) * g))(x)
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=0)
+    assert float(got[0, 0, 0, 0]) == pytest.approx(float(g[0, 0, 0, 0]) / 4)
+    np.testing.assert_allclose(got[1, 2, 4:6, 1], g[1, 1, 2, 1] / 2, rtol=1e-6)
+
+
 # ---------------------------------------------------------------- NumPy reference
 
 

@@ -47,28 +47,35 @@ Run as a script, the process is set up as the `wrinkle-jax` command's
 (`cli.use_command_process`: XLA's legacy CPU code generator, glibc keeping freed memory; the
 same environment variables opt out), so the pipeline is timed as the command runs it, and the
 legacy recipe's simulations as `wrinkle-jax simulate` runs them (the command runs only the
-scenes' own recipe; the data set's recipe runs in `experiments.make_sequences`, under XLA's
-defaults: see below and `results/timing/sim_codegen_cli_s43.txt`); "process" in results.json
+scenes' own recipe: `results/timing/sim_codegen_cli_s43.txt`). The data set's recipe runs in
+`experiments.make_sequences` (or a notebook) under XLA's defaults and glibc's own malloc
+policy, never in a `wrinkle-jax` process: since session 44 its simulations (coarse and fine)
+are timed in a child process set up that way (`CHILD_RECIPES`, `child_env`; each child compiles
+its solver again, warm-up excluded as in this process); earlier runs timed them here, under the
+command's settings (see below). "process" in results.json and in every simulation's info
 records the settings. Session 42 ran it three times (dress_dance, 4 rounds each): XLA defaults
 without retained memory, no-lift 2.84x / whole 1.22x; the command's settings 3.02x / 1.28x;
-retained memory with XLA's default generator 2.75x / 1.15x. Retained memory took bake 14 -> 6-9,
-tile 2 -> 1, merge 19 -> 12-13 ms/frame in both runs that had it; the other differences between
-the runs sit within the machine's drift between runs (the fine simulation without self-collision
-took 262, 263 and 300 ms/frame). Alternating processes (3 pairs,
+retained memory with XLA's default generator 2.75x / 1.15x. Retained memory took bake 14 ->
+6-9, tile 2 -> 1, merge 19 -> 12-13 ms/frame in both runs that had it; the other differences
+between the runs sit within the machine's drift between runs (the fine simulation without
+self-collision took 262, 263 and 300 ms/frame). Alternating processes (3 pairs,
 `results/timing/sim_codegen_s42.txt`) then showed the legacy generator makes the data set's
 coarse simulation 1.16x slower (212 -> 246 ms/frame, medians) and leaves its fine one as it was
 (1168 / 1161): the command's settings charge our side ~34 ms/frame of coarse simulation that
-XLA's default generator would not.
-"""
+XLA's default generator would not."""
 
 from __future__ import annotations
 
+import argparse
+import json
 import os
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
-from wrinkle_jax import cli
+from wrinkle_jax import cli, runtime
 
 # Run as a script: set up as the `wrinkle-jax` process is, before JAX starts.
 PROCESS = cli.use_command_process() if __name__ == "__main__" else {}
@@ -83,6 +90,37 @@ from wrinkle_jax.sim import scenes  # noqa: E402
 
 STAGES = ("bake", "tile", "network", "merge", "lift")
 RECIPES = ("legacy", "dataset")
+# Recipes whose simulations are timed in a child process with XLA's defaults and glibc's own
+# malloc policy: the data set's recipe runs in `experiments.make_sequences` (and in a
+# notebook) that way, never in a `wrinkle-jax` process.
+CHILD_RECIPES = ("dataset",)
+
+
+def child_env(environ=None) -> dict:
+    """The environment of a child that simulates as `experiments.make_sequences` does: `environ`
+    (default `os.environ`) without the command's code-generator flag, with the opt-outs of
+    `cli.use_command_process` set so the child's own start-up does not make them again."""
+    env = dict(os.environ if environ is None else environ)
+    flags = " ".join(f for f in env.get("XLA_FLAGS", "").split() if f != cli.FAST_COMPILE_FLAG)
+    if flags:
+        env["XLA_FLAGS"] = flags
+    else:
+        env.pop("XLA_FLAGS", None)
+    env["WRINKLE_JAX_XLA_DEFAULTS"] = "1"
+    env[runtime.MALLOC_ENV] = "default"
+    return env
+
+
+def time_simulation_in_child(scene: str, material: str, resolution: str, frames: int,
+                             recipe: str) -> dict:
+    """`time_simulation` (with its warm-up) in a fresh process with `child_env`: its info."""
+    with tempfile.TemporaryDirectory() as d:
+        cmd = [sys.executable, "-m", "experiments.timing", "--scene", scene, "--material",
+               material, "--frames", str(frames), "--child", f"{recipe}:{resolution}",
+               "--out", d]
+        subprocess.run(cmd, env=child_env(), check=True, cwd=Path(__file__).resolve().parents[1])
+        info = json.loads((Path(d) / "child.json").read_text())
+    return {**info, "process": "child: XLA defaults, glibc's malloc (as make_sequences)"}
 
 
 def solver_settings(config: scenes.SceneConfig, resolution: str, recipe: str) -> dict:
@@ -275,6 +313,17 @@ def summarize(rounds: list[dict], recipes: tuple[str, ...]) -> dict:
     return {"pipeline_ms_per_frame": stage_ms, "recipes": out}
 
 
+def simulate_timed(config: scenes.SceneConfig, material: str, resolution: str, frames: int,
+                   recipe: str, warm_up: bool) -> dict:
+    """One timed simulation: in this process, or in a child for `CHILD_RECIPES`; the info of
+    `time_simulation`, with the sequence under "sequence" when simulated here."""
+    if recipe in CHILD_RECIPES:
+        return time_simulation_in_child(config.name, material, resolution, frames, recipe)
+    seq, info = time_simulation(config, material, resolution, frames, recipe=recipe,
+                                warm_up=warm_up)
+    return {**info, "process": "this process", "sequence": seq}
+
+
 def measure_round(config: scenes.SceneConfig, material: str, frames: int,
                   recipes: tuple[str, ...], order: tuple[str, ...], enh: enhancer_lib.Enhancer,
                   use_body: bool, batch_size: int | None, warm_up: bool) -> dict:
@@ -285,11 +334,14 @@ def measure_round(config: scenes.SceneConfig, material: str, frames: int,
     first = None
     for name in order:
         print(f"  coarse simulation ({name}), {frames} frames ...", flush=True)
-        seq, info = time_simulation(config, material, "coarse", frames, recipe=name,
-                                    warm_up=warm_up)
+        info = simulate_timed(config, material, "coarse", frames, name, warm_up)
+        seq = info.pop("sequence", None)
         print(f"    {info['ms_per_frame']:.1f} ms/frame", flush=True)
         rec["recipes"][name]["coarse_sim"] = info
         first = seq if name == recipes[0] else first
+    if first is None:  # the first recipe was simulated in a child: its frames, untimed
+        first, _ = time_simulation(config, material, "coarse", frames, recipe=recipes[0],
+                                   warm_up=False)
     print(f"  pipeline on the {recipes[0]} coarse frames ...", flush=True)
     body = capsule_body_fn(first.tracks) if use_body else None
     rec["pipeline"] = time_pipeline(first, enh, material, body, True, batch_size)
@@ -297,8 +349,8 @@ def measure_round(config: scenes.SceneConfig, material: str, frames: int,
           + " ms/frame", flush=True)
     for name in order:
         print(f"  fine simulation ({name}), {frames} frames ...", flush=True)
-        _, info = time_simulation(config, material, "fine", frames, recipe=name,
-                                  warm_up=warm_up)
+        info = simulate_timed(config, material, "fine", frames, name, warm_up)
+        info.pop("sequence", None)
         print(f"    {info['ms_per_frame']:.1f} ms/frame", flush=True)
         r = rec["recipes"][name]
         r["fine_sim"] = info
@@ -333,6 +385,7 @@ def main(argv=None) -> int:
     ap.add_argument("--rounds", type=int, default=2,
                     help="repeat every measurement, the recipe order reversed every other round")
     ap.add_argument("--out", default=str(suite.RESULTS / "timing"))
+    ap.add_argument("--child", default=None, help=argparse.SUPPRESS)  # RECIPE:RESOLUTION
     args = ap.parse_args(argv)
     if args.frames < 1 or args.rounds < 1:
         ap.error("--frames and --rounds must be >= 1")
@@ -344,6 +397,12 @@ def main(argv=None) -> int:
         ap.error(str(e))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.child:  # time_simulation_in_child's process: one simulation, info to child.json
+        recipe, resolution = args.child.split(":")
+        _, info = time_simulation(config, args.material, resolution, args.frames, recipe=recipe)
+        info["xla_flags"] = os.environ.get("XLA_FLAGS", "")
+        suite.write_json(out / "child.json", info)
+        return 0
     t_all = time.perf_counter()
     load_before = suite.machine_info()["load_avg_1min"]
     rounds = []
@@ -370,7 +429,8 @@ def main(argv=None) -> int:
                  "separately (first round), not included"),
         "timings": {"total_s": time.perf_counter() - t_all},
         "machine": {**suite.machine_info(), "load_avg_1min_before": load_before},
-        "process": {**PROCESS, "xla_flags": os.environ.get("XLA_FLAGS", "")},
+        "process": {**PROCESS, "xla_flags": os.environ.get("XLA_FLAGS", ""),
+                    "child_recipes": [r for r in recipes if r in CHILD_RECIPES]},
         "command": "python -m experiments.timing " + " ".join(
             sys.argv[1:] if argv is None else argv),
     }

@@ -200,6 +200,41 @@ def test_time_simulation_counts_simulated_frames_and_separates_the_first_call(mo
         timing.solver_settings(scenes.SCENES["dress_dance"], "fine", "fast")
 
 
+def test_dataset_recipe_is_timed_in_a_child_with_xla_defaults(monkeypatch, tmp_path):
+    from wrinkle_jax import cli, runtime
+
+    env = timing.child_env({"XLA_FLAGS": f"--xla_foo=1 {cli.FAST_COMPILE_FLAG}", "HOME": "/h"})
+    assert env["XLA_FLAGS"] == "--xla_foo=1" and env["HOME"] == "/h"
+    assert env["WRINKLE_JAX_XLA_DEFAULTS"] == "1" and env[runtime.MALLOC_ENV] == "default"
+    # The child's own start-up then makes neither setting.
+    assert not cli.use_fast_compile(dict(env), backend_started=False)
+    assert not runtime.use_retained_memory(env)
+    assert "XLA_FLAGS" not in timing.child_env({"XLA_FLAGS": cli.FAST_COMPILE_FLAG})
+    assert timing.CHILD_RECIPES == ("dataset",)
+    # The child mode: one warmed-up simulation of the given recipe and resolution, its info
+    # in child.json (fake solver: the scene's pre-roll of 3 frames, 1 ms per frame).
+    calls = []
+
+    def fake_simulate(config, material, resolution, frames, seed, setup=None, progress=None,
+                      **solver):
+        calls.append((resolution, frames, solver))
+        if progress is not None:
+            time.sleep(0.001 * (frames + 2))
+            progress(frames + 2, frames + 2)
+        return SimpleNamespace(metadata={"preroll_frames": 3},
+                               garment=SimpleNamespace(num_vertices=7))
+
+    monkeypatch.setattr(timing.scenes, "simulate", fake_simulate)
+    monkeypatch.setattr(timing.scenes, "setup_scene", lambda *a, **k: None)
+    assert timing.main(["--frames", "4", "--child", "dataset:fine", "--out", str(tmp_path)]) == 0
+    info = json.loads((tmp_path / "child.json").read_text())
+    substeps, sc = scenes.dataset_solver("dress_dance", "fine")
+    assert [c[:2] for c in calls] == [("fine", 1), ("fine", 4)]
+    assert calls[1][2] == {"substeps": substeps, "self_collision": sc}
+    assert info["recipe"] == "dataset" and info["simulated_frames"] == 6
+    assert not (tmp_path / "results.json").exists()
+
+
 def test_timing_recipes_parse_and_rounds_summarize_by_median():
     assert timing.parse_recipes("dataset, legacy") == ("dataset", "legacy")
     for bad in ("", "legacy,legacy", "legacy,fast"):

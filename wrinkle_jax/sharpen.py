@@ -28,6 +28,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wrinkle_jax.numerics import dot3
+
 __all__ = ["blur_weights", "gaussian_kernel", "mask_from_rgb", "masked_blur", "unsharp_rgb"]
 
 
@@ -233,5 +235,7 @@ def unsharp_rgb(x, sigma: float, amount, mask=None, order: int = 1, blurred=None
     s = n + a * (n - low)
     # Guarded normalization: s is never ~0 inside the mask for moderate gains, and the
     # guard keeps the gradient finite on the background.
-    norm = jnp.sqrt(jnp.sum(s * s, axis=-1, keepdims=True) + 1e-12)
+    # dot3: the 3-channel sum as multiply-adds (the reduction ran as a slow library fusion:
+    # 5 % of the shipped network's thread time, session 44).
+    norm = jnp.sqrt(dot3(s, s)[..., None] + 1e-12)
     return ((s / norm + 1.0) * 0.5) * mask

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -87,8 +89,33 @@ def test_energy_gradient_and_gauss_newton_product_match_autodiff():
 
     v = jnp.asarray(rng.normal(size=v0.shape), jnp.float32)
     ref = gauss_newton_product(p, v)
-    got = jax.jit(lambda q, w: L._gn_matvec(L._gn_system(L._rows(q, prob), prob), prob, w))(p, v)
-    np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-5 * float(jnp.abs(ref).max()))
+    product = jax.jit(lambda q, w, pr: L._gn_matvec(L._gn_system(L._rows(q, pr), pr), pr, w))
+    np.testing.assert_allclose(product(p, v, prob), ref, rtol=1e-4,
+                               atol=1e-5 * float(jnp.abs(ref).max()))
+    # The one-ring split: the first M slots of every row, the rest only for the overflow rows
+    # (scatter-added). This grid has too many high-valence rows to split (every slot runs for
+    # every row); force splits at 4 and 6 slots.
+    degree = np.asarray(top.valid).sum(1).astype(int)
+    assert top.main_slots == degree.max() and top.overflow_rows.shape == (0,)
+    for m in (4, 6):
+        rows = jnp.asarray(np.nonzero(degree > m)[0], jnp.int32)
+        split = dataclasses.replace(prob, topology=dataclasses.replace(
+            top, main_slots=m, overflow_rows=rows))
+        assert L._gn_system(L._rows(p, split), split).overflow[0].shape[0] > 0
+        np.testing.assert_allclose(product(p, v, split), ref, rtol=1e-4,
+                                   atol=1e-5 * float(jnp.abs(ref).max()))
+
+
+def test_slot_split_keeps_the_few_high_valence_rows_apart():
+    from wrinkle_jax.lift_energy import _slot_split
+
+    degree = np.array([6] * 1000 + [7] * 10 + [8] * 5 + [3] * 20)
+    m, rows = _slot_split(degree)
+    assert m == 6 and rows.tolist() == list(range(1000, 1015))
+    # No M below the largest degree leaves few enough rows: no split.
+    m, rows = _slot_split(np.array([6] * 100 + [7] * 10))
+    assert m == 7 and rows.size == 0
+    assert _slot_split(np.array([6] * 50))[0] == 6
 
 
 def test_block_inverse_in_closed_form_matches_lu():

@@ -465,10 +465,7 @@ def _gn_matvec(sys: _GNSystem, prob: LiftProblem, v):
     nbr, lap_off, lapt_off = sys.ring
     diag = prob.topology.lap_diag
     v_nbr = v[nbr]  # one gather serves the normal term and L v
-    out = matvec3(sys.s, v)
-    for k in range(v_nbr.shape[1]):
-        g_f, g_b, v_k = sys.g_f[:, k], sys.g_b[:, k], v_nbr[:, k]
-        out = out - g_f * dot3(g_f, v_k)[:, None] - g_b * dot3(g_b, v_k)[:, None]
+    out = matvec3(sys.s, v) - _slot_terms(sys.g_f, sys.g_b, v_nbr)
     lv = _ring_apply(lap_off, diag, v, v_nbr)
     if sys.overflow is not None:
         rows, x_nbr, x_lap, x_lapt, x_gf, x_gb = sys.overflow

@@ -391,7 +391,8 @@ def main(argv=None) -> int:
         ap.error("--frames and --rounds must be >= 1")
     try:
         recipes = parse_recipes(args.recipes)
-        enh = enhancer_lib.load_enhancer(args.model)
+        # A child (`--child`) only simulates: it does not load the model.
+        enh = None if args.child else enhancer_lib.load_enhancer(args.model)
         config = scenes.get_scene(args.scene)
     except (ValueError, enhancer_lib.EnhancerError, scenes.SceneError) as e:
         ap.error(str(e))

@@ -112,9 +112,13 @@ def test_slot_split_keeps_the_few_high_valence_rows_apart():
     degree = np.array([6] * 1000 + [7] * 10 + [8] * 5 + [3] * 20)
     m, rows = _slot_split(degree)
     assert m == 6 and rows.tolist() == list(range(1000, 1015))
-    # No M below the largest degree leaves few enough rows: no split.
+    # Slot work V M + 4 E (K - M): 10 of 110 rows above 6 split (660 + 40 < 770); 40 of 140
+    # do not (840 + 160 > 980), and neither do half the rows two slots above the rest.
     m, rows = _slot_split(np.array([6] * 100 + [7] * 10))
+    assert m == 6 and rows.tolist() == list(range(100, 110))
+    m, rows = _slot_split(np.array([6] * 100 + [7] * 40))
     assert m == 7 and rows.size == 0
+    assert _slot_split(np.array([6] * 50 + [8] * 50))[0] == 8
     assert _slot_split(np.array([6] * 50))[0] == 6
 
 

@@ -142,11 +142,12 @@ class LiftTopology:
       lapt_off: (V, K) float32, L^T[i, neighbors[i, k]] = L[neighbors[i, k], i].
       ltl_diag: (V,) float32, diagonal of L^T L (for preconditioners).
       overflow_rows: (E,) int32, the vertices with more than `main_slots` neighbours.
-      main_slots: static M <= K: the Gauss-Newton product runs its slot loops over the first
-        M slots of every row (valid neighbours come first) and adds the other K - M slots of
-        the E overflow rows only. A subdivided mesh has a few vertices of valence 7-8 and
-        nearly all others of valence <= 6 (dress_dance at 10 mm: 49 of 20,308): there one
-        product took 1.77 ms over 8 slots and 0.58 ms split (session 44). 0: no split.
+      main_slots: static M <= K (`_slot_split`): the Gauss-Newton product runs its slot loops
+        over the first M slots of every row (valid neighbours come first) and adds the other
+        K - M slots of the E overflow rows only. A subdivided mesh has a few vertices of
+        valence 7-8 and nearly all others of valence <= 6 (dress_dance at 10 mm: 49 of
+        20,308): there one product took 1.77 ms over 8 slots and 0.58 ms split (session 44).
+        0: no split.
     """
 
     faces: Any
@@ -205,16 +206,24 @@ def lift_topology(faces, num_vertices: int) -> LiftTopology:
         ltl_diag=f32(ltl_diag), overflow_rows=overflow)), main_slots=main)
 
 
-def _slot_split(degree: np.ndarray, share: float = 1 / 64) -> tuple[int, np.ndarray]:
-    """(M, rows): the fewest slots M with at most `share` of the vertices above M neighbours,
-    and those vertices ((E,) int32); M = K (the largest degree) and no rows when no M < K
-    qualifies."""
+def _slot_split(degree: np.ndarray, overflow_cost: float = 4.0) -> tuple[int, np.ndarray]:
+    """(M, rows): the main slot count M and the vertices with more than M neighbours ((E,)
+    int32), M chosen to minimize the product's slot work V M + overflow_cost E (K - M), K the
+    largest degree; ties keep fewer overflow rows (M = K: no rows, no split).
+
+    An overflow slot (gathered and scatter-added for its row only) cost ~2.5x a main slot on
+    the 10k-vertex reference sheet (session 45: one product with M = 6 and E = 288 -> 5,000
+    overflow rows 0.45 -> 0.58 ms; unsplit, K = 8, 1.48 ms); 4 leaves a margin. That sheet
+    (288 of 10,201 vertices of valence 8) split at 6 slots: 1.38 -> 0.41 ms per product."""
+    degree = np.asarray(degree)
     k = int(degree.max()) if degree.size else 0
-    for m in range(1, k):
-        rows = np.nonzero(degree > m)[0]
-        if len(rows) <= share * len(degree):
-            return m, rows.astype(np.int32)
-    return k, np.zeros(0, np.int32)
+    best, best_cost = k, float(degree.size * k)
+    for m in range(k - 1, 0, -1):
+        e = int(np.count_nonzero(degree > m))
+        cost = degree.size * m + overflow_cost * e * (k - m)
+        if cost < best_cost:
+            best, best_cost = m, cost
+    return best, np.nonzero(degree > best)[0].astype(np.int32)
 
 
 # The products over the one-ring below are written as unrolled multiply-adds over the K slots

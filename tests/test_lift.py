@@ -63,6 +63,14 @@ def test_topology_laplacian_matches_mesh():
     np.testing.assert_allclose(L._lap_apply(top, jnp.asarray(x)), dense @ x, atol=1e-5)
     np.testing.assert_allclose(L._lapt_apply(top, jnp.asarray(x)), dense.T @ x, atol=1e-5)
     np.testing.assert_allclose(top.ltl_diag, np.diag(dense.T @ dense), rtol=1e-6)
+    # The same products over the first M slots plus the overflow rows' other slots.
+    degree = np.asarray(top.valid).sum(1).astype(int)
+    for m in (3, 5):
+        rows = np.nonzero(degree > m)[0]
+        assert 0 < rows.size < degree.size
+        split = dataclasses.replace(top, main_slots=m, overflow_rows=jnp.asarray(rows, jnp.int32))
+        np.testing.assert_allclose(L._lap_apply(split, jnp.asarray(x)), dense @ x, atol=1e-5)
+        np.testing.assert_allclose(L._lapt_apply(split, jnp.asarray(x)), dense.T @ x, atol=1e-5)
 
 
 def test_energy_gradient_and_gauss_newton_product_match_autodiff():

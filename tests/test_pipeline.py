@@ -319,6 +319,54 @@ def test_warm_started_lift_carries_the_previous_frame(seq, model):
     np.testing.assert_array_equal(res.detailed_frames[2], warm[2])
 
 
+def test_overlapped_lift_gives_the_same_frames_in_order(seq, model, monkeypatch):
+    """`overlap_lift`: chunk k lifted in a worker thread while chunk k + 1 is enhanced. Same
+    frames bit for bit (warm-started, so the lift's order matters), in the order asked, two
+    chunks alive at once; a worker error reaches the caller; closing the generator early
+    leaves no worker running."""
+    import threading
+
+    order = [0, 1, 2, 3, 2]  # chunks of 2: the last one padded
+    runs = {}
+    for overlap in (False, True):
+        config = pipeline.PipelineConfig(batch_size=BATCH, chunk_size=2, warm_start=True,
+                                         overlap_lift=overlap)
+        runs[overlap] = pipeline.enhance_sequence(seq, "wool_melton", enhancer=model,
+                                                  config=config, frames=order)
+    seq_run, ovl = runs[False], runs[True]
+    assert ovl.frame_indices == tuple(order)
+    np.testing.assert_array_equal(ovl.normal_maps, seq_run.normal_maps)
+    np.testing.assert_array_equal(ovl.detailed_frames, seq_run.detailed_frames)
+    assert ovl.lift_iterations == seq_run.lift_iterations > 0
+    assert (seq_run.peak_buffered_frames, ovl.peak_buffered_frames) == (2, 4)
+    assert ovl.timings["lift"] > 0.0
+
+    config = pipeline.PipelineConfig(batch_size=BATCH, chunk_size=2, warm_start=True,
+                                     overlap_lift=True)
+    pipe = pipeline.make_pipeline(seq.garment, model, config, compile=False)
+    material = model.config.material_id("wool_melton")
+    frames = pipeline.iter_enhance(pipe, seq.frames, material, order)
+    assert next(frames).index == 0
+    frames.close()
+    assert not [t for t in threading.enumerate() if t.name.startswith("wrinkle-jax-lift")]
+
+    calls = []
+    real = pipeline._lift_frame_warm
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise RuntimeError("lift failed")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "_lift_frame_warm", failing)
+    got = []
+    with pytest.raises(RuntimeError, match="lift failed"):
+        for frame in pipeline.iter_enhance(pipe, seq.frames, material, order):
+            got.append(frame.index)
+    assert got == [0, 1]
+
+
 def test_frames_per_batch_shares_network_calls_and_keeps_the_maps(result, seq, model):
     """Patches of several frames in one network call (the chunk's last group zero-padded to
     whole frames) give the per-frame maps up to float rounding; the counts follow."""

@@ -203,7 +203,8 @@ def _run_enhance(input_path: Path, out: Path, args, model: Path | None = None,
         batch = args.batch or pipeline.PipelineConfig.batch_size
         config = pipeline.PipelineConfig(batch_size=batch, chunk_size=args.chunk,
                                          frames_per_batch=args.chunk, stride=args.stride,
-                                         lift=not args.no_lift, warm_start=True)
+                                         lift=not args.no_lift, warm_start=True,
+                                         overlap_lift=True)
     except _UsageError as e:
         print(f"wrinkle-jax {cmd}: error: {e}", file=sys.stderr)
         return 2

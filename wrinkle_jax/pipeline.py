@@ -47,6 +47,7 @@ Example:
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import functools
 import time
@@ -224,13 +225,18 @@ def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int
                  ) -> Iterator[EnhancedFrame]:
     """Enhance frames chunk by chunk, yielding one `EnhancedFrame` per frame, in order.
 
+    With `PipelineConfig.overlap_lift` a worker thread lifts chunk k while this thread bakes,
+    enhances and merges chunk k + 1 (two chunks alive at once); the frames, and their order,
+    are the same as without it.
+
     Args:
       pipe: from `make_pipeline`.
       frames: (T, V, 3) float32 coarse vertices, meters (NumPy, may be a memmap: only one
         chunk is read at a time).
       material_id: index into `pipe.enhancer.config.materials`.
       indices: frame indices to enhance (default all), in the order given.
-      timings: dict accumulating seconds per stage (bake, tile, network, merge, lift).
+      timings: dict accumulating seconds per stage (bake, tile, network, merge, lift; with
+        `overlap_lift` the lift's seconds overlap the others').
       counts: dict accumulating patch counts (network, padding, batches), the most frames
         alive at once (peak_buffered_frames) and the lift's solver iterations
         (lift_iterations; counted with warm_start only).
@@ -241,12 +247,66 @@ def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int
         counts.setdefault(k, 0)
     cfg = pipe.config
     indices = list(range(len(frames)) if indices is None else indices)
+    chunks = _map_chunks(pipe, frames, material_id, indices, timings, counts)
+    if not cfg.lift:
+        for idx, coarse, enhanced in chunks:
+            for j, t in enumerate(idx):
+                yield EnhancedFrame(int(t), coarse[j], enhanced[j], None)
+        return
+    lift_static = _lift_static(pipe)
+    # The lift's warm start: the previous frame's offsets in its local frames (zeros: cold).
+    state = {"carried": _no_offsets(pipe) if cfg.warm_start else None}
+
+    def lift_one(t: int, coarse, enhanced) -> EnhancedFrame:
+        t0 = time.perf_counter()
+        args = (pipe.subdivision, pipe.fine_garment, pipe.topology, _body_for(pipe.body, t),
+                pipe.resolve_coarse)
+        if cfg.warm_start:
+            detailed, state["carried"], info = _lift_frame_warm(
+                to_device(coarse), to_device(enhanced), state["carried"], *args, **lift_static)
+            counts["lift_iterations"] += int(info.iterations)
+        else:
+            # The very computation `frame_fn` runs (bit for bit: a lift that stops short of
+            # convergence amplifies rounding differences).
+            detailed = _lift_frame(to_device(coarse), to_device(enhanced), *args, **lift_static)
+        detailed = np.array(detailed)
+        _add(timings, "lift", t0)
+        return EnhancedFrame(int(t), coarse, enhanced, detailed)
+
+    if not cfg.overlap_lift:
+        for idx, coarse, enhanced in chunks:
+            for j, t in enumerate(idx):
+                yield lift_one(t, coarse[j], enhanced[j])
+        return
+
+    def lift_chunk(chunk) -> list[EnhancedFrame]:
+        idx, coarse, enhanced = chunk
+        return [lift_one(t, coarse[j], enhanced[j]) for j, t in enumerate(idx)]
+
+    # One chunk in the worker at a time (the warm start is sequential): its result is taken
+    # before the next chunk is submitted. Leaving early (an error, a closed generator) waits
+    # for the chunk in flight.
+    with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="wrinkle-jax-lift") as pool:
+        pending = None
+        for chunk in chunks:
+            counts["peak_buffered_frames"] = max(
+                counts["peak_buffered_frames"],
+                len(chunk[0]) + (0 if pending is None else cfg.chunk_size))
+            if pending is not None:
+                yield from pending.result()
+            pending = pool.submit(lift_chunk, chunk)
+        if pending is not None:
+            yield from pending.result()
+
+
+def _map_chunks(pipe: Pipeline, frames, material_id: int, indices: list, timings: dict,
+                counts: dict) -> Iterator[tuple]:
+    """(idx, coarse (n, V, 3), enhanced maps (n, H, W, 3)) per chunk of `indices`, NumPy:
+    baked, cut into patches, enhanced and merged (the stages before the lift)."""
+    cfg = pipe.config
     mask = _padded_mask(pipe)
     origins = to_device(pipe.origins)
     size = pipe.enhancer.config.patch_size
-    lift_static = _lift_static(pipe)
-    # The lift's warm start: the previous frame's offsets in its local frames (zeros: cold).
-    carried = _no_offsets(pipe) if cfg.lift and cfg.warm_start else None
     for start in range(0, len(indices), cfg.chunk_size):
         idx = indices[start:start + cfg.chunk_size]
         n = len(idx)
@@ -274,26 +334,8 @@ def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int
         enhanced = _merge_chunk(out, origins, mask, maps, window=cfg.window, shape=pipe.shape)
         enhanced = np.array(enhanced)  # host-owned (writable) copy; the device chunk is freed
         del out, maps
-        t0 = _add(timings, "merge", t0)
-        for j, t in enumerate(idx):
-            detailed = None
-            if cfg.lift:
-                t0 = time.perf_counter()
-                args = (pipe.subdivision, pipe.fine_garment, pipe.topology,
-                        _body_for(pipe.body, t), pipe.resolve_coarse)
-                if cfg.warm_start:
-                    detailed, carried, info = _lift_frame_warm(
-                        to_device(coarse[j]), to_device(enhanced[j]), carried, *args,
-                        **lift_static)
-                    counts["lift_iterations"] += int(info.iterations)
-                else:
-                    # The very computation `frame_fn` runs (bit for bit: a lift that stops
-                    # short of convergence amplifies rounding differences).
-                    detailed = _lift_frame(to_device(coarse[j]), to_device(enhanced[j]),
-                                           *args, **lift_static)
-                detailed = np.array(detailed)
-                _add(timings, "lift", t0)
-            yield EnhancedFrame(int(t), coarse[j], enhanced[j], detailed)
+        _add(timings, "merge", t0)
+        yield idx, coarse, enhanced
 
 
 # --------------------------------------------------------------------------------------------

@@ -150,6 +150,11 @@ def test_time_pipeline_reports_every_stage_per_frame_and_compile_separately(mode
         assert info["ms_per_frame"][stage] > 0
     assert info["ms_per_frame_total"] == pytest.approx(sum(info["ms_per_frame"].values()))
     assert info["compile_s"] > 0 and info["detailed_vertices"] > seq.garment.num_vertices
+    # As the CLI: the lift overlaps the next chunk; the wall time covers every stage's work
+    # at least once and at most their sum (plus the loop's own overhead).
+    assert info["overlap_lift"]
+    per = info["ms_per_frame"]
+    assert max(per.values()) < info["wall_ms_per_frame"] < 2 * info["ms_per_frame_total"]
 
 
 def test_time_simulation_counts_simulated_frames_and_separates_the_first_call(monkeypatch):
@@ -244,7 +249,8 @@ def test_timing_recipes_parse_and_rounds_summarize_by_median():
 
     def round_(coarse, fine, network):
         ms = {**stages, "network": network}
-        return {"pipeline": {"ms_per_frame": ms},
+        return {"pipeline": {"ms_per_frame": ms, "wall_ms_per_frame": network},
+                "pipeline_no_lift": {"wall_ms_per_frame": network / 2},
                 "recipes": {"legacy": {"coarse_sim": {"ms_per_frame": coarse},
                                        "fine_sim": {"ms_per_frame": fine},
                                        "ratio": timing.ratios(coarse, fine, ms)}}}
@@ -256,6 +262,8 @@ def test_timing_recipes_parse_and_rounds_summarize_by_median():
     r = s["recipes"]["legacy"]
     assert r["coarse_ms_per_frame"] == 12.0 and r["fine_ms_per_frame"] == 200.0
     assert r["ratio"]["speedup"] == pytest.approx(200.0 / 102.0)
+    assert r["ratio"]["speedup_no_lift"] == pytest.approx(200.0 / 57.0)
+    assert s["pipeline_wall_ms_per_frame"] == 90.0
     assert r["speedup_per_round"] == pytest.approx([2.0, 900.0 / 440.0, 1.8])
 
 
@@ -264,6 +272,10 @@ def test_timing_ratios_body_and_plot(tmp_path):
                                     "lift": 20.0})
     assert r["ours_ms_per_frame"] == 100.0 and r["speedup"] == 2.0
     assert r["speedup_no_lift"] == 2.5
+    # Wall times (the lift overlapping; a run without it) replace the stages' sums.
+    r = timing.ratios(10.0, 200.0, {"network": 60.0, "lift": 50.0}, 70.0, 40.0)
+    assert r["ours_ms_per_frame"] == 80.0 and r["ours_no_lift_ms_per_frame"] == 50.0
+    assert r["speedup"] == 2.5 and r["speedup_no_lift"] == 4.0
     ends = np.zeros((2, 1, 2, 3), np.float32)
     ends[:, 0, 1, 2] = 1.0  # a vertical capsule from the origin to z = 1 m
     body = timing.capsule_body_fn({"capsule_ends": ends,

@@ -284,17 +284,19 @@ def iter_enhance(pipe: Pipeline, frames, material_id: int, indices: Sequence[int
         return [lift_one(t, coarse[j], enhanced[j]) for j, t in enumerate(idx)]
 
     # One chunk in the worker at a time (the warm start is sequential): its result is taken
-    # before the next chunk is submitted. Leaving early (an error, a closed generator) waits
-    # for the chunk in flight.
+    # before the next chunk is submitted, and its frames are yielded (written, by the CLI)
+    # while the worker lifts that next chunk. Leaving early (an error, a closed generator)
+    # waits for the chunk in flight.
     with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="wrinkle-jax-lift") as pool:
         pending = None
         for chunk in chunks:
             counts["peak_buffered_frames"] = max(
                 counts["peak_buffered_frames"],
                 len(chunk[0]) + (0 if pending is None else cfg.chunk_size))
-            if pending is not None:
-                yield from pending.result()
+            done = None if pending is None else pending.result()
             pending = pool.submit(lift_chunk, chunk)
+            if done is not None:
+                yield from done
         if pending is not None:
             yield from pending.result()
 

@@ -211,10 +211,15 @@ def _slot_split(degree: np.ndarray, overflow_cost: float = 4.0) -> tuple[int, np
     int32), M chosen to minimize the product's slot work V M + overflow_cost E (K - M), K the
     largest degree; ties keep fewer overflow rows (M = K: no rows, no split).
 
-    An overflow slot (gathered and scatter-added for its row only) cost ~2.5x a main slot on
-    the 10k-vertex reference sheet (session 45: one product with M = 6 and E = 288 -> 5,000
-    overflow rows 0.45 -> 0.58 ms; unsplit, K = 8, 1.48 ms); 4 leaves a margin. That sheet
-    (288 of 10,201 vertices of valence 8) split at 6 slots: 1.38 -> 0.41 ms per product."""
+    An overflow slot (gathered and scatter-added for its row only) cost 2.3-3.4x a main slot
+    on the 10k-vertex reference sheet (session 45: one product with M = 6 and E = 288 ->
+    5,000 overflow rows 0.45 -> 0.61 ms with XLA's defaults, 0.32 -> 0.49 ms with the
+    command's settings); 4 leaves a margin. That sheet (288 of 10,201 vertices of valence 8)
+    splits at 6 slots, in the same time as unsplit (0.45 / 0.32 ms) once L v is
+    `_materialized`; on dress_dance's 20,308 vertices the split product took 0.63 ms against
+    1.2 ms (defaults) and 2.5 ms (command) over all 8 slots. (Before `_materialized`, the
+    overflow rows' scatter-add was what kept XLA from recomputing L v: the sheet's product
+    went 1.38 -> 0.41 ms when first split.)"""
     degree = np.asarray(degree)
     k = int(degree.max()) if degree.size else 0
     best, best_cost = k, float(degree.size * k)
@@ -256,18 +261,31 @@ def _ring_apply(off, diag, x, x_nbr):
     return y
 
 
+def _materialized(top: LiftTopology, y):
+    """y (V, ...) computed into a buffer of its own before anything gathers from it.
+
+    XLA:CPU fuses a cheap producer into a gather that reads it, recomputing it for every
+    gathered slot: L v (itself a one-ring gather) gathered again for L^T L v was recomputed
+    6-8 times per row. `lax.optimization_barrier` does not stop that on CPU (it is removed
+    before fusion); a scatter-add, which is not fused into its consumers, does: here one of
+    zeros into one row. One Gauss-Newton product on dress_dance's mesh with an unsplit 6-slot
+    table: 1.32 -> 0.82 ms (session 45; split tables already had the overflow rows'
+    scatter-add there, which is why splitting them looked 3x faster)."""
+    return y.at[top.neighbors[:1, 0]].add(jnp.zeros((1,) + y.shape[1:], y.dtype))
+
+
 def _split_apply(top: LiftTopology, off, x):
     """y_i = sum_k off[i, k] x[neighbors[i, k]] + lap_diag[i] x_i for x (V, 3), over the
     first `main_slots` slots of every row plus the other slots of the overflow rows
-    (scatter-added), as the Gauss-Newton product does: the push-out's L^T L products over
-    dress_dance's 8 slots took ~2x as long as split (session 45)."""
+    (scatter-added), as the Gauss-Newton product does. y is `_materialized` (the overflow
+    rows' scatter-add does it when there are some)."""
     m = top.main_slots or top.neighbors.shape[1]
     y = _ring_apply(off[:, :m], top.lap_diag, x, x[top.neighbors[:, :m]])
     if m < top.neighbors.shape[1] and top.overflow_rows.shape[0]:
         r = top.overflow_rows
-        y = y.at[r].add(_sum_slots(off[r, m:][..., None].astype(x.dtype)
-                                   * x[top.neighbors[r, m:]]))
-    return y
+        return y.at[r].add(_sum_slots(off[r, m:][..., None].astype(x.dtype)
+                                      * x[top.neighbors[r, m:]]))
+    return _materialized(top, y)
 
 
 def _lap_apply(top: LiftTopology, x, x_nbr=None):
@@ -495,6 +513,8 @@ def _gn_matvec(sys: _GNSystem, prob: LiftProblem, v):
         v_x = v[x_nbr]
         out = out.at[rows].add(-_slot_terms(x_gf, x_gb, v_x))
         lv = lv.at[rows].add(_sum_slots(x_lap[..., None].astype(v.dtype) * v_x))
+    else:
+        lv = _materialized(prob.topology, lv)
     ltl = _split_apply(prob.topology, prob.topology.lapt_off, lv)
     return out + 2.0 * prob.c_lap * ltl
 

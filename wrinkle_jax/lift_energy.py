@@ -275,25 +275,30 @@ def _materialized(top: LiftTopology, y):
     return y.at[top.neighbors[:1, 0]].add(jnp.zeros((1,) + y.shape[1:], y.dtype))
 
 
+def _split(top: LiftTopology):
+    """(M, rows): the slots every row runs (`LiftTopology.main_slots`, K when unset) and the
+    overflow rows (E,) whose other K - M slots are added apart, or None without a split."""
+    k = top.neighbors.shape[1]
+    m = top.main_slots or k
+    return m, (top.overflow_rows if m < k and top.overflow_rows.shape[0] else None)
+
+
 def _split_apply(top: LiftTopology, off, x):
     """y_i = sum_k off[i, k] x[neighbors[i, k]] + lap_diag[i] x_i for x (V, 3), over the
     first `main_slots` slots of every row plus the other slots of the overflow rows
     (scatter-added), as the Gauss-Newton product does. y is `_materialized` (the overflow
     rows' scatter-add does it when there are some)."""
-    m = top.main_slots or top.neighbors.shape[1]
+    m, r = _split(top)
     y = _ring_apply(off[:, :m], top.lap_diag, x, x[top.neighbors[:, :m]])
-    if m < top.neighbors.shape[1] and top.overflow_rows.shape[0]:
-        r = top.overflow_rows
+    if r is not None:
         return y.at[r].add(_sum_slots(off[r, m:][..., None].astype(x.dtype)
                                       * x[top.neighbors[r, m:]]))
     return _materialized(top, y)
 
 
-def _lap_apply(top: LiftTopology, x, x_nbr=None):
-    """L x for x (V, 3) (pass x_nbr = x[neighbors] if already gathered: all K slots)."""
-    if x_nbr is None:
-        return _split_apply(top, top.lap_off, x)
-    return _ring_apply(top.lap_off, top.lap_diag, x, x_nbr)
+def _lap_apply(top: LiftTopology, x):
+    """L x for x (V, 3)."""
+    return _split_apply(top, top.lap_off, x)
 
 
 def _lapt_apply(top: LiftTopology, y):
@@ -484,12 +489,10 @@ def _gn_system(rows: _Rows, prob: LiftProblem) -> _GNSystem:
     eye = jnp.eye(3, dtype=m.dtype)
     s = _sum_slots(m) + 2.0 * prob.c_data * eye
     diag = s + (2.0 * prob.c_lap * top.ltl_diag.astype(m.dtype))[:, None, None] * eye
-    k = top.main_slots or top.neighbors.shape[1]
+    k, r = _split(top)
     ring = (top.neighbors[:, :k], top.lap_off[:, :k])
-    overflow = None
-    if k < top.neighbors.shape[1] and top.overflow_rows.shape[0]:
-        r = top.overflow_rows
-        overflow = (r, top.neighbors[r, k:], top.lap_off[r, k:], g_f[r, k:], g_b[r, k:])
+    overflow = None if r is None else (
+        r, top.neighbors[r, k:], top.lap_off[r, k:], g_f[r, k:], g_b[r, k:])
     return _GNSystem(g_f[:, :k], g_b[:, :k], s, diag, ring, overflow)
 
 

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from wrinkle_jax import enhancer, sharpen
+from wrinkle_jax import enhancer, hostcpu, sharpen
 from wrinkle_jax.nn import unet
 
 KEY = jax.random.key(0, impl="rbg")
@@ -240,14 +240,21 @@ def test_config_json_is_flat_and_round_trips():
         enhancer.EnhancerConfig.from_json({**d, "colour": 1})
 
 
-def test_default_form_by_width_and_the_winograd_form_on_the_shipped_model():
-    """Loaded models pick their form by width (Winograd from 32); on the shipped width-16
-    model the Winograd form (two layers qualify) stays within the bfloat16 forms' error of the
-    exact float32 form, and differs from the im2col form (so it is really in use)."""
+def test_default_form_by_cpu_and_width_and_the_winograd_form_on_the_shipped_model(monkeypatch):
+    """Loaded models pick their form by the CPU (float32 without bfloat16 dot units) and the
+    width (Winograd from 32); on the shipped width-16 model the Winograd form (two layers
+    qualify) stays within the bfloat16 forms' error of the exact float32 form, and differs from
+    the im2col form (so it is really in use)."""
+    monkeypatch.setenv(hostcpu.BF16_ENV, "0")
+    assert enhancer.load_enhancer().model.conv_impl == "im2col_f32"
+    no_bf16 = enhancer.load_enhancer().config
+    wide = dataclasses.replace(no_bf16, unet=dataclasses.replace(no_bf16.unet, width=32))
+    assert wide.model().conv_impl == "im2col_f32"
+    monkeypatch.setenv(hostcpu.BF16_ENV, "1")
     enh = enhancer.load_enhancer()
     assert enh.config.unet.width == 16 and enh.model.conv_impl == "im2col_bf16"
-    wide = dataclasses.replace(enh.config, unet=dataclasses.replace(enh.config.unet, width=32))
     assert wide.model().conv_impl == "winograd_bf16" and wide.model("xla").conv_impl == "xla"
+    assert wide.model("auto").conv_impl == "im2col_bf16"  # "auto" is the host's im2col form
     y, x = np.mgrid[0:128, 0:128] / 128.0
     n = np.stack([0.3 * np.sin(40 * x + 3 * y), 0.2 * np.cos(25 * y), np.ones_like(x)], -1)
     n /= np.linalg.norm(n, axis=-1, keepdims=True)

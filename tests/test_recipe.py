@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from wrinkle_jax import MATERIALS, enhancer, recipe, train
+from wrinkle_jax import MATERIALS, enhancer, hostcpu, recipe, train
 from wrinkle_jax.nn import unet
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -26,8 +26,11 @@ def _parse(argv):
 def test_recipe_is_the_shipped_models_and_the_flags_default_to_it():
     assert _parse([]) == train.RECIPE
     assert train.RECIPE.unet == unet.RECIPE_UNET
-    shipped = enhancer.load_enhancer().meta["train_config"]
-    assert train.TrainConfig.from_json(shipped) == train.RECIPE
+    shipped = train.TrainConfig.from_json(enhancer.load_enhancer().meta["train_config"])
+    # The form is the host's, not the recipe's: the shipped model trained in "im2col_bf16"
+    # (same parameters in every form), the recipe says "auto".
+    assert shipped.conv_impl == "im2col_bf16" and train.RECIPE.conv_impl == "auto"
+    assert dataclasses.replace(shipped, conv_impl="auto") == train.RECIPE
     assert enhancer.load_enhancer().config.unet == unet.RECIPE_UNET
 
 
@@ -169,6 +172,9 @@ def test_conv_impl_choices_are_the_networks_forms():
     ap = argparse.ArgumentParser()
     recipe.add_recipe_args(ap)
     action = next(a for a in ap._actions if "--conv-impl" in a.option_strings)
-    assert tuple(action.choices) == tuple(unet.CONV_IMPLS)
+    assert tuple(action.choices) == unet.CONV_IMPL_CHOICES
     for impl in unet.CONV_IMPLS:  # each parses to a config that builds
         assert _parse(["--conv-impl", impl]).model().conv_impl == impl
+    # "auto" builds the host's fast form (a concrete one), and the loss's VGG runs it too
+    auto = _parse(["--conv-impl", "auto"])
+    assert auto.model().conv_impl == hostcpu.fast_conv_impl() == auto.vgg_conv_impl

@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax import MATERIALS, modelfile, normalmap
+from wrinkle_jax import MATERIALS, hostcpu, modelfile, normalmap
 from wrinkle_jax.nn import torch_interop, unet
 from wrinkle_jax.numerics import to_device
 
@@ -46,12 +46,15 @@ _FORMAT = "wrinkle-jax-enhancer/1"
 WINOGRAD_MIN_WIDTH = 32
 
 
-def inference_conv_impl(config: unet.UNetConfig) -> str:
-    """The U-Net form a loaded model runs in by default: "winograd_bf16" from width
+def inference_conv_impl(config: unet.UNetConfig, environ=None) -> str:
+    """The U-Net form a loaded model runs in by default. On a CPU with bfloat16 dot units
+    (`hostcpu.native_bf16_dots`; `environ` as there): "winograd_bf16" from width
     `WINOGRAD_MIN_WIDTH` (forward per 16 patches, quiet, session 26: width 32 115.7 -> 103.5 ms,
     width 64 1.25x), else "im2col_bf16": at the shipped width 16 only two small layers qualify,
     the forward gained 0-8 % in repeated runs, and the Winograd program compiles ~0.8 s
-    longer."""
+    longer. Elsewhere "im2col_f32": emulated bfloat16 dots are slower than float32 ones."""
+    if not hostcpu.native_bf16_dots(environ):
+        return "im2col_f32"
     return "winograd_bf16" if config.width >= WINOGRAD_MIN_WIDTH else "im2col_bf16"
 
 
@@ -113,7 +116,7 @@ class Enhancer(NamedTuple):
     meta: dict
 
 
-def init_enhancer(key, config: EnhancerConfig = EnhancerConfig(), conv_impl: str = "im2col_bf16",
+def init_enhancer(key, config: EnhancerConfig = EnhancerConfig(), conv_impl: str = "auto",
                   meta: dict | None = None) -> Enhancer:
     """An untrained enhancer (random parameters) -- for tests and as a training start."""
     model = config.model(conv_impl)
@@ -147,9 +150,10 @@ def load_enhancer(path: str | os.PathLike | None = None,
 
     Args:
       path: an ``.npz`` written by :func:`save_enhancer`; None for ``DEFAULT_PATH``.
-      conv_impl: the U-Net's convolution form: None picks by width (`inference_conv_impl`);
-        "winograd_bf16" (fastest on CPU from width 32) or "im2col_bf16"; "im2col_f32" or
-        "xla" exact. The parameters are the same for all forms.
+      conv_impl: the U-Net's convolution form: None picks by the CPU and the width
+        (`inference_conv_impl`); "winograd_bf16" (fastest from width 32 on CPUs with bfloat16
+        dot units) or "im2col_bf16"; "im2col_f32" or "xla" exact; "auto" as in `nn.unet`.
+        The parameters are the same for all forms.
 
     Raises:
       EnhancerError: naming the file, if it is missing, not an enhancer file, or its

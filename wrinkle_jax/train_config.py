@@ -13,7 +13,8 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from wrinkle_jax.nn import unet, vgg
+from wrinkle_jax import hostcpu
+from wrinkle_jax.nn import unet
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,9 +33,10 @@ class TrainConfig:
       learning_rate, b1, b2, weight_decay: Adam(W).
       style_layers, content_layer, w_c, w_s, normalize_channels, pool: the loss (see
         `nn.losses.enhancer_loss`).
-      conv_impl: convolution form of the U-Net and of the loss's VGG ("xla", "im2col_f32" --
-        U-Net only, exact -- "im2col_bf16" or "winograd_bf16"; see `nn.unet`). Parameters are
-        the same for all forms, so a run may resume with another one.
+      conv_impl: convolution form of the U-Net and of the loss's VGG ("auto": this host's fast
+        form, `hostcpu.fast_conv_impl`; "xla", "im2col_f32" (exact), "im2col_bf16" or
+        "winograd_bf16"; see `nn.unet`). Parameters are the same for all forms, so a run may
+        resume with another one.
       relative_floor: None for the paper's absolute style loss, or the floor of the per-patch
         relative style loss (`nn.losses.enhancer_loss`); the "style" metric is then a ratio.
       relative_log: the log of that ratio instead (the median-seeking form; "style" is then
@@ -68,7 +70,7 @@ class TrainConfig:
     w_s: float = 1e4
     normalize_channels: bool = True
     pool: str = "avg"
-    conv_impl: str = "im2col_bf16"
+    conv_impl: str = "auto"
     zero_init_output: bool = True
     relative_floor: float | None = None
     relative_log: bool = False
@@ -86,7 +88,7 @@ class TrainConfig:
 
     @property
     def vgg_conv_impl(self) -> str:
-        return self.conv_impl if self.conv_impl in vgg.CONV_IMPLS else "xla"  # im2col_f32: xla
+        return hostcpu.resolve_conv_impl(self.conv_impl)  # every U-Net form is one of VGG's
 
     def to_json(self) -> dict:
         """Flat: the U-Net's settings among the training fields (the run-config format)."""

@@ -36,7 +36,7 @@ def _pool_mask(mask, level: int):
 
 
 def patch_features(vgg_params, rgb, mask, features=("relu4_1:stats",),
-                   conv_impl: str = "im2col_bf16") -> dict[str, Any]:
+                   conv_impl: str = "auto") -> dict[str, Any]:
     """VGG features of patches, for one or several feature specs from a single VGG pass.
 
     Args:
@@ -44,7 +44,7 @@ def patch_features(vgg_params, rgb, mask, features=("relu4_1:stats",),
       rgb: (N, S, S, 3) float32 RGB form of coarse normal maps, background 0.
       mask: (N, S, S, 1) float32 garment mask of the patches.
       features: tuple of ``"<layer>:<reduce>"`` specs (static).
-      conv_impl: VGG convolution form (static; "im2col_bf16" is ~2x faster on CPU).
+      conv_impl: VGG convolution form (static; "auto": the host's fast form, see `hostcpu`).
     Returns:
       dict spec -> (N, D) float32 raw features (before log1p and standardization).
       Jittable with `features` and `conv_impl` static.

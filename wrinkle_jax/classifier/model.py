@@ -131,7 +131,7 @@ def predict_from_features(classifier: Classifier, raw, chunk: int = 512) -> np.n
 
 
 def predict_patches(classifier: Classifier, rgb, mask, batch_size: int = 16,
-                    conv_impl: str = "im2col_bf16") -> np.ndarray:
+                    conv_impl: str = "auto") -> np.ndarray:
     """Per-patch material probabilities.
 
     Args:

@@ -89,7 +89,7 @@ def sequence_variants(path: str | os.PathLike, fine_ds: bool = True) -> list[tup
 
 def cache_sequence(path: str | os.PathLike, root: str | os.PathLike, vgg_params,
                    config: FeatureCacheConfig, variant: str = "coarse", downsample: bool = False,
-                   conv_impl: str = "im2col_bf16", splits: tuple[str, ...] | None = None
+                   conv_impl: str = "auto", splits: tuple[str, ...] | None = None
                    ) -> dict | None:
     """Extract and cache the features of one sequence variant; returns its meta entry.
 

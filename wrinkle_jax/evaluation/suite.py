@@ -23,6 +23,7 @@ import jax
 import numpy as np
 
 from wrinkle_jax import enhancer as enhancer_lib
+from wrinkle_jax import hostcpu
 from wrinkle_jax.fileio import atomic_write_bytes, atomic_write_text, sha256_file
 
 __all__ = ["MODEL_CARD_RESULTS", "RESULTS", "ROOT", "SEQUENCES", "TABLE1_SEQUENCES", "eta_text",
@@ -37,13 +38,14 @@ MODEL_CARD_RESULTS = RESULTS / "model_card" / "results.json"
 
 
 def machine_info() -> dict:
-    """Platform, CPU count, 1-minute load average and library versions (JSON-ready)."""
+    """Platform, CPU (model, the flags that decide XLA's code, `hostcpu.describe`), CPU count,
+    1-minute load average and library versions (JSON-ready)."""
     try:
         load = round(os.getloadavg()[0], 2)
     except OSError:
         load = None
     return {"platform": platform.platform(), "processor": platform.processor() or None,
-            "cpu_count": os.cpu_count(), "load_avg_1min": load,
+            **hostcpu.describe(), "cpu_count": os.cpu_count(), "load_avg_1min": load,
             "python": sys.version.split()[0], "jax": jax.__version__,
             "jax_backend": jax.default_backend(), "numpy": np.__version__,
             "opencv": cv2.__version__}

@@ -60,7 +60,7 @@ class GANConfig:
 
     unet: unet.UNetConfig = unet.RECIPE_UNET
     zero_init_output: bool = True
-    conv_impl: str = "im2col_bf16"
+    conv_impl: str = "auto"
     disc_width: int = 32
     disc_layers: int = 3
     l1_weight: float = 100.0

@@ -41,9 +41,11 @@ arithmetic with float32 dots: exact to float32 rounding, and (since it avoids XL
 transposed-conv gradient) a training step ~5x faster than "xla" without any bfloat16.
 "winograd_bf16" is "im2col_bf16" with the layers that have enough channels and texels
 (`winograd.use_winograd`) computed by Winograd F(2x2, 3x3) / F(3x3, 2x2) transforms: 2.25x
-fewer products there (input gradients too), ~1.5x the per-layer bfloat16 error. All forms
-have the same parameters (names, shapes, init), so converted weights and checkpoints work with
-any of them.
+fewer products there (input gradients too), ~1.5x the per-layer bfloat16 error. "auto" is
+the host's fast form (`hostcpu.fast_conv_impl`): "im2col_bf16" where the CPU has bfloat16 dot
+units, else "im2col_f32" (emulated bfloat16 dots make "im2col_bf16" 1.3-1.7x slower there than
+float32). All forms have the same parameters (names, shapes, init), so converted weights and
+checkpoints work with any of them.
 
 Detail space and texel noise (the session-6 recipe, `experiments/results/fidelity/`): with
 `detail_sigma` > 0 the network sees and writes the *detail representation* of its input
@@ -69,7 +71,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wrinkle_jax import detail, sharpen
+from wrinkle_jax import detail, hostcpu, sharpen
 from wrinkle_jax.nn import fastconv, winograd
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -77,6 +79,8 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 NUM_LEVELS = 4
 CONV_IMPLS = {"xla": None, "im2col_f32": jnp.float32, "im2col_bf16": jnp.bfloat16,
               "winograd_bf16": jnp.bfloat16}
+# What a config or a command line may name: a form, or "auto" (resolved when a module is built).
+CONV_IMPL_CHOICES = (hostcpu.AUTO, *CONV_IMPLS)
 
 
 class CIN(nn.Module):
@@ -179,8 +183,10 @@ class UNetConfig:
     residual_gain: float = 1.0
 
     def module(self, num_materials: int, conv_impl: str = "xla") -> CINUNet:
-        """The `CINUNet` with these settings for `num_materials` materials."""
-        return CINUNet(config=self, num_materials=num_materials, conv_impl=conv_impl)
+        """The `CINUNet` with these settings for `num_materials` materials, in `conv_impl`
+        ("auto": this host's fast form, so the module holds the form it runs)."""
+        return CINUNet(config=self, num_materials=num_materials,
+                       conv_impl=hostcpu.resolve_conv_impl(conv_impl))
 
     def shares_blur(self) -> bool:
         """Whether the unsharp base and the high-pass blur on one radius (one blur serves both)."""
@@ -247,8 +253,9 @@ class CINUNet(nn.Module):
       num_materials: number of materials the CIN tables hold.
       norm: the conditional normalization layer factory (called with num_materials).
       dtype: computation dtype of the "xla" convolutions (parameters stay float32).
-      conv_impl: "xla", "im2col_bf16" (fast on CPU) or "im2col_f32" (see the module docstring);
-        the parameters are the same for every form.
+      conv_impl: "xla", "im2col_bf16" (fast on CPUs with bfloat16 dot units), "im2col_f32",
+        "winograd_bf16" or "auto" (see the module docstring); the parameters are the same for
+        every form.
     """
 
     config: UNetConfig = UNetConfig()
@@ -294,10 +301,11 @@ class CINUNet(nn.Module):
             noise = texel_noise(origins, x.shape[1], x.shape[2], cfg.noise_channels,
                                 scale=cfg.noise_scale)
             h = jnp.concatenate([h, noise * mask], axis=-1)
-        if self.conv_impl not in CONV_IMPLS:
+        impl = hostcpu.resolve_conv_impl(self.conv_impl)
+        if impl not in CONV_IMPLS:
             raise ValueError(f"unknown conv_impl {self.conv_impl!r}; expected one of "
-                             f"{', '.join(CONV_IMPLS)}")
-        compute = CONV_IMPLS[self.conv_impl]
+                             f"{', '.join(CONV_IMPL_CHOICES)}")
+        compute = CONV_IMPLS[impl]
         norm = self.norm
         if compute is None:
             conv = functools.partial(nn.Conv, kernel_size=(3, 3), padding=((1, 1), (1, 1)),
@@ -307,7 +315,7 @@ class CINUNet(nn.Module):
             deconv = functools.partial(nn.ConvTranspose, kernel_size=(4, 4), strides=(2, 2),
                                        padding=((2, 2), (2, 2)), dtype=self.dtype)
         else:
-            wino = self.conv_impl == "winograd_bf16"
+            wino = impl == "winograd_bf16"
             conv = functools.partial(FastConv, kernel_size=3, compute_dtype=compute,
                                      winograd=wino)
             deconv = functools.partial(FastConv, kernel_size=4, transpose=True,

@@ -49,6 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wrinkle_jax import hostcpu
 from wrinkle_jax.fileio import NPZ_READ_ERRORS, atomic_write_bytes, sha256_file, user_cache_dir
 from wrinkle_jax.io import torch_pickle
 from wrinkle_jax.nn import winograd
@@ -101,7 +102,7 @@ _IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
 _CACHE_VERSION = "v1"
 _PREPROCESS = ("gatys_bgr255", "imagenet_rgb", "custom")
 _PADDING = ("REFLECT", "ZERO")
-CONV_IMPLS = ("xla", "im2col_bf16", "winograd_bf16")
+CONV_IMPLS = ("xla", "im2col_f32", "im2col_bf16", "winograd_bf16")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -153,9 +154,12 @@ def _conv3x3(x, layer, padding, dtype, conv_impl="xla"):
     (conv1_1, 3 channels) the same form in float32: bfloat16 would round the image's fine
     detail to 8 bits, and the layer is ~1% of the FLOPs. ``"winograd_bf16"``: the same, with
     the layers `winograd.use_winograd` picks in :mod:`wrinkle_jax.nn.winograd`'s form.
+    ``"im2col_f32"``: the im2col form in float32 throughout (exact; the fast form on CPUs
+    without bfloat16 dot units, see `hostcpu.fast_conv_impl`).
     """
-    if conv_impl in ("im2col_bf16", "winograd_bf16"):
-        compute = jnp.float32 if x.shape[-1] <= 4 else jnp.bfloat16
+    if conv_impl in ("im2col_f32", "im2col_bf16", "winograd_bf16"):
+        bf16 = conv_impl != "im2col_f32" and x.shape[-1] > 4
+        compute = jnp.bfloat16 if bf16 else jnp.float32
         ops = winograd.layer_ops(x, layer["kernel"].shape[-1], conv_impl == "winograd_bf16")
         return ops.conv3x3(x, layer["kernel"], layer["bias"], padding=padding,
                            compute_dtype=compute)
@@ -205,7 +209,9 @@ def features(params, images, layers=DEFAULT_LAYERS, pool="avg", dtype=None, conv
       pool: ``"avg"`` (the reference implementation) or ``"max"`` (static).
       dtype: optional compute dtype for the conv inputs and weights (e.g. ``jnp.bfloat16``);
         accumulation, bias, ReLU and pooling stay float32 (static).
-      conv_impl: ``"xla"`` (XLA convolutions) or ``"im2col_bf16"`` (patches + bfloat16 dots,
+      conv_impl: ``"auto"`` (this host's fast form, :func:`wrinkle_jax.hostcpu.fast_conv_impl`),
+        ``"xla"`` (XLA convolutions), ``"im2col_f32"`` (patches + float32 dots, exact) or
+        ``"im2col_bf16"`` (patches + bfloat16 dots,
         ~1.5-2x faster forward and backward on AVX512-BF16 CPUs, ~2.5e-3 relative error per
         layer; see :mod:`wrinkle_jax.nn.fastconv`) or ``"winograd_bf16"`` (the wide layers by
         Winograd transforms, ~1.5x that error; :mod:`wrinkle_jax.nn.winograd`) (static).
@@ -229,8 +235,9 @@ def features(params, images, layers=DEFAULT_LAYERS, pool="avg", dtype=None, conv
         layer_level(name)  # validates the name
     if pool not in ("avg", "max"):
         raise ValueError(f"pool must be 'avg' or 'max', got {pool!r}")
+    conv_impl = hostcpu.resolve_conv_impl(conv_impl)
     if conv_impl not in CONV_IMPLS:
-        raise ValueError(f"conv_impl must be one of {CONV_IMPLS}, got {conv_impl!r}")
+        raise ValueError(f"conv_impl must be 'auto' or one of {CONV_IMPLS}, got {conv_impl!r}")
     if images.ndim != 4 or images.shape[-1] != 3:
         raise ValueError(f"images must be (N, H, W, 3) RGB, got shape {images.shape}")
     spec = params["spec"]

@@ -27,7 +27,8 @@ back, so load drifts hit all alike; ratios are medians of the per-round ratios):
     input convention; the normalization is inside the timed call, as ours is inside our
     network). Ours: the same weights converted by `torch_interop.from_torch_state_dict` (seeded
     random init, with the CIN scales and shifts perturbed so that a wrong material row would
-    show), in the "xla", "im2col_bf16" and "winograd_bf16" convolution forms (`INFER_IMPLS`),
+    show), in the "xla", "im2col_f32", "winograd_f32", "im2col_bf16" and "winograd_bf16"
+    convolution forms (`INFER_IMPLS`; which is fastest depends on the CPU: `hostcpu`),
     jitted.
     Reported: ms/patch, patches/s,
     speedups (their time / ours, wall and process CPU), and the agreement on one batch in the
@@ -64,7 +65,8 @@ scripts print progress: it is sent to stderr, so stdout holds only the JSON.
 
     python benchmarks/bench_reference.py --authors-repo PATH [--rounds N] [--device cpu]
         [--skip-unet] [--skip-train] [--skip-lift] [--train-batch 32]
-        [--train-impls xla im2col_bf16 winograd_bf16] [--malloc retain|default]
+        [--train-impls xla im2col_f32 winograd_f32 im2col_bf16 winograd_bf16]
+        [--malloc retain|default]
 """
 
 from __future__ import annotations
@@ -97,7 +99,8 @@ def _parse():
                    help="largest GN iteration count tried for ours_matched")
     p.add_argument("--train-batch", type=int, default=32,
                    help="training-step batch (their script's: 32)")
-    p.add_argument("--train-impls", nargs="+", default=["xla", "im2col_bf16", "winograd_bf16"],
+    p.add_argument("--train-impls", nargs="+",
+                   default=["xla", "im2col_f32", "winograd_f32", "im2col_bf16", "winograd_bf16"],
                    help="our convolution forms timed in the training step")
     p.add_argument("--skip-unet", action="store_true")
     p.add_argument("--skip-train", action="store_true")
@@ -115,8 +118,8 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+from wrinkle_jax import hostcpu, mesh, primitives, timing, train  # noqa: E402
 from wrinkle_jax import lift as L  # noqa: E402
-from wrinkle_jax import mesh, primitives, timing, train  # noqa: E402
 from wrinkle_jax.nn import torch_interop, unet, vgg  # noqa: E402
 from wrinkle_jax.reference import (  # noqa: E402
     AUTHORS_C_ALPHA,
@@ -140,7 +143,7 @@ from wrinkle_jax.reference import (  # noqa: E402
 
 PATCH = 128
 # Our U-Net forms timed and checked against theirs in the inference section.
-INFER_IMPLS = ("xla", "im2col_bf16", "winograd_bf16")
+INFER_IMPLS = ("xla", "im2col_f32", "winograd_f32", "im2col_bf16", "winograd_bf16")
 NUM_MATERIALS = 5
 AUTHORS_DIR = "network_train_and_run"
 AUTHORS_MODULES = ("models", "DataIO", "VGG_Model", "Losses", "Geometry_Opt")
@@ -575,6 +578,7 @@ def main(args):
         "authors_code_sha256": authors["code_sha256"],
         "torch": torch.__version__, "jax": jax.__version__,
         "device": args.device, "cpu": platform.processor() or platform.machine(),
+        "host_cpu": hostcpu.describe(),
         "cpu_count": os.cpu_count(), "rounds": args.rounds,
         "malloc": "retain (mallopt)" if MALLOC_RETAINED else "default",
         "torchvision": "stub (absent)" if authors["torchvision_stub"] else "installed",

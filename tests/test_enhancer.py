@@ -249,7 +249,7 @@ def test_default_form_by_cpu_and_width_and_the_winograd_form_on_the_shipped_mode
     assert enhancer.load_enhancer().model.conv_impl == "im2col_f32"
     no_bf16 = enhancer.load_enhancer().config
     wide = dataclasses.replace(no_bf16, unet=dataclasses.replace(no_bf16.unet, width=32))
-    assert wide.model().conv_impl == "im2col_f32"
+    assert wide.model().conv_impl == "winograd_f32"
     monkeypatch.setenv(hostcpu.BF16_ENV, "1")
     enh = enhancer.load_enhancer()
     assert enh.config.unet.width == 16 and enh.model.conv_impl == "im2col_bf16"
@@ -262,8 +262,12 @@ def test_default_form_by_cpu_and_width_and_the_winograd_form_on_the_shipped_mode
     m = jnp.array([0, 3])
     outs = {impl: np.asarray(jax.jit(enh.config.model(impl).apply)({"params": enh.params}, rgb,
                                                                    m))
-            for impl in ("winograd_bf16", "im2col_bf16", "im2col_f32")}
+            for impl in ("winograd_bf16", "im2col_bf16", "im2col_f32", "winograd_f32")}
     exact = outs["im2col_f32"]
     for impl in ("winograd_bf16", "im2col_bf16"):
         assert np.sqrt(np.mean((outs[impl] - exact) ** 2) / np.mean(exact**2)) < 1e-3
     assert np.any(outs["winograd_bf16"] != outs["im2col_bf16"])
+    # float32 Winograd: its transforms' rounding only, and really in use
+    wino = outs["winograd_f32"]
+    assert np.sqrt(np.mean((wino - exact) ** 2) / np.mean(exact**2)) < 1e-5
+    assert np.any(wino != exact)

@@ -57,18 +57,26 @@ def test_bf16_dots_only_on_x86_bf16_units_unless_forced():
 
 
 def test_auto_resolves_to_the_hosts_fast_form_and_leaves_forms_alone():
-    assert hostcpu.fast_conv_impl({hostcpu.BF16_ENV: "1"}) == "im2col_bf16"
-    assert hostcpu.fast_conv_impl({hostcpu.BF16_ENV: "0"}) == "im2col_f32"
-    assert hostcpu.resolve_conv_impl("auto", {hostcpu.BF16_ENV: "0"}) == "im2col_f32"
+    assert hostcpu.fast_conv_impl(environ={hostcpu.BF16_ENV: "1"}) == "im2col_bf16"
+    assert hostcpu.fast_conv_impl(environ={hostcpu.BF16_ENV: "0"}) == "im2col_f32"
+    assert hostcpu.resolve_conv_impl("auto", environ={hostcpu.BF16_ENV: "0"}) == "im2col_f32"
     for impl in unet.CONV_IMPLS:
-        assert hostcpu.resolve_conv_impl(impl, {hostcpu.BF16_ENV: "0"}) == impl
+        assert hostcpu.resolve_conv_impl(impl, 64, {hostcpu.BF16_ENV: "0"}) == impl
     assert set(unet.CONV_IMPLS) == set(vgg.CONV_IMPLS)  # a config's form serves both
+    # by width: Winograd from 32 in float32; bfloat16 hosts keep the im2col form
+    no, yes = {hostcpu.BF16_ENV: "0"}, {hostcpu.BF16_ENV: "1"}
+    assert [hostcpu.fast_conv_impl(w, no) for w in (None, 16, 31, 32, 64)] == (
+        ["im2col_f32"] * 3 + ["winograd_f32"] * 2)
+    assert {hostcpu.fast_conv_impl(w, yes) for w in (None, 16, 64)} == {"im2col_bf16"}
+    assert hostcpu.resolve_conv_impl("auto", 64, no) == "winograd_f32"
+    assert unet.UNetConfig(width=64).module(5, "auto").conv_impl == hostcpu.fast_conv_impl(64)
 
 
 def test_describe_is_json_and_agrees_with_the_detection():
     d = json.loads(json.dumps(hostcpu.describe()))
     assert d["native_bf16_dots"] == hostcpu.native_bf16_dots()
-    assert d["fast_conv_impl"] == hostcpu.fast_conv_impl()
+    assert d["fast_conv_impl"] == {"width_16": hostcpu.fast_conv_impl(16),
+                                   "width_64": hostcpu.fast_conv_impl(64)}
     assert set(d["cpu_flags"]) <= set(hostcpu.cpu_flags())
 
 
@@ -85,5 +93,7 @@ def test_vgg_float32_im2col_matches_xla_and_auto_runs(monkeypatch):
     monkeypatch.setenv(hostcpu.BF16_ENV, "0")
     auto = f(params, x, layers=("relu2_1",), conv_impl="auto")["relu2_1"]
     np.testing.assert_array_equal(np.asarray(auto), np.asarray(got))
+    wino = f(params, x, layers=("relu2_1",), conv_impl="winograd_f32")["relu2_1"]
+    assert float(jnp.max(jnp.abs(wino - ref))) < 1e-4 * max(scale, 1.0)
     bf16 = f(params, x, layers=("relu2_1",), conv_impl="im2col_bf16")["relu2_1"]
     assert float(jnp.max(jnp.abs(bf16 - ref))) > 10 * float(jnp.max(jnp.abs(got - ref)))

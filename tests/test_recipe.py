@@ -177,4 +177,4 @@ def test_conv_impl_choices_are_the_networks_forms():
         assert _parse(["--conv-impl", impl]).model().conv_impl == impl
     # "auto" builds the host's fast form (a concrete one), and the loss's VGG runs it too
     auto = _parse(["--conv-impl", "auto"])
-    assert auto.model().conv_impl == hostcpu.fast_conv_impl() == auto.vgg_conv_impl
+    assert auto.model().conv_impl == hostcpu.fast_conv_impl(auto.unet.width) == auto.vgg_conv_impl

@@ -42,8 +42,8 @@ __all__ = ["DEFAULT_PATH", "Enhancer", "EnhancerConfig", "EnhancerError", "from_
 
 DEFAULT_PATH = Path(__file__).resolve().parent / "assets" / "enhancer.npz"
 _FORMAT = "wrinkle-jax-enhancer/1"
-# Loaded models of at least this width run the Winograd form (`inference_conv_impl`).
-WINOGRAD_MIN_WIDTH = 32
+# Loaded models of at least this width run a Winograd form (`inference_conv_impl`).
+WINOGRAD_MIN_WIDTH = hostcpu.WINOGRAD_MIN_WIDTH
 
 
 def inference_conv_impl(config: unet.UNetConfig, environ=None) -> str:
@@ -52,10 +52,13 @@ def inference_conv_impl(config: unet.UNetConfig, environ=None) -> str:
     `WINOGRAD_MIN_WIDTH` (forward per 16 patches, quiet, session 26: width 32 115.7 -> 103.5 ms,
     width 64 1.25x), else "im2col_bf16": at the shipped width 16 only two small layers qualify,
     the forward gained 0-8 % in repeated runs, and the Winograd program compiles ~0.8 s
-    longer. Elsewhere "im2col_f32": emulated bfloat16 dots are slower than float32 ones."""
-    if not hostcpu.native_bf16_dots(environ):
-        return "im2col_f32"
-    return "winograd_bf16" if config.width >= WINOGRAD_MIN_WIDTH else "im2col_bf16"
+    longer. Elsewhere the float32 forms, "winograd_f32" from the same width: emulated
+    bfloat16 dots are slower than float32 ones (AVX2-only EPYC, session 46, batch 8, 3
+    alternating rounds: width 64 winograd_f32 35-46, winograd_bf16 48-50, im2col_f32 61-72,
+    xla 74-79 ms/patch; width 16 im2col_f32 8.6-11.4, winograd_f32 7.6-11.3)."""
+    if hostcpu.native_bf16_dots(environ) and config.width >= WINOGRAD_MIN_WIDTH:
+        return "winograd_bf16"
+    return hostcpu.fast_conv_impl(config.width, environ)
 
 
 class EnhancerError(ValueError):

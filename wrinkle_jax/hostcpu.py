@@ -6,8 +6,11 @@ several times the float32 rate. A CPU without those units has XLA emulate the bf
 the same form is then slower than float32. Measured on an AVX2-only AMD EPYC (session 46, 2
 cores, the shipped width-16 model, batch 32 of 128 x 128 patches, 3 alternating rounds):
 forward 14.0-14.5 ms/patch in "im2col_bf16" against 9.9-11.6 in "im2col_f32" (XLA's own
-convolutions 12.0-13.1); a training step at width 16, batch 8, 666-776 against 398-452 ms/patch
-(4 rounds). So the fast form is chosen per host (`fast_conv_impl`; "auto" in configs).
+convolutions 12.0-13.1). At width 64 (`benchmarks/bench_reference.py`, beside the authors'
+PyTorch network, 3 alternating rounds): inference 30.6 ms/patch in "winograd_f32", 45.3 in
+"winograd_bf16", 56.9 in "im2col_f32", 80.2 in "im2col_bf16" (theirs 59.6); their training
+step (batch 32) 14.2 s in "winograd_f32" against 30.8 s in "im2col_f32" (theirs 34.4 s). So
+the fast form is chosen per host and width (`fast_conv_impl`; "auto" in configs).
 
 Only the standard library: nothing here starts JAX.
 
@@ -31,6 +34,9 @@ BF16_FLAGS = ("avx512_bf16", "amx_bf16")
 BF16_ENV = "WRINKLE_JAX_BF16"
 # The convolution-form name that means "the fast form of this host" (`resolve_conv_impl`).
 AUTO = "auto"
+# U-Nets at least this wide run Winograd forms where those are chosen for speed (narrower ones
+# have too few layers with enough channels: `nn.winograd.use_winograd`).
+WINOGRAD_MIN_WIDTH = 32
 # Flags worth recording beside a timing: they decide which code XLA:CPU can emit.
 _RECORDED = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_tile")
 
@@ -82,20 +88,28 @@ def native_bf16_dots(environ=None, cpuinfo: dict[str, str] | None = None) -> boo
     return any(f in cpu_flags(cpuinfo) for f in BF16_FLAGS)
 
 
-def fast_conv_impl(environ=None) -> str:
-    """The fast convolution form of this host (`nn.unet`, `nn.vgg`): "im2col_bf16" where
-    `native_bf16_dots`, else "im2col_f32" (exact, and faster there: see the module docstring)."""
-    return "im2col_bf16" if native_bf16_dots(environ) else "im2col_f32"
+def fast_conv_impl(width: int | None = None, environ=None) -> str:
+    """The fast convolution form of this host (`nn.unet`, `nn.vgg`) for a U-Net of `width`
+    (None: unknown). Where `native_bf16_dots`: "im2col_bf16" (the Winograd bfloat16 form adds
+    error; `enhancer.inference_conv_impl` opts into it for loaded models). Elsewhere the float32
+    forms, exact and faster there (see the module docstring): "winograd_f32" from
+    `WINOGRAD_MIN_WIDTH`, else "im2col_f32"."""
+    if native_bf16_dots(environ):
+        return "im2col_bf16"
+    wide = width is not None and width >= WINOGRAD_MIN_WIDTH
+    return "winograd_f32" if wide else "im2col_f32"
 
 
-def resolve_conv_impl(name: str, environ=None) -> str:
-    """`name`, or `fast_conv_impl` for `AUTO`: configs say "auto" so that they stay portable
-    between hosts, and the module built from them runs a concrete form."""
-    return fast_conv_impl(environ) if name == AUTO else name
+def resolve_conv_impl(name: str, width: int | None = None, environ=None) -> str:
+    """`name`, or `fast_conv_impl(width)` for `AUTO`: configs say "auto" so that they stay
+    portable between hosts, and the module built from them runs a concrete form."""
+    return fast_conv_impl(width, environ) if name == AUTO else name
 
 
 def describe() -> dict:
-    """JSON-ready: the CPU model, the recorded flags it has, and `native_bf16_dots`."""
+    """JSON-ready: the CPU model, the recorded flags it has, `native_bf16_dots` and the fast
+    forms at widths 16 and 64."""
     flags = cpu_flags()
     return {"cpu_model": cpu_model(), "cpu_flags": [f for f in _RECORDED if f in flags],
-            "native_bf16_dots": native_bf16_dots(), "fast_conv_impl": fast_conv_impl()}
+            "native_bf16_dots": native_bf16_dots(),
+            "fast_conv_impl": {f"width_{w}": fast_conv_impl(w) for w in (16, 64)}}

@@ -141,7 +141,8 @@ def add_recipe_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--eval-batches", type=int, default=lambda r, u: r.eval_batches,
                     help="batches of the periodic evaluation (evenly spaced over its split)")
     ap.add_argument("--conv-impl", default=lambda r, u: r.conv_impl,
-                    choices=("auto", "xla", "im2col_f32", "im2col_bf16", "winograd_bf16"),
+                    choices=("auto", "xla", "im2col_f32", "im2col_bf16", "winograd_bf16",
+                             "winograd_f32"),
                     help="convolution form of the U-Net and the loss's VGG (auto: im2col_bf16 "
                          "on CPUs with bfloat16 dot units, else im2col_f32): winograd_bf16 "
                          "stepped 1.46x (session 26), 1.06x (session 27) and 1.42x "

@@ -88,7 +88,8 @@ class TrainConfig:
 
     @property
     def vgg_conv_impl(self) -> str:
-        return hostcpu.resolve_conv_impl(self.conv_impl)  # every U-Net form is one of VGG's
+        # Every U-Net form is one of VGG's; "auto" follows the U-Net's width.
+        return hostcpu.resolve_conv_impl(self.conv_impl, self.unet.width)
 
     def to_json(self) -> dict:
         """Flat: the U-Net's settings among the training fields (the run-config format)."""

@@ -41,11 +41,12 @@ arithmetic with float32 dots: exact to float32 rounding, and (since it avoids XL
 transposed-conv gradient) a training step ~5x faster than "xla" without any bfloat16.
 "winograd_bf16" is "im2col_bf16" with the layers that have enough channels and texels
 (`winograd.use_winograd`) computed by Winograd F(2x2, 3x3) / F(3x3, 2x2) transforms: 2.25x
-fewer products there (input gradients too), ~1.5x the per-layer bfloat16 error. "auto" is
-the host's fast form (`hostcpu.fast_conv_impl`): "im2col_bf16" where the CPU has bfloat16 dot
-units, else "im2col_f32" (emulated bfloat16 dots make "im2col_bf16" 1.3-1.7x slower there than
-float32). All forms have the same parameters (names, shapes, init), so converted weights and
-checkpoints work with any of them.
+fewer products there (input gradients too), ~1.5x the per-layer bfloat16 error;
+"winograd_f32" the same in float32 (Winograd's rounding only, ~1e-6). "auto" is
+the host's fast form for the width (`hostcpu.fast_conv_impl`): "im2col_bf16" where the CPU
+has bfloat16 dot units, else "im2col_f32", or "winograd_f32" from width 32 (emulated bfloat16
+dots make the bfloat16 forms slower there than float32). All forms have the same parameters
+(names, shapes, init), so converted weights and checkpoints work with any of them.
 
 Detail space and texel noise (the session-6 recipe, `experiments/results/fidelity/`): with
 `detail_sigma` > 0 the network sees and writes the *detail representation* of its input
@@ -78,7 +79,7 @@ IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 NUM_LEVELS = 4
 CONV_IMPLS = {"xla": None, "im2col_f32": jnp.float32, "im2col_bf16": jnp.bfloat16,
-              "winograd_bf16": jnp.bfloat16}
+              "winograd_bf16": jnp.bfloat16, "winograd_f32": jnp.float32}
 # What a config or a command line may name: a form, or "auto" (resolved when a module is built).
 CONV_IMPL_CHOICES = (hostcpu.AUTO, *CONV_IMPLS)
 
@@ -186,7 +187,7 @@ class UNetConfig:
         """The `CINUNet` with these settings for `num_materials` materials, in `conv_impl`
         ("auto": this host's fast form, so the module holds the form it runs)."""
         return CINUNet(config=self, num_materials=num_materials,
-                       conv_impl=hostcpu.resolve_conv_impl(conv_impl))
+                       conv_impl=hostcpu.resolve_conv_impl(conv_impl, self.width))
 
     def shares_blur(self) -> bool:
         """Whether the unsharp base and the high-pass blur on one radius (one blur serves both)."""
@@ -301,7 +302,7 @@ class CINUNet(nn.Module):
             noise = texel_noise(origins, x.shape[1], x.shape[2], cfg.noise_channels,
                                 scale=cfg.noise_scale)
             h = jnp.concatenate([h, noise * mask], axis=-1)
-        impl = hostcpu.resolve_conv_impl(self.conv_impl)
+        impl = hostcpu.resolve_conv_impl(self.conv_impl, cfg.width)
         if impl not in CONV_IMPLS:
             raise ValueError(f"unknown conv_impl {self.conv_impl!r}; expected one of "
                              f"{', '.join(CONV_IMPL_CHOICES)}")
@@ -315,7 +316,7 @@ class CINUNet(nn.Module):
             deconv = functools.partial(nn.ConvTranspose, kernel_size=(4, 4), strides=(2, 2),
                                        padding=((2, 2), (2, 2)), dtype=self.dtype)
         else:
-            wino = impl == "winograd_bf16"
+            wino = impl.startswith("winograd")
             conv = functools.partial(FastConv, kernel_size=3, compute_dtype=compute,
                                      winograd=wino)
             deconv = functools.partial(FastConv, kernel_size=4, transpose=True,

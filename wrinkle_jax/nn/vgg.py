@@ -102,7 +102,7 @@ _IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
 _CACHE_VERSION = "v1"
 _PREPROCESS = ("gatys_bgr255", "imagenet_rgb", "custom")
 _PADDING = ("REFLECT", "ZERO")
-CONV_IMPLS = ("xla", "im2col_f32", "im2col_bf16", "winograd_bf16")
+CONV_IMPLS = ("xla", "im2col_f32", "im2col_bf16", "winograd_bf16", "winograd_f32")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -154,13 +154,13 @@ def _conv3x3(x, layer, padding, dtype, conv_impl="xla"):
     (conv1_1, 3 channels) the same form in float32: bfloat16 would round the image's fine
     detail to 8 bits, and the layer is ~1% of the FLOPs. ``"winograd_bf16"``: the same, with
     the layers `winograd.use_winograd` picks in :mod:`wrinkle_jax.nn.winograd`'s form.
-    ``"im2col_f32"``: the im2col form in float32 throughout (exact; the fast form on CPUs
-    without bfloat16 dot units, see `hostcpu.fast_conv_impl`).
+    ``"im2col_f32"`` / ``"winograd_f32"``: those forms in float32 throughout (for CPUs without
+    bfloat16 dot units, see `hostcpu.fast_conv_impl`).
     """
-    if conv_impl in ("im2col_f32", "im2col_bf16", "winograd_bf16"):
-        bf16 = conv_impl != "im2col_f32" and x.shape[-1] > 4
+    if conv_impl != "xla":
+        bf16 = conv_impl.endswith("bf16") and x.shape[-1] > 4
         compute = jnp.bfloat16 if bf16 else jnp.float32
-        ops = winograd.layer_ops(x, layer["kernel"].shape[-1], conv_impl == "winograd_bf16")
+        ops = winograd.layer_ops(x, layer["kernel"].shape[-1], conv_impl.startswith("winograd"))
         return ops.conv3x3(x, layer["kernel"], layer["bias"], padding=padding,
                            compute_dtype=compute)
     kernel = layer["kernel"]

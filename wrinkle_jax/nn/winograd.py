@@ -2,7 +2,9 @@
 multiplications per output than `fastconv`'s im2col, for inference on CPU.
 
 Why: the im2col forms already run their bfloat16 dots near this machine's rate (250-360
-GFLOP/s on 2 cores at width 64), so only fewer multiplications make the U-Net faster. A
+GFLOP/s on 2 cores at width 64, AVX512-BF16), so only fewer multiplications make the U-Net
+faster. The same holds in float32 on a CPU without bfloat16 units ("winograd_f32" in
+`nn.unet`; AVX2-only EPYC, width 64, batch 8: 35-46 against im2col's 61-72 ms/patch). A
 Winograd F(m, r) correlation computes m outputs of an r-tap filter from alpha = m + r - 1
 inputs with alpha products instead of m r (Lavin & Gray 2016, "Fast Algorithms for
 Convolutional Neural Networks"); in 2D, tiles of m x m outputs take alpha^2 products:

@@ -52,6 +52,9 @@ COMMANDS = {
     "reference_train": ("python benchmarks/bench_reference.py --authors-repo PATH --skip-unet "
                         "--skip-lift --train-impls im2col_bf16 winograd_bf16 --rounds 3 "
                         "> experiments/results/timing/reference_train.json"),
+    "reference_avx2": ("python benchmarks/bench_reference.py --authors-repo PATH --skip-lift "
+                       "--rounds 3 --train-impls im2col_f32 winograd_f32 "
+                       "> experiments/results/timing/reference_s46b_avx2.json"),
     "ceiling": "python benchmarks/bench_ceiling.py > experiments/results/timing/ceiling.json",
     "lift": "python benchmarks/bench_lift.py --quick > experiments/results/lift/bench.json",
     "substeps": ("python benchmarks/bench_sim.py --quick --part substeps "
@@ -105,9 +108,11 @@ def headline(rep: Report, t1, t2, timing, temporal, card=None, pg=None, sheet=No
     rows += table2_headline(t2)
     rows += card_headline(card, pg, sheet)
     if timing:
+        cpu = timing_cpu(timing)
         for name, r in timing_ratios(timing):
             rows.append(f"- Timing ({timing['scene']}, {timing['material']}"
-                        + (f", {RECIPE_NAMES.get(name, name)}" if name else "") + "): ours "
+                        + (f", {RECIPE_NAMES.get(name, name)}" if name else "")
+                        + (f", {cpu}" if cpu else "") + "): ours "
                         f"{r['ours_ms_per_frame']:.0f} ms/frame (coarse sim + enhancement + "
                         f"lift) vs fine simulation {r['fine_ms_per_frame']:.0f} ms/frame: "
                         f"{r['speedup']:.2f}x the fine simulation's speed "
@@ -337,6 +342,14 @@ def timing_ratios(timing) -> list[tuple[str, dict]]:
     return [(name, s["ratio"]) for name, s in summary["recipes"].items()]
 
 
+def timing_cpu(timing) -> str:
+    """"<model> (<flags>)" of the machine a timing run recorded, or "" (older runs)."""
+    m = timing.get("machine", {})
+    if not m.get("cpu_model"):
+        return ""
+    return f"{m['cpu_model']} ({', '.join(m.get('cpu_flags', [])) or 'no recorded flags'})"
+
+
 def timing_section(rep: Report, timing) -> None:
     rep.add("## Timing (paper Fig. 2)", "")
     if not timing:
@@ -345,8 +358,10 @@ def timing_section(rep: Report, timing) -> None:
     p = timing["pipeline"]
     summary = timing.get("summary")
     rounds = timing.get("rounds", 1)
+    cpu = timing_cpu(timing)
     rep.add(f"{timing['scene']}, {timing['material']}, {timing['frames']} frames, model width "
-            f"{timing.get('model_width')}; steady state, compile and setup excluded"
+            f"{timing.get('model_width')}" + (f", on {cpu}" if cpu else "")
+            + "; steady state, compile and setup excluded"
             + (f"; medians of {rounds} rounds in one process, the recipe order alternating"
                if rounds > 1 else "") + ".", "")
     recipes = list(summary["recipes"]) if summary else [""]
@@ -390,10 +405,12 @@ def timing_section(rep: Report, timing) -> None:
     rep.image("timing/timing.png", "per-stage timing")
 
 
-def reference_section(rep: Report, unet_run, train_run) -> None:
+def reference_section(rep: Report, unet_run, train_run,
+                      title: str = "### Beside the authors' code") -> None:
     """Our U-Net forms beside the authors' PyTorch code (`benchmarks/bench_reference.py`):
-    speed-ups (their wall time / ours, medians of per-round ratios) and errors against theirs."""
-    rep.add("### Beside the authors' code", "")
+    speed-ups (their wall time / ours, medians of per-round ratios) and errors against theirs;
+    the runs' CPU when they recorded it (the fast forms depend on it: `wrinkle_jax.hostcpu`)."""
+    rep.add(title, "")
     if not unet_run and not train_run:
         rep.not_run("the side-by-side runs with the authors' network", "reference_unet")
         return
@@ -419,9 +436,17 @@ def reference_section(rep: Report, unet_run, train_run) -> None:
         rep.add(f"| {form} | {infer} | {cell(err, 'rel_rms', '{:.2%}')} | {step} "
                 f"| {cell(grad, 'all', '{:.2%}')} |")
     loads = [r["timing"]["load_avg_1m"] for r in (u, t) if r and "timing" in r]
+    hosts = {json.dumps(r["host_cpu"], sort_keys=True): r["host_cpu"]
+             for r in (unet_run, train_run) if r and "host_cpu" in r}
+    cpu = "".join(f" CPU: {h['cpu_model']} ({', '.join(h['cpu_flags'])}; bfloat16 dot units: "
+                  f"{'yes' if h['native_bf16_dots'] else 'no'})." for h in hosts.values())
     rep.add("", "Targets (issue 22): inference >= 3x, training step >= 4x, bfloat16 output "
             "error <= 1 %. 1-minute load before/after: "
-            + "; ".join(f"{x['before']}/{x['after']}" for x in loads) + ".", "")
+            + "; ".join(f"{x['before']}/{x['after']}" for x in loads) + "." + cpu, "")
+    runs = [r for r in (unet_run, train_run) if r]
+    for i, run in enumerate(runs):
+        if run.get("context") and all(run is not r for r in runs[:i]):
+            rep.add(run["context"], "")
 
 
 def ceiling_section(rep: Report, run) -> None:
@@ -573,8 +598,9 @@ def machines_section(rep: Report) -> None:
     rep.add("## Commands and machines", "", "| result | command | machine |", "|---|---|---|")
     for name, cmd in rep.commands.items():
         m = rep.machines.get(name)
-        mtext = (f"{m.get('cpu_count')} CPUs, {m.get('platform')}, jax {m.get('jax')}, load "
-                 f"{m.get('load_avg_1min')}" if m else "-")
+        cpu = f"{timing_cpu({'machine': m})}, " if m and m.get("cpu_model") else ""
+        mtext = (f"{m.get('cpu_count')} CPUs, {cpu}{m.get('platform')}, jax {m.get('jax')}, "
+                 f"load {m.get('load_avg_1min')}" if m else "-")
         rep.add(f"| {name} | `{cmd}` | {mtext} |")
     rep.add("", "Regenerate this report: `python -m experiments.report`.", "")
     if rep.missing:
@@ -615,6 +641,10 @@ def build(results: Path) -> Report:
     timing_section(rep, timing)
     reference_section(rep, rep.load("reference_unet", "timing/reference_unet.json"),
                       rep.load("reference_train", "timing/reference_train.json"))
+    avx2 = rep.load("reference_avx2", "timing/reference_s46b_avx2.json")
+    if avx2:
+        reference_section(rep, avx2, avx2, "### Beside the authors' code on a CPU without "
+                                           "bfloat16 dot units")
     ceiling_section(rep, rep.load("ceiling", "timing/ceiling.json"))
     pareto_section(rep, stride)
     machines_section(rep)

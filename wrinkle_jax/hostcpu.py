@@ -25,8 +25,8 @@ import functools
 import os
 import platform
 
-__all__ = ["AUTO", "BF16_ENV", "BF16_FLAGS", "cpu_flags", "cpu_model", "describe", "fast_conv_impl",
-           "native_bf16_dots", "resolve_conv_impl"]
+__all__ = ["AUTO", "BF16_ENV", "BF16_FLAGS", "WINOGRAD_MIN_WIDTH", "cpu_flags", "cpu_model",
+           "describe", "fast_conv_impl", "native_bf16_dots", "resolve_conv_impl"]
 
 # x86 CPU flags (Linux /proc/cpuinfo names) of units that run bfloat16 dots natively.
 BF16_FLAGS = ("avx512_bf16", "amx_bf16")
@@ -79,8 +79,8 @@ def cpu_model(cpuinfo: dict[str, str] | None = None) -> str | None:
 def native_bf16_dots(environ=None, cpuinfo: dict[str, str] | None = None) -> bool:
     """True when the CPU runs bfloat16 dots natively (an x86 flag of `BF16_FLAGS`), or when
     `environ` (default `os.environ`) sets WRINKLE_JAX_BF16=1; WRINKLE_JAX_BF16=0 says False.
-    Unknown CPUs (no flags readable, other architectures) say False: the float32 form is exact
-    and never the emulated slow path."""
+    Unknown CPUs (no flags readable, other architectures) say False: the float32 forms are
+    exact to float32 rounding and never the emulated slow path."""
     environ = os.environ if environ is None else environ
     forced = environ.get(BF16_ENV, "").strip()
     if forced in ("0", "1"):

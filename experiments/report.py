@@ -108,7 +108,7 @@ def headline(rep: Report, t1, t2, timing, temporal, card=None, pg=None, sheet=No
     rows += table2_headline(t2)
     rows += card_headline(card, pg, sheet)
     if timing:
-        cpu = timing_cpu(timing)
+        cpu = cpu_text(timing.get("machine", {}))
         for name, r in timing_ratios(timing):
             rows.append(f"- Timing ({timing['scene']}, {timing['material']}"
                         + (f", {RECIPE_NAMES.get(name, name)}" if name else "")
@@ -342,12 +342,13 @@ def timing_ratios(timing) -> list[tuple[str, dict]]:
     return [(name, s["ratio"]) for name, s in summary["recipes"].items()]
 
 
-def timing_cpu(timing) -> str:
-    """"<model> (<flags>)" of the machine a timing run recorded, or "" (older runs)."""
-    m = timing.get("machine", {})
-    if not m.get("cpu_model"):
+def cpu_text(machine: dict, extra: str = "") -> str:
+    """"<model> (<flags><extra>)" of a recorded machine (`suite.machine_info` or
+    `hostcpu.describe`), or "" where it has no CPU model (runs before session 46)."""
+    if not machine.get("cpu_model"):
         return ""
-    return f"{m['cpu_model']} ({', '.join(m.get('cpu_flags', [])) or 'no recorded flags'})"
+    flags = ", ".join(machine.get("cpu_flags", [])) or "no recorded flags"
+    return f"{machine['cpu_model']} ({flags}{extra})"
 
 
 def timing_section(rep: Report, timing) -> None:
@@ -358,7 +359,7 @@ def timing_section(rep: Report, timing) -> None:
     p = timing["pipeline"]
     summary = timing.get("summary")
     rounds = timing.get("rounds", 1)
-    cpu = timing_cpu(timing)
+    cpu = cpu_text(timing.get("machine", {}))
     rep.add(f"{timing['scene']}, {timing['material']}, {timing['frames']} frames, model width "
             f"{timing.get('model_width')}" + (f", on {cpu}" if cpu else "")
             + "; steady state, compile and setup excluded"
@@ -436,16 +437,18 @@ def reference_section(rep: Report, unet_run, train_run,
         rep.add(f"| {form} | {infer} | {cell(err, 'rel_rms', '{:.2%}')} | {step} "
                 f"| {cell(grad, 'all', '{:.2%}')} |")
     loads = [r["timing"]["load_avg_1m"] for r in (u, t) if r and "timing" in r]
-    hosts = {json.dumps(r["host_cpu"], sort_keys=True): r["host_cpu"]
-             for r in (unet_run, train_run) if r and "host_cpu" in r}
-    cpu = "".join(f" CPU: {h['cpu_model']} ({', '.join(h['cpu_flags'])}; bfloat16 dot units: "
-                  f"{'yes' if h['native_bf16_dots'] else 'no'})." for h in hosts.values())
+    # One run may serve both parts (a file with "unet" and "train"): its CPU and context once.
+    runs = [r for r in (unet_run, train_run) if r]
+    runs = runs[:1] if len(runs) == 2 and runs[0] is runs[1] else runs
+    hosts = dict.fromkeys(
+        cpu_text(h, f"; bfloat16 dot units: {'yes' if h['native_bf16_dots'] else 'no'}")
+        for h in (r["host_cpu"] for r in runs if "host_cpu" in r))
+    cpu = "".join(f" CPU: {text}." for text in hosts)
     rep.add("", "Targets (issue 22): inference >= 3x, training step >= 4x, bfloat16 output "
             "error <= 1 %. 1-minute load before/after: "
             + "; ".join(f"{x['before']}/{x['after']}" for x in loads) + "." + cpu, "")
-    runs = [r for r in (unet_run, train_run) if r]
-    for i, run in enumerate(runs):
-        if run.get("context") and all(run is not r for r in runs[:i]):
+    for run in runs:
+        if run.get("context"):
             rep.add(run["context"], "")
 
 
@@ -598,7 +601,7 @@ def machines_section(rep: Report) -> None:
     rep.add("## Commands and machines", "", "| result | command | machine |", "|---|---|---|")
     for name, cmd in rep.commands.items():
         m = rep.machines.get(name)
-        cpu = f"{timing_cpu({'machine': m})}, " if m and m.get("cpu_model") else ""
+        cpu = f"{cpu_text(m)}, " if m and m.get("cpu_model") else ""
         mtext = (f"{m.get('cpu_count')} CPUs, {cpu}{m.get('platform')}, jax {m.get('jax')}, "
                  f"load {m.get('load_avg_1min')}" if m else "-")
         rep.add(f"| {name} | `{cmd}` | {mtext} |")

@@ -144,7 +144,8 @@ def add_recipe_args(ap: argparse.ArgumentParser) -> None:
                     choices=("auto", "xla", "im2col_f32", "im2col_bf16", "winograd_bf16",
                              "winograd_f32"),
                     help="convolution form of the U-Net and the loss's VGG (auto: im2col_bf16 "
-                         "on CPUs with bfloat16 dot units, else im2col_f32): winograd_bf16 "
+                         "on CPUs with bfloat16 dot units, else im2col_f32, winograd_f32 from "
+                         "width 32): winograd_bf16 "
                          "stepped 1.46x (session 26), 1.06x (session 27) and 1.42x "
                          "(session 28) as fast as the "
                          "recipe's im2col_bf16 in the authors' recipe (bench_reference; "

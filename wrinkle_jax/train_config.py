@@ -34,9 +34,9 @@ class TrainConfig:
       style_layers, content_layer, w_c, w_s, normalize_channels, pool: the loss (see
         `nn.losses.enhancer_loss`).
       conv_impl: convolution form of the U-Net and of the loss's VGG ("auto": this host's fast
-        form, `hostcpu.fast_conv_impl`; "xla", "im2col_f32" (exact), "im2col_bf16" or
-        "winograd_bf16"; see `nn.unet`). Parameters are the same for all forms, so a run may
-        resume with another one.
+        form, `hostcpu.fast_conv_impl`; "xla", "im2col_f32" (exact), "im2col_bf16",
+        "winograd_bf16" or "winograd_f32"; see `nn.unet`). Parameters are the same for all
+        forms, so a run may resume with another one.
       relative_floor: None for the paper's absolute style loss, or the floor of the per-patch
         relative style loss (`nn.losses.enhancer_loss`); the "style" metric is then a ratio.
       relative_log: the log of that ratio instead (the median-seeking form; "style" is then

@@ -255,8 +255,8 @@ class CINUNet(nn.Module):
       norm: the conditional normalization layer factory (called with num_materials).
       dtype: computation dtype of the "xla" convolutions (parameters stay float32).
       conv_impl: "xla", "im2col_bf16" (fast on CPUs with bfloat16 dot units), "im2col_f32",
-        "winograd_bf16" or "auto" (see the module docstring); the parameters are the same for
-        every form.
+        "winograd_bf16", "winograd_f32" or "auto" (see the module docstring); the parameters
+        are the same for every form.
     """
 
     config: UNetConfig = UNetConfig()

@@ -214,7 +214,8 @@ def features(params, images, layers=DEFAULT_LAYERS, pool="avg", dtype=None, conv
         ``"im2col_bf16"`` (patches + bfloat16 dots,
         ~1.5-2x faster forward and backward on AVX512-BF16 CPUs, ~2.5e-3 relative error per
         layer; see :mod:`wrinkle_jax.nn.fastconv`) or ``"winograd_bf16"`` (the wide layers by
-        Winograd transforms, ~1.5x that error; :mod:`wrinkle_jax.nn.winograd`) (static).
+        Winograd transforms, ~1.5x that error; :mod:`wrinkle_jax.nn.winograd`) or
+        ``"winograd_f32"`` (the same in float32) (static).
 
     Returns:
       dict layer name -> (N, H // 2**layer_level(name), W // 2**layer_level(name), C) float32.
